@@ -1,0 +1,27 @@
+# Two commands on a fresh machine with only python3 and make:
+#   make demo   set-up, then the main job on the embedded default scene
+#   make test   set-up, then the whole test suite
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: setup demo test clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "lensfit needs Python >= 3.11; found " + sys.version.split()[0] + ". Set PYTHON=/path/to/python3.11 and retry.")'
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || { echo "could not create a virtual environment with '$(PYTHON) -m venv'; on Debian/Ubuntu install python3-venv"; exit 1; }
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/lensfit dof --focal-length 50 --f-number 2.8 --focus-distance 2000 --sensor full-frame --pixel-pitch 0.006
+
+test: setup
+	$(PY) -m pytest -q
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

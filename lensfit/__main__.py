@@ -1,0 +1,5 @@
+import sys
+
+from lensfit.cli import main
+
+sys.exit(main())

@@ -1,0 +1,83 @@
+"""Argument checks and the float64 scope used by the numerical API.
+
+The public optics functions accept Python scalars, NumPy or JAX arrays. With concrete inputs
+they validate every element and raise :class:`lensfit.errors.InputError` naming the argument;
+inside a caller's ``jax.jit`` trace values are abstract, so the checks are skipped and the
+documented valid range is the caller's responsibility.
+
+Float64 is switched on for the duration of each call only (``jax.enable_x64``), never as a side
+effect of importing the library; a call inside a caller's trace keeps the caller's setting.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable, TypeVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lensfit.errors import InputError
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _is_traced(x: Any) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def float64(fn: F) -> F:
+    """Run ``fn`` with 64-bit JAX types enabled, unless called inside a trace."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if any(_is_traced(a) for a in (*args, *kwargs.values())):
+            return fn(*args, **kwargs)
+        with jax.enable_x64(True):
+            return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def arg(
+    name: str,
+    value: Any,
+    *,
+    positive: bool = False,
+    nonnegative: bool = False,
+    allow_inf: bool = False,
+) -> jax.Array:
+    """Validate a numeric argument and return it as a float64 JAX array.
+
+    Rules checked on concrete values: finite (or +inf where ``allow_inf``), never NaN,
+    and ``> 0`` (``positive``) or ``>= 0`` (``nonnegative``).
+    """
+    if not _is_traced(value):
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(name, value, "a number or an array of numbers") from None
+        if a.size:
+            if np.isnan(a).any():
+                raise InputError(name, float("nan"), "a number (not NaN)")
+            inf_ok = "> 0 (inf allowed)" if positive else ">= 0 (inf allowed)" if nonnegative else "finite or +inf"
+            bad_inf = np.isneginf(a) | (np.isposinf(a) & (not allow_inf))
+            if bad_inf.any():
+                req = inf_ok if allow_inf else ("> 0 and finite" if positive else ">= 0 and finite" if nonnegative else "finite")
+                raise InputError(name, float(a[bad_inf].flat[0]), req)
+            if positive and (a <= 0).any():
+                raise InputError(name, float(a[a <= 0].flat[0]), "> 0" + (" (inf allowed)" if allow_inf else ""))
+            if nonnegative and (a < 0).any():
+                raise InputError(name, float(a[a < 0].flat[0]), ">= 0" + (" (inf allowed)" if allow_inf else ""))
+    return jnp.asarray(value, dtype=jnp.float64 if jax.config.jax_enable_x64 else None)
+
+
+def require(ok: Any, name: str, value: Any, requirement: str, hint: str = "") -> None:
+    """Raise :class:`InputError` where the elementwise condition ``ok`` fails (concrete values only)."""
+    if _is_traced(ok) or _is_traced(value):
+        return
+    ok_np = np.asarray(ok, dtype=bool)
+    if not ok_np.all():
+        v = np.broadcast_to(np.asarray(value, dtype=np.float64), ok_np.shape)
+        raise InputError(name, float(v[~ok_np].flat[0]), requirement, hint)

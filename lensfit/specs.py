@@ -1,0 +1,74 @@
+"""Reading the files people write: TOML/JSON loading and JSON-Schema validation.
+
+Errors are :class:`lensfit.errors.SpecError`: one line naming the file, the field (a dotted
+path such as ``object[2].distance_mm``), the bad value and what is expected.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from lensfit.errors import SpecError
+
+
+def specs_dir() -> Path:
+    """The ``data_specs`` folder (schemas, conventions, sensor formats, scenes, suites)."""
+    try:
+        path = Path(str(resources.files("lensfit.data_specs")))
+        if path.is_dir():
+            return path
+    except ModuleNotFoundError:  # running from a source tree without installation
+        pass
+    return Path(__file__).resolve().parent.parent / "data_specs"
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """Parse a TOML file; unreadable or malformed files raise :class:`SpecError`."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise SpecError(path, "", "file not found") from None
+    except IsADirectoryError:
+        raise SpecError(path, "", "is a folder, expected a TOML file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(path, "", f"not valid TOML ({exc})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(path, "", f"cannot be read ({exc})") from None
+
+
+@functools.cache
+def schema(name: str) -> dict[str, Any]:
+    """A JSON Schema from ``data_specs/schemas/NAME.schema.json``."""
+    return json.loads((specs_dir() / "schemas" / f"{name}.schema.json").read_text())
+
+
+def _field_path(parts) -> str:
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def validate(data: Any, schema_name: str, path: str | Path) -> None:
+    """Validate ``data`` against a schema; the first (most relevant) problem raises SpecError."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(schema(schema_name))
+    error = jsonschema.exceptions.best_match(validator.iter_errors(data))
+    if error is None:
+        return
+    field = _field_path(error.absolute_path)
+    if error.validator == "required":
+        missing = error.message.split("'")[1] if "'" in error.message else error.message
+        raise SpecError(path, _field_path([*error.absolute_path, missing]), "is required but missing")
+    if error.validator == "additionalProperties":
+        raise SpecError(path, field or "(top level)", f"{error.message}; check the spelling against "
+                        f"data_specs/schemas/{schema_name}.schema.json")
+    raise SpecError(path, field or "(top level)", f"got {error.instance!r}: {error.message}")

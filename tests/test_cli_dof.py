@@ -1,0 +1,97 @@
+"""`lensfit dof` against the course formulas, computed here by hand in plain Python."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from lensfit.cli import main
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def course(f, N, C, D):
+    """The course's DOF formulas (CS184 notes), written out independently of lensfit."""
+    near = D * f**2 / (f**2 + N * C * (D - f))
+    den = f**2 - N * C * (D - f)
+    far = D * f**2 / den if den > 0 else math.inf
+    return near, far, f**2 / (N * C) + f
+
+
+def test_issue_example_agrees_with_course(capsys):
+    code, out, _ = run(capsys, "dof", "--focal-length", "50", "--f-number", "8", "--focus-distance", "3000",
+                       "--coc", "0.03", "--json")
+    assert code == 0
+    data = json.loads(out)
+    near, far, H = course(50, 8, 0.03, 3000)
+    assert data["near_limit_mm"] == pytest.approx(near, rel=1e-12)
+    assert data["far_limit_mm"] == pytest.approx(far, rel=1e-12)
+    assert data["depth_of_field_mm"] == pytest.approx(far - near, rel=1e-12)
+    assert data["hyperfocal_distance_mm"] == pytest.approx(H, rel=1e-12)
+    assert data["depth_of_field_approx_mm"] == pytest.approx(2 * 8 * 0.03 * 3000**2 / 50**2, rel=1e-12)
+
+
+def test_beyond_hyperfocal_gives_null_far_limit(capsys):
+    code, out, _ = run(capsys, "dof", "--focal-length", "24", "--f-number", "11", "--focus-distance", "5000",
+                       "--coc", "0.03", "--json")
+    data = json.loads(out)
+    assert code == 0 and data["far_limit_mm"] is None and data["depth_of_field_mm"] is None
+    near, far, H = course(24, 11, 0.03, 5000)
+    assert math.isinf(far) and data["near_limit_mm"] == pytest.approx(near, rel=1e-12)
+
+
+def test_sensor_default_coc_and_pixels(capsys):
+    code, out, _ = run(capsys, "dof", "--focal-length", "50", "--f-number", "2.8", "--focus-distance", "2000",
+                       "--sensor", "full-frame-24mp", "--json")
+    data = json.loads(out)
+    coc = math.hypot(36, 24) / 1500
+    assert code == 0
+    assert data["acceptable_coc_diameter_mm"] == pytest.approx(coc, rel=1e-12)
+    assert data["acceptable_coc_diameter_px"] == pytest.approx(coc / 0.006, rel=1e-12)
+    assert data["near_limit_mm"] == pytest.approx(course(50, 2.8, coc, 2000)[0], rel=1e-12)
+
+
+def test_table_output_is_readable(capsys):
+    code, out, _ = run(capsys, "dof", "--focal-length", "50", "--f-number", "2.8", "--focus-distance", "2000",
+                       "--sensor", "aps-c", "--pixel-pitch", "0.004")
+    assert code == 0
+    for words in ("near limit", "far limit", "hyperfocal", "µm", "px"):
+        assert words in out
+
+
+@pytest.mark.parametrize(
+    "argv, option, value",
+    [
+        (["--focal-length", "-2", "--f-number", "8", "--focus-distance", "3000", "--coc", "0.03"], "--focal-length", "-2"),
+        (["--focal-length", "50", "--f-number", "0", "--focus-distance", "3000", "--coc", "0.03"], "--f-number", "0"),
+        (["--focal-length", "50", "--f-number", "8", "--focus-distance", "40", "--coc", "0.03"], "--focus-distance", "40"),
+        (["--focal-length", "50", "--f-number", "8", "--focus-distance", "3000", "--coc", "-0.03"], "--coc", "-0.03"),
+        (["--focal-length", "50", "--f-number", "8", "--focus-distance", "3000", "--sensor", "potato"], "--sensor",
+         "potato"),
+        (["--focal-length", "50", "--f-number", "nan", "--focus-distance", "3000", "--coc", "0.03"], "--f-number",
+         "nan"),
+    ],
+)
+def test_invalid_input_one_line_naming_option_and_value(capsys, argv, option, value):
+    code, out, err = run(capsys, "dof", *argv)
+    assert code != 0
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1
+    assert option in lines[0] and value in lines[0] and "must be" in lines[0]
+
+
+def test_help_does_not_import_jax():
+    code = ("import sys\nfrom lensfit.cli import main\ntry:\n    main(['dof', '--help'])\n"
+            "except SystemExit:\n    pass\nassert 'jax' not in sys.modules, 'jax imported for --help'\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "--focal-length" in proc.stdout
