@@ -1,4 +1,7 @@
-"""The ``synth`` command line (renderer commands arrive with the renderer)."""
+"""The ``synth`` command line: thin; parses, calls the API, prints.
+
+``synth --help`` answers without importing JAX.
+"""
 
 from __future__ import annotations
 
@@ -7,17 +10,115 @@ import sys
 from typing import Sequence
 
 from lensfit import __version__
+from lensfit.errors import InputError, SpecError
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+
+_OPTIONS = {"method": "--method", "samples_per_pixel": "--spp", "seed": "--seed", "out": "--out",
+            "image_format": "--format", "supersampling": "--supersampling"}
+
+
+def _render_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from lensfit.jaxcache import enable_compilation_cache
+    from synth.render import plan, render
+    from synth.scene import load_scene
+    from synth.stack import check_out_dir, write_stack
+
+    console = Console(stderr=True)
+    scene = load_scene(args.scene)
+    check_out_dir(args.out, args.force)  # refuse before spending time on the render
+    enable_compilation_cache()
+    scene = scene.with_render(method=args.method, samples_per_pixel=args.spp, seed=args.seed,
+                              supersampling=args.supersampling, format=args.format)
+    total_rows = sum(s.camera.height_px for s in scene.shots)
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=console,
+                  disable=not console.is_terminal and not args.progress) as bar:
+        task = bar.add_task(f"rendering {len(scene.shots)} shot(s)", total=total_rows)
+        finished = {}
+
+        def progress(name, done, height):
+            finished[name] = done
+            bar.update(task, completed=sum(finished.values()), description=f"rendering {name}")
+
+        result = render(scene, progress=progress)
+    out = write_stack(result, args.out, force=args.force)
+    methods = ", ".join(sorted({i["method"] for i in result.truth["images"]}))
+    print(f"wrote {len(result.images)} image(s), stack.toml and truth.json to {out} (method: {methods})")
+    return EXIT_OK
+
+
+def _plan_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from synth.render import plan
+    from synth.scene import load_scene
+
+    scene = load_scene(args.scene).with_render(method=args.method, samples_per_pixel=args.spp)
+    plans = plan(scene)
+    r = scene.render
+    table = Table(title=f"{scene.name}: {len(plans)} shot(s), {scene.width_px} x {scene.height_px} px, "
+                        f"effects: {', '.join(r.effects)}")
+    for col in ("shot", "setting", "method", "stages", "work", "est. time"):
+        table.add_column(col)
+    reasons: dict[str, list[str]] = {}
+    for p in plans:
+        table.add_row(p.shot.name, p.shot.setting, p.method + ("" if p.exact else " (NOT exact)"),
+                      " -> ".join(p.stages), p.work, f"{p.estimated_s:.1f} s")
+        reasons.setdefault(p.reason, []).append(p.shot.name)
+    Console().print(table)
+    for reason, names in reasons.items():
+        print(f"{', '.join(names)}: {reason}")
+    print(f"estimated total: {sum(p.estimated_s for p in plans):.1f} s (after compilation)")
+    return EXIT_OK
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="synth", description="Thin-lens renderer whose defocus blur is known exactly.")
+    parser = argparse.ArgumentParser(prog="synth", description="Thin-lens renderer whose defocus blur is known exactly. "
+                                     "All lengths in millimetres.")
     parser.add_argument("--version", action="version", version=f"synth {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    def common(p):
+        p.add_argument("scene", help="scene spec (TOML; schema: data_specs/schemas/scene.schema.json)")
+        p.add_argument("--method", choices=["auto", "raytrace", "convolve"],
+                       help="render method (default: the scene's render.method, else auto)")
+        p.add_argument("--spp", type=int, metavar="N", help="ray-tracing samples per pixel (default: the scene's)")
+
+    r = sub.add_parser("render", help="render a scene into a stack folder",
+                       description="Render SCENE into DIR: images, stack.toml, truth.json, truth maps.")
+    common(r)
+    r.add_argument("--out", required=True, metavar="DIR", help="output stack folder (new or empty)")
+    r.add_argument("--seed", type=int, metavar="N", help="random seed (default: the scene's render.seed)")
+    r.add_argument("--supersampling", type=int, metavar="S", help="convolve: sub-pixels per axis (default 4)")
+    r.add_argument("--format", choices=["png", "tiff", "float-tiff"], help="image files (default png, 16-bit)")
+    r.add_argument("--force", action="store_true", help="replace an existing non-empty DIR")
+    r.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    r.set_defaults(func=_render_command, prog="synth render")
+
+    p = sub.add_parser("plan", help="show the stages, method and estimated cost without rendering")
+    common(p)
+    p.set_defaults(func=_plan_command, prog="synth plan")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    build_parser().parse_args(argv)
-    return 0
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"{args.prog}: error: {exc.describe(_OPTIONS)}", file=sys.stderr)
+        return EXIT_USAGE
+    except SpecError as exc:
+        print(f"{args.prog}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
 
 
 if __name__ == "__main__":

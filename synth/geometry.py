@@ -1,0 +1,126 @@
+"""Thin-lens camera geometry shared by the render methods and the ground truth.
+
+Conventions (``data_specs/CONVENTIONS.md``): camera frame at the lens centre, +z towards the
+scene, +x right, +y down the stored image; pixel centres at integer coordinates; the stored
+image is re-inverted, so the chief ray of pixel (u, v) has direction
+((u - cx) p / s, (v - cy) p / s, 1).
+
+The thin-lens ray in five named steps (as in pbrt's ``ThinLensCamera``):
+
+1. sensor point: pixel sample (u, v) -> (x_s, y_s) = ((u - cx) p, (v - cy) p) on the re-inverted sensor;
+2. lens sample: a point (l_x, l_y) on the aperture disk of diameter A;
+3. point on the plane of focus: the chief ray through the lens centre meets z = D_s at
+   (x_s, y_s) * D_s / s;
+4. the ray from the lens point through that point: direction
+   (x_s / s - l_x / D_s, y_s / s - l_y / D_s, 1), parametrised by its depth z (so ``t = z``);
+5. nearest intersection with the scene's planes.
+
+Written with ``1/D_s`` so that focus at infinity (1/D_s = 0) is exact.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from lensfit import optics
+
+
+def rotation_from_tilt(tilt_deg) -> np.ndarray:
+    """``R_cam_target`` for a target tilted by ``[a, b]`` degrees: R = R_y(b) @ R_x(a).
+
+    An untilted target has its local x, y axes along the camera's x, y and faces the camera.
+    """
+    a, b = np.radians(np.asarray(tilt_deg, dtype=np.float64))
+    Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    return Ry @ Rx
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Pose of a planar target: ``X_cam = R_cam_target @ X_target + t_cam_target`` (mm)."""
+
+    R_cam_target: np.ndarray
+    t_cam_target: np.ndarray
+
+    @classmethod
+    def from_spec(cls, distance_mm: float, tilt_deg, offset_mm) -> "Pose":
+        t = np.array([offset_mm[0], offset_mm[1], distance_mm], dtype=np.float64)
+        return cls(rotation_from_tilt(tilt_deg), t)
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Unit normal of the target plane in camera coordinates (target +z axis)."""
+        return self.R_cam_target[:, 2]
+
+    def to_camera(self, xy_mm: np.ndarray) -> np.ndarray:
+        """Target-plane points (..., 2) in mm -> camera coordinates (..., 3)."""
+        xy = np.asarray(xy_mm, dtype=np.float64)
+        return xy[..., 0:1] * self.R_cam_target[:, 0] + xy[..., 1:2] * self.R_cam_target[:, 1] + self.t_cam_target
+
+    @property
+    def fronto_parallel(self) -> bool:
+        return bool(np.allclose(self.normal, [0.0, 0.0, 1.0], atol=1e-12))
+
+
+@dataclass(frozen=True)
+class ThinLensCamera:
+    """A thin-lens camera with a centred sensor.
+
+    ==========================  ======  =========================================  ===========
+    parameter                   unit    meaning                                    valid range
+    ==========================  ======  =========================================  ===========
+    ``focal_length_mm``         mm      focal length f                             > 0
+    ``f_number``                        f-number N                                 > 0
+    ``focus_distance_mm``       mm      focus distance D_s from the lens plane     > f, or inf
+    ``pixel_pitch_mm``          mm      pixel pitch p                              > 0
+    ``width_px, height_px``     px      image size                                 >= 1
+    ==========================  ======  =========================================  ===========
+    """
+
+    focal_length_mm: float
+    f_number: float
+    focus_distance_mm: float
+    pixel_pitch_mm: float
+    width_px: int
+    height_px: int
+
+    @functools.cached_property
+    def sensor_distance_mm(self) -> float:
+        return float(optics.sensor_distance(self.focal_length_mm, self.focus_distance_mm))
+
+    @functools.cached_property
+    def aperture_diameter_mm(self) -> float:
+        return float(optics.aperture_diameter(self.focal_length_mm, self.f_number))
+
+    @property
+    def inverse_focus_distance(self) -> float:
+        """1/D_s in 1/mm (0 for focus at infinity)."""
+        return 1.0 / self.focus_distance_mm
+
+    @property
+    def focal_length_px(self) -> float:
+        """Pinhole focal length in pixels, s/p (what geometric calibration measures)."""
+        return self.sensor_distance_mm / self.pixel_pitch_mm
+
+    @property
+    def principal_point_px(self) -> tuple[float, float]:
+        return ((self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0)
+
+    def project(self, X_cam: np.ndarray) -> np.ndarray:
+        """Chief-ray projection of camera points (..., 3) to pixel coordinates (..., 2).
+
+        The centre of the blur disk of an out-of-focus point lies here.
+        """
+        X = np.asarray(X_cam, dtype=np.float64)
+        cx, cy = self.principal_point_px
+        k = self.focal_length_px / X[..., 2]
+        return np.stack([cx + k * X[..., 0], cy + k * X[..., 1]], axis=-1)
+
+    def coc_diameter_px(self, depth_mm) -> np.ndarray:
+        """CoC diameter in pixels of points at depth z (mm): ``A s |1/D_s - 1/z| / p``."""
+        c = optics.coc_diameter(self.focal_length_mm, self.f_number, self.focus_distance_mm, depth_mm)
+        return np.asarray(c) / self.pixel_pitch_mm

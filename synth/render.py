@@ -1,0 +1,316 @@
+"""The render pipeline: scene -> per-shot method choice -> stages -> images and ground truth.
+
+``render(scene)`` returns everything in memory (images, per-pixel truth maps, truth.json and
+stack.toml contents); ``synth.stack.write_stack`` writes it. Stages are listed per shot by
+``plan(scene)``: the geometric render (the ``defocus`` effect, by the chosen method) and
+whatever effects the scene lists after it. An effect that is not listed has no stage: it costs
+nothing and changes nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from lensfit import __version__
+from lensfit.errors import InputError
+from synth.convolve import blurred_footprint_px, render_convolve
+from synth.raytrace import render_raytrace
+from synth.scene import Scene, Shot, load_scene
+from synth import textures
+
+METHODS = ("auto", "raytrace", "convolve")
+
+#: Rough throughputs on a 2-core machine, used only for the cost estimates of ``synth plan``.
+RAYTRACE_SAMPLES_PER_S = 30e6
+CONVOLVE_SUBPIXELS_PER_S = 25e6
+
+
+@dataclass(frozen=True)
+class ShotPlan:
+    shot: Shot
+    method: str
+    exact: bool
+    reason: str
+    stages: tuple[str, ...]
+    estimated_s: float
+    work: str
+
+
+def _overlap(a, b) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def convolve_is_exact(shot: Shot) -> tuple[bool, str]:
+    """Whether ``convolve`` renders this shot exactly, and why (or why not)."""
+    tilted = [o.target.id for o in shot.objects if not o.pose.fronto_parallel]
+    if tilted:
+        return False, f"tilted target(s) {', '.join(tilted)}: blur varies across the plane"
+    boxes = [(o.target.id, blurred_footprint_px(o, shot)) for o in shot.objects]
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            if _overlap(boxes[i][1], boxes[j][1]):
+                return False, (f"blurred images of {boxes[i][0]} and {boxes[j][0]} overlap: partial occlusion "
+                               "needs ray tracing")
+    return True, "all targets fronto-parallel, no overlapping blur: convolution with the exact disk PSF is exact"
+
+
+def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[float, str]:
+    cam = shot.camera
+    if method == "raytrace":
+        samples = cam.width_px * cam.height_px * spp
+        return samples / RAYTRACE_SAMPLES_PER_S * max(1, len(shot.objects)) ** 0.5, f"{samples / 1e6:.0f} M lens samples"
+    sub = 0.0
+    for o in shot.objects:
+        u0, v0, u1, v1 = blurred_footprint_px(o, shot)
+        w = max(0.0, min(u1, cam.width_px) - max(u0, 0))
+        h = max(0.0, min(v1, cam.height_px) - max(v0, 0))
+        sub += w * h * supersampling**2
+    return sub / CONVOLVE_SUBPIXELS_PER_S + 0.05, f"{sub / 1e6:.1f} M sub-pixels convolved"
+
+
+def choose_method(shot: Shot, requested: str) -> tuple[str, bool, str]:
+    """(method, exact, reason) for one shot. ``auto`` picks the cheapest exact method."""
+    if requested not in METHODS:
+        raise InputError("method", requested, "one of " + ", ".join(METHODS))
+    exact, why = convolve_is_exact(shot)
+    if requested == "raytrace":
+        return "raytrace", True, "requested; ray tracing is exact for every planar scene"
+    if requested == "convolve":
+        return "convolve", exact, ("requested; " + why) if exact else f"requested although not exact: {why}"
+    if exact:
+        return "convolve", True, "auto: " + why
+    return "raytrace", True, "auto: " + why
+
+
+def plan(scene: Scene) -> list[ShotPlan]:
+    """The stages each shot will run, its method and an estimated cost."""
+    out = []
+    r = scene.render
+    for shot in scene.shots:
+        method, exact, reason = choose_method(shot, r.method)
+        stages = (f"defocus ({method})",) + tuple(e for e in r.effects if e != "defocus") + ("quantise",)
+        seconds, work = _estimate(shot, method, r.samples_per_pixel, r.supersampling)
+        out.append(ShotPlan(shot, method, exact, reason, stages, seconds, work))
+    return out
+
+
+# --------------------------------------------------------------------------- ground truth
+
+
+def chief_ray_depth(shot: Shot) -> np.ndarray:
+    """Depth (mm, float64) of the first surface along each pixel centre's chief ray; inf = background."""
+    cam = shot.camera
+    W, H = cam.width_px, cam.height_px
+    cx, cy = cam.principal_point_px
+    u = (np.arange(W) - cx) / cam.focal_length_px
+    v = (np.arange(H) - cy) / cam.focal_length_px
+    dx, dy = np.meshgrid(u, v)
+    depth = np.full((H, W), np.inf)
+    for obj in shot.objects:
+        R, t = obj.pose.R_cam_target, obj.pose.t_cam_target
+        n = R[:, 2]
+        denom = dx * n[0] + dy * n[1] + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(np.abs(denom) > 1e-15, (t @ n) / denom, np.inf)
+        hit = np.stack([dx * z, dy * z, z], axis=-1) - t
+        x_local, y_local = hit @ R[:, 0], hit @ R[:, 1]
+        w, h = obj.target.size_mm
+        on = (z > 0) & (np.abs(x_local) <= w / 2) & (np.abs(y_local) <= h / 2) & (z < depth)
+        depth = np.where(on, z, depth)
+    return depth
+
+
+def _finite_or_none(x: float):
+    return None if not math.isfinite(x) else float(x)
+
+
+def _target_truth(obj, shot: Shot) -> dict[str, Any]:
+    cam = shot.camera
+    pose = obj.pose
+    w, h = obj.target.size_mm
+    corners = pose.to_camera(np.array([[-w / 2, -h / 2], [w / 2, -h / 2], [w / 2, h / 2], [-w / 2, h / 2]]))
+    edges = []
+    for e in textures.edges(obj.target):
+        pts = np.array([e["start_mm"], [(e["start_mm"][0] + e["end_mm"][0]) / 2, (e["start_mm"][1] + e["end_mm"][1]) / 2],
+                        e["end_mm"]])
+        X = pose.to_camera(pts)
+        px = cam.project(X)
+        inside = bool(np.all((px[[0, 2], 0] >= 0) & (px[[0, 2], 0] <= cam.width_px - 1)
+                             & (px[[0, 2], 1] >= 0) & (px[[0, 2], 1] <= cam.height_px - 1)))
+        edges.append({
+            "id": e["id"], "start_mm": [float(v) for v in e["start_mm"]], "end_mm": [float(v) for v in e["end_mm"]],
+            "start_px": px[0].tolist(), "end_px": px[2].tolist(),
+            "distance_mm": X[:, 2].tolist(),
+            "coc_diameter_px": np.asarray(cam.coc_diameter_px(X[:, 2])).tolist(),
+            "in_image": inside,
+        })
+    entry = {
+        "id": obj.target.id,
+        "kind": obj.target.target,
+        "size_mm": [w, h],
+        "distance_mm": float(pose.t_cam_target[2]),
+        "coc_diameter_px": float(cam.coc_diameter_px(pose.t_cam_target[2])),
+        "pose": {"R_cam_target": pose.R_cam_target.tolist(), "t_cam_target_mm": pose.t_cam_target.tolist()},
+        "corners_px": cam.project(corners).tolist(),
+        "corners_distance_mm": corners[:, 2].tolist(),
+        "edges_sample_points": ["start", "middle", "end"],
+        "edges": edges,
+    }
+    params = {k: (list(v) if isinstance(v, tuple) else v) for k, v in obj.target.params.items() if k != "file"}
+    entry["params"] = params
+    return entry
+
+
+@dataclass
+class RenderResult:
+    """Everything a stack holds, in memory.
+
+    Attributes
+    ----------
+    images : dict of file name -> float32 (H, W) linear radiance (before quantisation)
+    maps : dict of file name -> {"depth_mm": float32 (H, W), "coc_diameter_px": float32 (H, W)}
+    truth : the truth.json object
+    manifest : the stack.toml object (only what a photographer would know)
+    image_format : "png", "tiff" or "float-tiff" (how ``synth.stack.write_stack`` stores images)
+    """
+
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    maps: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    truth: dict[str, Any] = field(default_factory=dict)
+    manifest: dict[str, Any] = field(default_factory=dict)
+    image_format: str = "png"
+
+
+def _shot_seed(seed: int, k: int) -> int:
+    return (seed * 1_000_003 + k * 7_919) % (1 << 32)
+
+
+def image_extension(fmt: str) -> str:
+    return ".png" if fmt == "png" else ".tiff"
+
+
+def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_pixel: int | None = None,
+           seed: int | None = None, supersampling: int | None = None, image_format: str | None = None,
+           progress: Callable[[str, int, int], None] | None = None) -> RenderResult:
+    """Render every shot of a scene; deterministic for a seed.
+
+    Parameters
+    ----------
+    scene : Scene or path to a scene TOML file.
+    method, samples_per_pixel, seed, supersampling, image_format : optional overrides of ``[render]``
+        (``image_format`` overrides ``render.format``: png, tiff or float-tiff).
+    progress : callable(shot_name, done_rows, total_rows), optional; called as rows finish.
+
+    Returns
+    -------
+    RenderResult
+    """
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    if samples_per_pixel is not None and samples_per_pixel < 1:
+        raise InputError("samples_per_pixel", samples_per_pixel, ">= 1")
+    if supersampling is not None and not 1 <= supersampling <= 16:
+        raise InputError("supersampling", supersampling, "between 1 and 16")
+    if seed is not None and seed < 0:
+        raise InputError("seed", seed, ">= 0")
+    if image_format is not None and image_format not in ("png", "tiff", "float-tiff"):
+        raise InputError("image_format", image_format, "one of png, tiff, float-tiff")
+    scene = scene.with_render(method=method, samples_per_pixel=samples_per_pixel, seed=seed,
+                              supersampling=supersampling, format=image_format)
+    r = scene.render
+    result = RenderResult(image_format=r.format)
+    images_truth, settings = [], {}
+    methods_used = set()
+    for k, sp in enumerate(plan(scene)):
+        shot, cam = sp.shot, sp.shot.camera
+        name = shot.name + image_extension(r.format)
+        done = [0]
+
+        def tick(n, _name=shot.name, _h=cam.height_px):
+            done[0] += n
+            if progress is not None:
+                progress(_name, done[0], _h)
+
+        if sp.method == "raytrace":
+            img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, _shot_seed(r.seed, k), tick)
+        else:
+            img = render_convolve(shot, scene.background_value, r.supersampling)
+            tick(cam.height_px)
+        methods_used.add(sp.method)
+        result.images[name] = img
+        depth = chief_ray_depth(shot)
+        coc = np.asarray(cam.coc_diameter_px(depth))
+        map_file = f"truth/{shot.name}_maps.npz"
+        result.maps[map_file] = {"depth_mm": depth.astype(np.float32), "coc_diameter_px": coc.astype(np.float32)}
+        settings.setdefault(shot.setting, {
+            "f_number": cam.f_number,
+            "focus_distance_mm": _finite_or_none(cam.focus_distance_mm),
+            "inverse_focus_distance_per_mm": cam.inverse_focus_distance,
+            "sensor_distance_mm": cam.sensor_distance_mm,
+            "focus_distance_from_sensor_mm": _finite_or_none(cam.focus_distance_mm + cam.sensor_distance_mm),
+            "aperture_diameter_mm": cam.aperture_diameter_mm,
+            "focal_length_px": cam.focal_length_px,
+        })
+        images_truth.append({
+            "file": name, "shot": shot.name, "setting": shot.setting,
+            "method": sp.method, "method_exact": sp.exact, "method_reason": sp.reason,
+            "samples_per_pixel": r.samples_per_pixel if sp.method == "raytrace" else None,
+            "supersampling": r.supersampling if sp.method == "convolve" else None,
+            "seed": _shot_seed(r.seed, k) if sp.method == "raytrace" else None,
+            "stages": list(sp.stages),
+            "maps": map_file,
+            "targets": [_target_truth(o, shot) for o in shot.objects],
+        })
+    cx, cy = scene.shots[0].camera.principal_point_px
+    result.truth = {
+        "scene": scene.name,
+        "focal_length_mm": scene.focal_length_mm,
+        "pixel_pitch_mm": scene.pixel_pitch_mm,
+        "width_px": scene.width_px,
+        "height_px": scene.height_px,
+        "principal_point_px": [cx, cy],
+        "aperture": scene.aperture,
+        "background_value": scene.background_value,
+        "settings": settings,
+        "images": images_truth,
+        "effects": list(r.effects),
+        "method": methods_used.pop() if len(methods_used) == 1 else "mixed",
+        "method_requested": r.method,
+        "samples_per_pixel": r.samples_per_pixel,
+        "supersampling": r.supersampling,
+        "seed": r.seed,
+        "intensity": "linear radiance; 16-bit files hold round(65535 * clip(value, 0, 1))",
+        "conventions": "data_specs/CONVENTIONS.md",
+        "version": __version__,
+    }
+    result.manifest = stack_manifest(scene, [i["file"] for i in images_truth], [i["setting"] for i in images_truth])
+    return result
+
+
+def stack_manifest(scene: Scene, files: list[str], settings: list[str]) -> dict[str, Any]:
+    """stack.toml: the camera's pixel pitch, the targets' printed geometry, images and labels."""
+    targets = []
+    for t in scene.targets:
+        if t.target not in ("charuco", "checkerboard", "slanted-edge"):
+            continue  # not a measurement target: nothing a photographer would list
+        entry: dict[str, Any] = {"id": t.id, "kind": t.target}
+        p = t.params
+        if t.target in ("charuco", "checkerboard"):
+            entry.update(squares=list(p["squares"]), square_mm=p["square_mm"])
+        if t.target == "charuco":
+            entry.update(marker_mm=p["marker_mm"], dictionary=p["dictionary"])
+            if p.get("legacy_pattern"):
+                entry["legacy_pattern"] = True
+        if t.target == "slanted-edge":
+            entry.update(edge_mm=p["edge_mm"])
+        targets.append(entry)
+    return {
+        "camera": {"pixel_pitch_mm": scene.pixel_pitch_mm},
+        "target": targets,
+        "image": [{"file": f, "encoding": "linear", "setting": s} for f, s in zip(files, settings)],
+    }

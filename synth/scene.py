@@ -1,0 +1,277 @@
+"""Scene specs: read, validate, and resolve into shots ready to render.
+
+A scene file (TOML) is validated against ``data_specs/schemas/scene.schema.json``; then the
+checks a schema cannot express (focus beyond the focal length, targets in front of the lens,
+consistent shots, target-specific fields) run here. Every problem is a
+:class:`lensfit.errors.SpecError` naming the file, the field and the bad value.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lensfit.errors import InputError, SpecError
+from lensfit.specs import load_toml, validate
+from synth.geometry import Pose, ThinLensCamera
+
+DEFAULTS = {
+    "effects": ("defocus",),
+    "method": "auto",
+    "samples_per_pixel": 64,
+    "supersampling": 4,
+    "seed": 0,
+    "format": "png",
+    "background": 0.2,
+}
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """A planar object's appearance: what it shows, independent of where it is.
+
+    ``params`` holds the target-specific fields with defaults filled in (squares, square_mm,
+    marker_mm, dictionary, angle_deg, edge_mm, spokes, file, value, dark, light).
+    """
+
+    id: str
+    target: str
+    size_mm: tuple[float, float]
+    params: dict[str, Any] = field(hash=False, compare=False)
+
+
+@dataclass(frozen=True)
+class PlacedObject:
+    target: TargetSpec
+    pose: Pose
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One image of the stack: a lens setting and the objects at their poses."""
+
+    name: str
+    setting: str
+    camera: ThinLensCamera
+    objects: tuple[PlacedObject, ...]
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    effects: tuple[str, ...]
+    method: str
+    samples_per_pixel: int
+    supersampling: int
+    seed: int
+    format: str
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene: shared camera and lens, targets, render settings and shots."""
+
+    path: str
+    name: str
+    pixel_pitch_mm: float
+    width_px: int
+    height_px: int
+    focal_length_mm: float
+    aperture: dict[str, Any] = field(hash=False, compare=False)
+    render: RenderSettings = None  # type: ignore[assignment]
+    background_value: float = 0.2
+    targets: tuple[TargetSpec, ...] = ()
+    shots: tuple[Shot, ...] = ()
+
+    def with_render(self, **changes) -> "Scene":
+        """A copy with render settings replaced (e.g. method, samples_per_pixel, seed)."""
+        return replace(self, render=replace(self.render, **{k: v for k, v in changes.items() if v is not None}))
+
+
+def _distance(value) -> float:
+    return math.inf if value == "inf" else float(value)
+
+
+def _pitch(camera: dict, path) -> float:
+    from lensfit.sensors import sensor_format
+
+    sources = [k for k in ("pixel_pitch_mm", "sensor", "sensor_width_mm") if k in camera]
+    if not sources:
+        raise SpecError(path, "camera", "needs pixel_pitch_mm, sensor (a format name) or sensor_width_mm")
+    if len(sources) > 1:
+        raise SpecError(path, f"camera.{sources[1]}",
+                        f"conflicts with camera.{sources[0]}; give only one way to set the pixel pitch")
+    if "pixel_pitch_mm" in camera:
+        return float(camera["pixel_pitch_mm"])
+    if "sensor_width_mm" in camera:
+        return float(camera["sensor_width_mm"]) / camera["width_px"]
+    try:
+        fmt = sensor_format(camera["sensor"])
+    except InputError as exc:
+        raise SpecError(path, "camera.sensor", f"got {camera['sensor']!r}: unknown format; {exc.hint}") from None
+    return fmt.width_mm / camera["width_px"]
+
+
+def _target(i: int, obj: dict, path, focal_length_mm: float) -> TargetSpec:
+    where = f"object[{i}]"
+    kind = obj["target"]
+    p: dict[str, Any] = {}
+
+    def need(name):
+        if name not in obj:
+            raise SpecError(path, f"{where}.{name}", f"is required for target = {kind!r}")
+        return obj[name]
+
+    size = obj.get("size_mm")
+    if kind in ("charuco", "checkerboard"):
+        squares = tuple(need("squares"))
+        square = float(need("square_mm"))
+        p.update(squares=squares, square_mm=square, dark=obj.get("dark", 0.05), light=obj.get("light", 0.95))
+        pattern = (squares[0] * square, squares[1] * square)
+        if kind == "charuco":
+            marker = float(need("marker_mm"))
+            if marker >= square:
+                raise SpecError(path, f"{where}.marker_mm", f"got {marker:g}: must be < square_mm ({square:g})")
+            p.update(marker_mm=marker, dictionary=obj.get("dictionary", "DICT_5X5_100"),
+                     legacy_pattern=bool(obj.get("legacy_pattern", False)))
+            import cv2
+
+            if not hasattr(cv2.aruco, p["dictionary"]):
+                raise SpecError(path, f"{where}.dictionary", f"got {p['dictionary']!r}: not an OpenCV ArUco dictionary")
+            n_markers = (squares[0] * squares[1]) // 2
+            capacity = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, p["dictionary"])).bytesList.shape[0]
+            if n_markers > capacity:
+                raise SpecError(path, f"{where}.squares", f"got {list(squares)}: needs {n_markers} markers, "
+                                f"{p['dictionary']} has {capacity}; use a larger dictionary")
+        if size is None:
+            size = pattern
+        elif size[0] < pattern[0] - 1e-9 or size[1] < pattern[1] - 1e-9:
+            raise SpecError(path, f"{where}.size_mm", f"got {list(size)}: smaller than the pattern "
+                            f"{pattern[0]:g} x {pattern[1]:g} mm (squares x square_mm)")
+    elif kind == "slanted-edge":
+        size = need("size_mm")
+        p.update(angle_deg=float(obj.get("angle_deg", 5.0)),
+                 edge_mm=float(obj.get("edge_mm", 0.5 * min(size))),
+                 dark=obj.get("dark", 0.05), light=obj.get("light", 0.95))
+        if p["edge_mm"] * (abs(math.cos(math.radians(p["angle_deg"]))) + abs(math.sin(math.radians(p["angle_deg"])))) > min(size):
+            raise SpecError(path, f"{where}.edge_mm", f"got {p['edge_mm']:g}: the rotated square does not fit in size_mm")
+    elif kind == "siemens-star":
+        size = need("size_mm")
+        p.update(spokes=int(obj.get("spokes", 36)), dark=obj.get("dark", 0.05), light=obj.get("light", 0.95))
+    elif kind == "image":
+        size = need("size_mm")
+        file = Path(need("file"))
+        if not file.is_absolute():
+            file = Path(path).parent / file
+        if not file.is_file():
+            raise SpecError(path, f"{where}.file", f"got {obj['file']!r}: no such file (relative to the scene file)")
+        p.update(file=str(file), encoding=obj.get("encoding", "srgb"))
+    elif kind == "uniform":
+        size = need("size_mm")
+        p.update(value=float(obj.get("value", 0.5)))
+    return TargetSpec(id=obj.get("id", f"{kind}-{i}"), target=kind, size_mm=(float(size[0]), float(size[1])), params=p)
+
+
+def _check_in_front(path, where: str, target: TargetSpec, pose: Pose, focal_length_mm: float) -> None:
+    w, h = target.size_mm
+    corners = pose.to_camera(np.array([[-w / 2, -h / 2], [w / 2, -h / 2], [w / 2, h / 2], [-w / 2, h / 2]]))
+    z = corners[:, 2].min()
+    if z <= focal_length_mm:
+        raise SpecError(path, where, f"a corner of {target.id!r} is at depth {z:.4g} mm, not beyond the focal "
+                        f"length ({focal_length_mm:g} mm); move it further away or reduce its tilt")
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene file; resolve its shots.
+
+    Raises
+    ------
+    lensfit.errors.SpecError
+        Naming the file, the field and the bad value.
+    """
+    path = Path(path)
+    data = load_toml(path)
+    return scene_from_dict(data, path)
+
+
+def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene:
+    """Validate a scene given as a dict (as parsed from TOML) and resolve its shots."""
+    validate(data, "scene", path)
+    cam, lens = data["camera"], data["lens"]
+    pitch = _pitch(cam, path)
+    f = float(lens["focal_length_mm"])
+    aperture = lens.get("aperture", "circle")
+    aperture = {"shape": aperture} if isinstance(aperture, str) else dict(aperture)
+    if aperture["shape"] != "circle":
+        raise SpecError(path, "lens.aperture", f"got {aperture['shape']!r}: only 'circle' is rendered so far "
+                        "(polygon and anamorphic apertures come with the aperture effect)")
+    render = data.get("render", {})
+    settings = RenderSettings(
+        effects=tuple(render.get("effects", DEFAULTS["effects"])), method=render.get("method", DEFAULTS["method"]),
+        samples_per_pixel=int(render.get("samples_per_pixel", DEFAULTS["samples_per_pixel"])),
+        supersampling=int(render.get("supersampling", DEFAULTS["supersampling"])),
+        seed=int(render.get("seed", DEFAULTS["seed"])), format=render.get("format", DEFAULTS["format"]))
+
+    targets = [_target(i, o, path, f) for i, o in enumerate(data["object"])]
+    ids = [t.id for t in targets]
+    for i, t in enumerate(targets):
+        if ids.index(t.id) != i:
+            raise SpecError(path, f"object[{i}].id", f"got {t.id!r}: ids must be unique")
+    base_pose = {t.id: o for t, o in zip(targets, data["object"])}
+
+    def focus(value, where):
+        D = _distance(value)
+        if not D > f:
+            raise SpecError(path, where, f"got {value}: the focus distance must be beyond the focal length "
+                            f"({f:g} mm)")
+        return D
+
+    lens_N, lens_D = float(lens["f_number"]), focus(lens["focus_distance_mm"], "lens.focus_distance_mm")
+    shots_spec = data.get("shot") or [{}]
+    shots: list[Shot] = []
+    setting_values: dict[str, tuple[float, float, int]] = {}
+    for k, sh in enumerate(shots_spec):
+        where = f"shot[{k}]"
+        N = float(sh.get("f_number", lens_N))
+        D = focus(sh["focus_distance_mm"], f"{where}.focus_distance_mm") if "focus_distance_mm" in sh else lens_D
+        label = sh.get("setting", "a")
+        if label in setting_values and setting_values[label][:2] != (N, D):
+            first = setting_values[label][2]
+            raise SpecError(path, f"{where}.setting", f"got {label!r}: shot[{first}] has the same setting with "
+                            f"f_number {setting_values[label][0]:g} and focus_distance_mm {setting_values[label][1]:g}; "
+                            "shots sharing a setting label must share f-number and focus distance")
+        setting_values.setdefault(label, (N, D, k))
+        overrides = {}
+        for j, pose in enumerate(sh.get("pose", [])):
+            if pose["id"] not in base_pose:
+                raise SpecError(path, f"{where}.pose[{j}].id", f"got {pose['id']!r}: no object has this id; "
+                                f"valid: {', '.join(ids)}")
+            overrides[pose["id"]] = pose
+        visible = sh.get("objects", ids)
+        for j, oid in enumerate(visible):
+            if oid not in base_pose:
+                raise SpecError(path, f"{where}.objects[{j}]", f"got {oid!r}: no object has this id; valid: {', '.join(ids)}")
+        placed = []
+        for t in targets:
+            if t.id not in visible:
+                continue
+            spec = {**base_pose[t.id], **overrides.get(t.id, {})}
+            pose = Pose.from_spec(float(spec["distance_mm"]), spec.get("tilt_deg", [0.0, 0.0]),
+                                  spec.get("offset_mm", [0.0, 0.0]))
+            fld = f"{where}.pose" if t.id in overrides else f"object[{ids.index(t.id)}]"
+            _check_in_front(path, f"{fld}.distance_mm", t, pose, f)
+            placed.append(PlacedObject(t, pose))
+        camera = ThinLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
+                                width_px=int(cam["width_px"]), height_px=int(cam["height_px"]))
+        shots.append(Shot(name=sh.get("name", f"shot_{k:03d}"), setting=label, camera=camera, objects=tuple(placed)))
+    names = [s.name for s in shots]
+    if len(set(names)) != len(names):
+        raise SpecError(path, "shot", "shot names must be unique")
+    return Scene(path=str(path), name=data.get("name", Path(str(path)).stem), pixel_pitch_mm=pitch,
+                 width_px=int(cam["width_px"]), height_px=int(cam["height_px"]), focal_length_mm=f,
+                 aperture=aperture, render=settings,
+                 background_value=float(data.get("background", {}).get("value", DEFAULTS["background"])),
+                 targets=tuple(targets), shots=tuple(shots))

@@ -1,0 +1,98 @@
+"""Writing a rendered stack folder, all or nothing.
+
+Layout of DIR::
+
+    stack.toml              what a photographer knows (read by lensfit)
+    truth.json              the ground truth (never read by the fit)
+    shot_000.png ...        16-bit linear PNG (or 16-bit TIFF, or float32 TIFF)
+    truth/shot_000_maps.npz per-pixel depth_mm and coc_diameter_px (float32; depth inf = background)
+
+Everything is written into a temporary sibling folder first and renamed into place at the
+end, so an interrupted render never leaves a half-written stack. An existing non-empty DIR is
+replaced only with ``force=True``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from lensfit.errors import InputError
+from synth.render import RenderResult
+
+
+def quantise_16bit(image: np.ndarray) -> np.ndarray:
+    """Linear radiance -> uint16: round(65535 * clip(v, 0, 1))."""
+    return np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
+def _write_image(path: Path, image: np.ndarray, image_format: str) -> None:
+    if image_format == "png":
+        import cv2
+
+        if not cv2.imwrite(str(path), quantise_16bit(image)):
+            raise OSError(f"could not write {path}")
+    else:
+        import tifffile
+
+        data = image.astype(np.float32) if image_format == "float-tiff" else quantise_16bit(image)
+        tifffile.imwrite(path, data, photometric="minisblack")
+
+
+def manifest_toml(manifest: dict) -> str:
+    """stack.toml text: [camera], then one [[target]] and one [[image]] table per entry."""
+    import tomli_w
+
+    text = "# Written by synth: what a photographer knows about this stack (never the answer).\n\n"
+    text += "[camera]\n" + tomli_w.dumps(manifest["camera"])
+    for section in ("target", "image"):
+        for entry in manifest.get(section, []):
+            text += f"\n[[{section}]]\n" + tomli_w.dumps(entry)
+    return text
+
+
+def check_out_dir(out: str | Path, force: bool) -> Path:
+    """Refuse an existing non-empty folder (or a file) unless ``force``."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("out", str(out), "a folder path", "it is an existing file; choose another --out")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise InputError("out", str(out), "an empty or new folder",
+                         "it already holds files; pass --force to replace them")
+    return out
+
+
+def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -> Path:
+    """Write a stack folder atomically; returns its path."""
+    image_format = result.image_format
+
+    out = check_out_dir(out, force)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    tmp.chmod(0o755)
+    try:
+        for name, image in result.images.items():
+            _write_image(tmp / name, image, image_format)
+        (tmp / "truth").mkdir()
+        for name, maps in result.maps.items():
+            np.savez_compressed(tmp / name, **maps)
+        truth = dict(result.truth)
+        truth["image_format"] = {"png": "16-bit linear PNG", "tiff": "16-bit linear TIFF",
+                                 "float-tiff": "float32 linear TIFF"}[image_format]
+        (tmp / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
+        (tmp / "stack.toml").write_text(manifest_toml(result.manifest))
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            out.rename(old / out.name)
+            tmp.rename(out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
