@@ -78,6 +78,45 @@ def _plan_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _bench_command(args: argparse.Namespace) -> int:
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from lensfit.jaxcache import enable_compilation_cache
+    from synth.bench import run_bench
+
+    console = Console(stderr=True)
+    enable_compilation_cache()
+    with console.status("benchmarking") as status:
+        result = run_bench(repeats=args.repeats, include_compile=not args.no_compile,
+                           progress=lambda msg: status.update(f"benchmarking: {msg}"))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    w, h = result["image_px"]
+    table = Table(title=f"raytrace, {w} x {h} px ({result['scene']} {result['flat_shot']}, CoC "
+                        f"{result['coc_diameter_px_flat']:.1f} px), {result['machine']['cores']} cores")
+    for col in ("spp", "seconds", "tilted ChArUco s", "M lens samples/s", "RMS error"):
+        table.add_column(col, justify="right")
+    for r in result["raytrace"]:
+        table.add_row(str(r["samples_per_pixel"]), f"{r['seconds']:.3f}", f"{r['seconds_tilted_charuco']:.3f}",
+                      f"{r['mega_lens_samples_per_s']:.0f}", f"{r['rms_error']:.2e}")
+    Console().print(table)
+    table = Table(title="convolve, same shot")
+    for col in ("sub-pixels", "seconds", "RMS error"):
+        table.add_column(col, justify="right")
+    for r in result["convolve"]:
+        table.add_row(f"{r['supersampling']} x {r['supersampling']}", f"{r['seconds']:.3f}", f"{r['rms_error']:.2e}")
+    Console().print(table)
+    print(result["error_note"])
+    if "compile_cold_s" in result:
+        print(f"compilation: {result['compile_cold_s']:.2f} s cold, {result['compile_cached_s']:.2f} s from the "
+              "persistent cache")
+    return EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="synth", description="Thin-lens renderer whose defocus blur is known exactly. "
                                      "All lengths in millimetres.")
@@ -105,6 +144,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("plan", help="show the stages, method and estimated cost without rendering")
     common(p)
     p.set_defaults(func=_plan_command, prog="synth plan")
+
+    b = sub.add_parser("bench", help="measure render speed and accuracy (error versus seconds)")
+    b.add_argument("--repeats", type=int, default=3, help="timed runs per figure; the best is kept")
+    b.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
+    b.add_argument("--json", action="store_true", help="print JSON")
+    b.set_defaults(func=_bench_command, prog="synth bench")
     return parser
 
 

@@ -44,21 +44,34 @@ def _pcg(v):
     return (word >> jnp.uint32(22)) ^ word
 
 
-def _unit(h):
-    """uint32 hash -> float32 uniform in [0, 1)."""
-    return (h >> jnp.uint32(8)).astype(jnp.float32) * jnp.float32(1.0 / (1 << 24))
+def _unit16(h):
+    """Low 16 bits of a uint32 hash -> float32 uniform in [0, 1), offset to the bin centre."""
+    return ((h & jnp.uint32(0xFFFF)).astype(jnp.float32) + 0.5) * jnp.float32(1.0 / (1 << 16))
+
+
+def _cos_sin_quarter(psi):
+    """cos and sin for |psi| <= pi/4 by their Taylor series (error < 4e-7, below float32 needs here)."""
+    p2 = psi * psi
+    sin = psi * (1.0 + p2 * (-1.0 / 6 + p2 * (1.0 / 120 + p2 * (-1.0 / 5040))))
+    cos = 1.0 + p2 * (-0.5 + p2 * (1.0 / 24 + p2 * (-1.0 / 720 + p2 * (1.0 / 40320))))
+    return cos, sin
 
 
 def concentric_disk(a, b):
-    """Map the unit square to the unit disk, preserving stratification (Shirley & Chiu 1997)."""
+    """Map the unit square to the unit disk, preserving stratification (Shirley & Chiu 1997).
+
+    The angle is ``pi/4 * b/a`` (or ``pi/2 - pi/4 * a/b``), always within a quarter turn of an
+    axis, so cos and sin come from short series instead of general trigonometry.
+    """
     a = 2.0 * a - 1.0
     b = 2.0 * b - 1.0
     use_a = jnp.abs(a) > jnp.abs(b)
-    safe_a = jnp.where(a == 0, 1.0, a)
-    safe_b = jnp.where(b == 0, 1.0, b)
     r = jnp.where(use_a, a, b)
-    phi = jnp.where(use_a, (math.pi / 4) * (b / safe_a), (math.pi / 2) - (math.pi / 4) * (a / safe_b))
-    return r * jnp.cos(phi), r * jnp.sin(phi)
+    safe_r = jnp.where(r == 0, 1.0, r)
+    psi = (math.pi / 4) * jnp.where(use_a, b, a) / safe_r
+    c, s = _cos_sin_quarter(psi)
+    # use_a: phi = psi -> (r cos, r sin); else phi = pi/2 - psi -> (r sin, r cos).
+    return r * jnp.where(use_a, c, s), r * jnp.where(use_a, s, c)
 
 
 def thin_lens_ray(pixel_x, pixel_y, lens_x_mm, lens_y_mm, cam):
@@ -74,11 +87,33 @@ def thin_lens_ray(pixel_x, pixel_y, lens_x_mm, lens_y_mm, cam):
     return dx, dy
 
 
-def _pairing_prime(spp: int) -> int:
-    for p in (7919, 7927, 7933, 7937, 7949):
-        if spp % p:
-            return p
-    return 1
+def _permute(i, key, mask: int):
+    """A pseudo-random permutation of [0, mask] (mask = 2^k - 1), one per key.
+
+    Kensler, "Correlated Multi-Jittered Sampling" (Pixar Technical Memo 13-01, 2013), power-of-two
+    case: every step is a bijection of the low k bits, so the result is a permutation.
+    """
+    u = jnp.uint32
+    m = u(mask)
+    i = i ^ key
+    i = i * u(0xE170893D)
+    i = i ^ (key >> u(16))
+    i = i ^ ((i & m) >> u(4))
+    i = i ^ (key >> u(8))
+    i = i * u(0x0929EB3F)
+    i = i ^ (key >> u(23))
+    i = i ^ ((i & m) >> u(1))
+    i = i * (u(1) | (key >> u(27)))
+    i = i * u(0x6935FA69)
+    i = i ^ ((i & m) >> u(11))
+    i = i * u(0x74DCB303)
+    i = i ^ ((i & m) >> u(2))
+    i = i * u(0x9E501CC3)
+    i = i ^ ((i & m) >> u(2))
+    i = i * u(0xC860A3DF)
+    i = i & m
+    i = i ^ (i >> u(5))
+    return (i + key) & m
 
 
 @partial(jax.jit, static_argnames=("structure", "width", "rows", "spp"))
@@ -92,22 +127,28 @@ def _render_rows(row0, cam, planes, rasters, background, seed, *, structure, wid
     global_pix = pix + row0.astype(jnp.uint32) * jnp.uint32(width)
     key = _pcg(global_pix ^ _pcg(seed.astype(jnp.uint32) + jnp.uint32(0x9E3779B9)))[:, None]
     counter = key ^ (sample[None, :] * jnp.uint32(0x85EBCA6B))
-    h1 = _pcg(counter)
-    h2 = _pcg(h1 ^ jnp.uint32(0x68E31DA4))
-    h3 = _pcg(h2 ^ jnp.uint32(0xB5297A4D))
-    h4 = _pcg(h3 ^ jnp.uint32(0x1B56C4E9))
+    # Two hashes give four 16-bit uniforms: 1/65536 of a stratum is far below any effect here.
+    ha = _pcg(counter)
+    hb = _pcg(ha ^ jnp.uint32(0x68E31DA4))
+    u1, u2 = _unit16(ha), _unit16(ha >> jnp.uint32(16))
+    u3, u4 = _unit16(hb), _unit16(hb >> jnp.uint32(16))
     n = int(math.isqrt(spp))
-    if n * n == spp:  # n x n strata over the pixel; the lens strata paired by a per-pixel permutation
+    if n * n == spp:  # n x n strata over the pixel
         sx = (sample % jnp.uint32(n)).astype(jnp.float32)[None, :]
         sy = (sample // jnp.uint32(n)).astype(jnp.float32)[None, :]
-        jx, jy = (sx + _unit(h1)) / n, (sy + _unit(h2)) / n
-        lens_stratum = (sample[None, :] * jnp.uint32(_pairing_prime(spp)) + (key % jnp.uint32(spp))) % jnp.uint32(spp)
-        lx_u = ((lens_stratum % jnp.uint32(n)).astype(jnp.float32) + _unit(h3)) / n
-        ly_u = ((lens_stratum // jnp.uint32(n)).astype(jnp.float32) + _unit(h4)) / n
+        jx, jy = (sx + u1) / n, (sy + u2) / n
+        if spp & (spp - 1) == 0:
+            # n x n lens strata, paired with the pixel strata by a per-pixel random permutation
+            # (a fixed pairing would correlate pixel and lens positions and add variance).
+            lens_stratum = _permute(sample[None, :], key, spp - 1)
+            lx_u = ((lens_stratum % jnp.uint32(n)).astype(jnp.float32) + u3) / n
+            ly_u = ((lens_stratum // jnp.uint32(n)).astype(jnp.float32) + u4) / n
+        else:
+            lx_u, ly_u = u3, u4
     else:  # 1-D strata
-        jx = (sample.astype(jnp.float32)[None, :] + _unit(h1)) / spp
-        jy = _unit(h2)
-        lx_u, ly_u = _unit(h3), _unit(h4)
+        jx = (sample.astype(jnp.float32)[None, :] + u1) / spp
+        jy = u2
+        lx_u, ly_u = u3, u4
     pixel_x = px_i[:, None] + jx - 0.5
     pixel_y = py_i[:, None] + jy - 0.5
     dxu, dyu = concentric_disk(lx_u, ly_u)

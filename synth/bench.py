@@ -1,0 +1,115 @@
+"""Renderer speed figures (``synth bench``): what accuracy costs in time.
+
+Measured, never asserted in tests. Each figure is the best of ``repeats`` runs after a warm-up
+call (compilation excluded); compilation is reported separately, cold and from JAX's
+persistent cache in a fresh process.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lensfit.specs import specs_dir
+
+
+def _best(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+def _compile_times(scene_path: Path, shot_index: int) -> dict[str, float]:
+    """Seconds of the first raytrace call in a fresh process: cold cache, then warm cache."""
+    code = (
+        "import sys, time\n"
+        "from lensfit.jaxcache import enable_compilation_cache\n"
+        "enable_compilation_cache()\n"
+        "from synth.scene import load_scene\n"
+        "from synth.raytrace import render_raytrace\n"
+        f"shot = load_scene({str(scene_path)!r}).shots[{shot_index}]\n"
+        "t = time.perf_counter(); render_raytrace(shot, 0.3, 64, 0); first = time.perf_counter() - t\n"
+        "t = time.perf_counter(); render_raytrace(shot, 0.3, 64, 0); second = time.perf_counter() - t\n"
+        "print(first - second)\n"
+    )
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "LENSFIT_JAX_CACHE": cache}
+        for label in ("compile_cold_s", "compile_cached_s"):
+            proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+            out[label] = max(0.0, float(proc.stdout.strip().splitlines()[-1]))
+    return out
+
+
+def run_bench(repeats: int = 3, spp_list=(4, 16, 64, 256), include_compile: bool = True,
+              progress=None) -> dict:
+    """Measure the renderer on the demo scene.
+
+    Returns
+    -------
+    dict with ``raytrace`` rows (spp, seconds per 1-MP shot, million lens samples per second,
+    RMS error against a converged reference), ``convolve`` rows (supersampling, seconds, RMS
+    error against the same reference), compile times and the machine description.
+    """
+    from synth.convolve import render_convolve
+    from synth.raytrace import render_raytrace
+    from synth.scene import load_scene
+
+    path = specs_dir() / "scenes" / "demo.toml"
+    scene = load_scene(path)
+    # A fronto-parallel shot (both methods exact) and a tilted one (ray tracing only).
+    flat_index = next(i for i, s in enumerate(scene.shots) if all(o.pose.fronto_parallel for o in s.objects))
+    tilted_index = next(i for i, s in enumerate(scene.shots) if not all(o.pose.fronto_parallel for o in s.objects))
+    flat, tilted = scene.shots[flat_index], scene.shots[tilted_index]
+    bg = scene.background_value
+    pixels = flat.camera.width_px * flat.camera.height_px
+
+    def step(msg):
+        if progress is not None:
+            progress(msg)
+
+    step("reference (convolve, 16 x 16 sub-pixels)")
+    reference = render_convolve(flat, bg, 16).astype(np.float64)
+    rows_rt = []
+    for spp in spp_list:
+        step(f"raytrace {spp} spp")
+        render_raytrace(flat, bg, spp, 0)  # compile
+        seconds = _best(lambda: render_raytrace(flat, bg, spp, 1), repeats)
+        err = float(np.sqrt(np.mean((render_raytrace(flat, bg, spp, 2) - reference) ** 2)))
+        tilted_s = _best(lambda: render_raytrace(tilted, bg, spp, 1), repeats)
+        rows_rt.append({"samples_per_pixel": spp, "seconds": seconds, "seconds_tilted_charuco": tilted_s,
+                        "mega_lens_samples_per_s": pixels * spp / seconds / 1e6,
+                        "rms_error": err})
+    rows_cv = []
+    for ss in (1, 2, 4, 8):
+        step(f"convolve {ss} x {ss}")
+        render_convolve(flat, bg, ss)
+        seconds = _best(lambda: render_convolve(flat, bg, ss), repeats)
+        err = float(np.sqrt(np.mean((render_convolve(flat, bg, ss) - reference) ** 2)))
+        rows_cv.append({"supersampling": ss, "seconds": seconds, "rms_error": err})
+    result = {
+        "scene": str(path.name), "flat_shot": flat.name, "tilted_shot": tilted.name,
+        "image_px": [flat.camera.width_px, flat.camera.height_px],
+        "coc_diameter_px_flat": float(flat.camera.coc_diameter_px(flat.objects[0].pose.t_cam_target[2])),
+        "raytrace": rows_rt, "convolve": rows_cv,
+        "machine": {"cores": os.cpu_count(), "python": sys.version.split()[0]},
+        "error_note": "RMS error of linear intensity (full scale 1) against convolve at 16 x 16 sub-pixels",
+    }
+    if include_compile:
+        step("compile time, cold and cached (fresh processes)")
+        result.update(_compile_times(path, tilted_index))
+    return result
+
+
+if __name__ == "__main__":  # python -m synth.bench
+    print(json.dumps(run_bench(), indent=1))
