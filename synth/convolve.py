@@ -5,10 +5,12 @@ a pure scale (the chief ray, s/z) and spreads every point into the same uniform 
 diameter C(z) = A s |1/D_s - 1/z| centred on its chief-ray point. The image of the plane is
 therefore the scaled texture convolved with that disk, then integrated over each pixel.
 
-Here the texture (and the object's coverage mask) is sampled on a grid of ``S x S``
-sub-pixels per pixel, convolved by FFT with the disk rasterised at the same resolution
-(each kernel cell holds the exact-to-1/64 area of the disk inside it, normalised to unit
-sum), and averaged back over each pixel's S x S sub-pixels (pixel integration). Objects are
+Here the texture (and the object's coverage mask) is averaged over each of ``S x S``
+sub-pixels per pixel (exactly for boards, slanted edges and uniform patches, see
+``synth.area``; by point sampling at sub-pixel centres for Siemens stars and image files),
+convolved by FFT with the disk rasterised at the same resolution (each kernel cell holds the
+area of the disk inside it to 1/64, normalised to unit sum), and averaged back over each
+pixel's S x S sub-pixels (pixel integration). Objects are
 composited back to front: ``I = I (1 - K*a) + K*(a t)``. With a uniform background this is
 exact, because the fraction of the aperture whose rays miss an object is ``K*a`` exactly;
 it is not exact where the blurred footprints of two objects overlap (partial occlusion of a
@@ -30,7 +32,7 @@ import numpy as np
 import scipy.fft
 import scipy.signal
 
-from synth import textures
+from synth import area, textures
 from synth.scene import PlacedObject, Shot
 
 
@@ -98,17 +100,20 @@ def render_convolve(shot: Shot, background: float, supersampling: int) -> np.nda
         b1 = min(int(math.ceil(v1)) + 1, H - 1 + reach_px)
         if a0 > a1 or b0 > b1:
             continue  # entirely outside the view
-        sub = (np.arange(S) + 0.5) / S - 0.5
-        us = (np.arange(a0, a1 + 1)[:, None] + sub[None, :]).ravel()
-        vs = (np.arange(b0, b1 + 1)[:, None] + sub[None, :]).ravel()
         mm_per_px = z / cam.focal_length_px
-        x_mm = (us - cx) * mm_per_px - obj.pose.t_cam_target[0]
-        y_mm = (vs - cy) * mm_per_px - obj.pose.t_cam_target[1]
         tex = textures.texture(obj.target)
-        colour, alpha = _sample_texture(tex.static, jnp.asarray(tex.raster), jnp.asarray(x_mm, jnp.float32),
-                                        jnp.asarray(y_mm, jnp.float32))
-        colour = np.asarray(colour, np.float32)
-        alpha = np.asarray(alpha, np.float32)
+        # Lower edges of the sub-pixels, in target mm.
+        x_lo = (a0 - 0.5 + np.arange((a1 - a0 + 1) * S) / S - cx) * mm_per_px - obj.pose.t_cam_target[0]
+        y_lo = (b0 - 0.5 + np.arange((b1 - b0 + 1) * S) / S - cy) * mm_per_px - obj.pose.t_cam_target[1]
+        side = mm_per_px / S
+        exact = area.area_average(tex.static, tex.raster, x_lo, y_lo, side)
+        if exact is not None:
+            colour, alpha = exact
+        else:  # point-sample at sub-pixel centres (Siemens star, image files)
+            colour, alpha = _sample_texture(tex.static, jnp.asarray(tex.raster),
+                                            jnp.asarray(x_lo + side / 2, jnp.float32),
+                                            jnp.asarray(y_lo + side / 2, jnp.float32))
+        colour, alpha = np.asarray(colour, np.float32), np.asarray(alpha, np.float32)
         if kernel.size > 1:
             # float32 FFTs (errors ~1e-6 of full scale, far below a 16-bit step) on all cores.
             with scipy.fft.set_workers(os.cpu_count() or 1):
