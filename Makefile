@@ -18,7 +18,8 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: setup
-	$(VENV)/bin/lensfit dof --focal-length 50 --f-number 2.8 --focus-distance 2000 --sensor full-frame --pixel-pitch 0.006
+	$(VENV)/bin/lensfit dof --focal-length 25 --f-number 11 --focus-distance 1000 --sensor demo-7.2x4.8
+	$(VENV)/bin/synth render data_specs/scenes/demo.toml --out out/demo --force
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,0 +1,222 @@
+"""Reading an image stack: ``stack.toml`` and its images, as linear float64 intensities.
+
+Formats: PNG and TIFF (8/16-bit integer or float), DNG and camera RAW (through rawpy, decoded
+linearly: no gamma, no auto-brightening, 16-bit, no rotation). Colour images are reduced to
+luminance-weighted grey (Rec. 709 weights) in linear light. sRGB-encoded images are
+linearised when the manifest says ``encoding = "srgb"``.
+
+Every refusal is a :class:`lensfit.errors.SpecError` naming the file (and the manifest field
+where one is involved): unreadable or truncated files, images of inconsistent size, NaN in
+float images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lensfit.errors import SpecError
+from lensfit.specs import load_toml, validate
+
+RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".raw", ".nrw",
+                ".3fr", ".iiq", ".erf", ".kdc", ".mrw", ".x3f"}
+RASTER_SUFFIXES = {".png", ".tif", ".tiff"}
+
+
+@dataclass(frozen=True)
+class ImageEntry:
+    """One image of a stack as the manifest describes it."""
+
+    index: int
+    file: Path
+    encoding: str
+    setting: str
+    distance_mm: float | None = None
+
+
+@dataclass
+class Stack:
+    """A stack folder: manifest fields and image entries; images are read on demand.
+
+    Attributes
+    ----------
+    path : the folder
+    pixel_pitch_mm : from ``camera.pixel_pitch_mm``, or ``sensor_width_mm`` / image width
+    targets : the ``[[target]]`` tables as dicts
+    images : image entries in manifest order
+    shape : (height, width) shared by every image
+    """
+
+    path: Path
+    manifest_path: Path
+    pixel_pitch_mm: float
+    targets: list[dict[str, Any]]
+    images: list[ImageEntry]
+    shape: tuple[int, int]
+    camera: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def settings(self) -> list[str]:
+        """Setting labels in first-seen order."""
+        seen: dict[str, None] = {}
+        for im in self.images:
+            seen.setdefault(im.setting, None)
+        return list(seen)
+
+    def read(self, index: int) -> np.ndarray:
+        """Image ``index`` as linear float64 intensity (H, W), full scale 1."""
+        entry = self.images[index]
+        return read_image(entry.file, entry.encoding)
+
+
+def _srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def _to_grey(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 2:
+        return img
+    if img.ndim == 3 and img.shape[-1] in (3, 4):
+        return img[..., 0] * 0.2126 + img[..., 1] * 0.7152 + img[..., 2] * 0.0722
+    if img.ndim == 3 and img.shape[-1] in (1, 2):
+        return img[..., 0]
+    raise ValueError(f"unsupported image shape {img.shape}")
+
+
+def read_raster(path: Path) -> np.ndarray:
+    """PNG/TIFF -> float64 in full-scale units (integers / max of their type; floats as stored)."""
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            img = tifffile.imread(path)
+        else:
+            import imageio.v3 as iio
+
+            img = iio.imread(path)
+    except FileNotFoundError:
+        raise SpecError(path, "", "file not found") from None
+    except Exception as exc:  # decoders raise many types for corrupt or truncated files
+        raise SpecError(path, "", f"cannot be decoded ({type(exc).__name__}: {exc}); is it truncated?") from None
+    img = np.asarray(img)
+    if img.dtype.kind in "ui":
+        scale = float(np.iinfo(img.dtype).max)
+        out = img.astype(np.float64) / scale
+    elif img.dtype.kind == "f":
+        out = img.astype(np.float64)
+        if np.isnan(out).any():
+            raise SpecError(path, "", f"float image holds {int(np.isnan(out).sum())} NaN pixels; "
+                            "write finite values (e.g. 0 for missing data)")
+        if np.isinf(out).any():
+            raise SpecError(path, "", "float image holds infinite values")
+    else:
+        raise SpecError(path, "", f"unsupported pixel type {img.dtype}")
+    try:
+        return _to_grey(out)
+    except ValueError as exc:
+        raise SpecError(path, "", str(exc)) from None
+
+
+def read_raw(path: Path) -> np.ndarray:
+    """DNG or camera RAW -> linear float64 grey, full scale 1 (rawpy, gamma 1, no auto-brightening)."""
+    import rawpy
+
+    try:
+        with rawpy.imread(str(path)) as raw:
+            rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, user_flip=0,
+                                  use_camera_wb=True, output_color=rawpy.ColorSpace.raw,
+                                  demosaic_algorithm=rawpy.DemosaicAlgorithm.AHD)
+    except FileNotFoundError:
+        raise SpecError(path, "", "file not found") from None
+    except Exception as exc:  # rawpy opens corrupt files and fails only when decoding
+        raise SpecError(path, "", f"cannot be decoded as RAW ({type(exc).__name__}: {exc})") from None
+    return _to_grey(rgb.astype(np.float64) / 65535.0)
+
+
+def read_image(path: str | Path, encoding: str = "linear") -> np.ndarray:
+    """Read one image as linear float64 grey intensity (H, W), full scale 1."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in RAW_SUFFIXES:
+        return read_raw(path)
+    if suffix not in RASTER_SUFFIXES:
+        raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, DNG or a camera RAW file")
+    img = read_raster(path)
+    return _srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(height, width) without decoding the pixels where the format allows."""
+    suffix = path.suffix.lower()
+    if suffix in RAW_SUFFIXES:
+        return read_raw(path).shape
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(path) as tif:
+                shape = tif.pages[0].shape
+        else:
+            import imageio.v3 as iio
+
+            shape = iio.improps(path).shape
+    except FileNotFoundError:
+        raise SpecError(path, "", "file not found") from None
+    except Exception as exc:
+        raise SpecError(path, "", f"cannot be read ({type(exc).__name__}: {exc})") from None
+    return int(shape[0]), int(shape[1])
+
+
+def load_stack(path: str | Path) -> Stack:
+    """Read and validate a stack folder (or its ``stack.toml``); images are checked for
+    existence and a common size, and read later on demand."""
+    path = Path(path)
+    manifest_path = path / "stack.toml" if path.is_dir() else path
+    folder = manifest_path.parent
+    if not manifest_path.exists():
+        raise SpecError(manifest_path, "", "no stack.toml here; a stack folder needs one (see "
+                        "data_specs/schemas/stack.schema.json)")
+    data = load_toml(manifest_path)
+    validate(data, "stack", manifest_path)
+    ids = [t["id"] for t in data.get("target", [])]
+    for i, tid in enumerate(ids):
+        if ids.index(tid) != i:
+            raise SpecError(manifest_path, f"target[{i}].id", f"got {tid!r}: target ids must be unique")
+    for i, t in enumerate(data.get("target", [])):
+        need = {"charuco": ("squares", "square_mm", "marker_mm", "dictionary"),
+                "checkerboard": ("squares", "square_mm"), "slanted-edge": ("edge_mm",)}[t["kind"]]
+        for name in need:
+            if name not in t:
+                raise SpecError(manifest_path, f"target[{i}].{name}", f"is required for kind = {t['kind']!r}")
+    images = []
+    shape = None
+    for i, entry in enumerate(data["image"]):
+        file = folder / entry["file"]
+        if not file.is_file():
+            raise SpecError(manifest_path, f"image[{i}].file", f"got {entry['file']!r}: no such file in {folder}")
+        size = _image_size(file)
+        if shape is None:
+            shape = size
+        elif size != shape:
+            raise SpecError(file, "", f"is {size[1]} x {size[0]} px but {images[0].file.name} is "
+                            f"{shape[1]} x {shape[0]}; every image of a stack must have the same size")
+        images.append(ImageEntry(index=i, file=file, encoding=entry.get("encoding", "linear"),
+                                 setting=entry.get("setting", "a"), distance_mm=entry.get("distance_mm")))
+    cam = data["camera"]
+    if "pixel_pitch_mm" in cam:
+        pitch = float(cam["pixel_pitch_mm"])
+    elif "sensor_width_mm" in cam:
+        pitch = float(cam["sensor_width_mm"]) / shape[1]
+    else:
+        from lensfit.errors import InputError
+        from lensfit.sensors import sensor_format
+
+        try:
+            pitch = sensor_format(cam["sensor"]).width_mm / shape[1]
+        except InputError as exc:
+            raise SpecError(manifest_path, "camera.sensor", f"got {cam['sensor']!r}: unknown; {exc.hint}") from None
+    return Stack(path=folder, manifest_path=manifest_path, pixel_pitch_mm=pitch, targets=list(data.get("target", [])),
+                 images=images, shape=shape, camera=dict(cam))
