@@ -45,11 +45,21 @@ def _overlap(a, b) -> bool:
     return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
+#: Below this CoC diameter (px) the sub-pixel convolution's error near sharp edges exceeds
+#: about 2e-3 of the contrast (tests/test_synth_render.py), so ``auto`` ray traces instead.
+CONVOLVE_MIN_COC_PX = 2.0
+
+
 def convolve_is_exact(shot: Shot) -> tuple[bool, str]:
     """Whether ``convolve`` renders this shot exactly, and why (or why not)."""
     tilted = [o.target.id for o in shot.objects if not o.pose.fronto_parallel]
     if tilted:
         return False, f"tilted target(s) {', '.join(tilted)}: blur varies across the plane"
+    small = [o.target.id for o in shot.objects
+             if float(shot.camera.coc_diameter_px(o.pose.t_cam_target[2])) < CONVOLVE_MIN_COC_PX]
+    if small:
+        return False, (f"target(s) {', '.join(small)} blurred by less than {CONVOLVE_MIN_COC_PX:g} px: sub-pixel "
+                       "convolution is not exact there")
     boxes = [(o.target.id, blurred_footprint_px(o, shot)) for o in shot.objects]
     for i in range(len(boxes)):
         for j in range(i + 1, len(boxes)):

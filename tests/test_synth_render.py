@@ -133,9 +133,10 @@ def disk_esf(t, radius):
     return 0.5 + (x * np.sqrt(1 - x * x) + np.arcsin(x)) / np.pi
 
 
-@pytest.mark.parametrize("method", ["convolve", "raytrace"])
-def test_edge_profile_matches_analytic_disk_esf(method):
-    f, N, D, d, pitch = 50.0, 2.0, 2000.0, 1400.0, 0.006
+@pytest.mark.parametrize("method, N, d", [("convolve", 2.0, 1400.0), ("raytrace", 2.0, 1400.0),
+                                          ("raytrace", 8.0, 1960.0)])  # the last: CoC 0.55 px
+def test_edge_profile_matches_analytic_disk_esf(method, N, d):
+    f, D, pitch = 50.0, 2000.0, 0.006
     c = coc_px(f, N, D, d, pitch)
     s = 1.0 / (1.0 / f - 1.0 / D)
     mm_per_px = pitch * d / s
@@ -193,6 +194,10 @@ def test_auto_method_choice_and_reason():
                           "tilt_deg": [0.0, 30.0]}])
     method, exact, why = choose_method(tilted.shots[0], "auto")
     assert method == "raytrace" and "tilted" in why
+    sharp = make_scene([{"target": "checkerboard", "squares": [4, 4], "square_mm": 5.0, "distance_mm": 1990.0}],
+                       D=2000.0)
+    method, exact, why = choose_method(sharp.shots[0], "auto")
+    assert method == "raytrace" and "less than" in why
     overlapping = make_scene([
         {"id": "back", "target": "checkerboard", "squares": [4, 4], "square_mm": 5.0, "distance_mm": 1000.0},
         {"id": "front", "target": "uniform", "size_mm": [5.0, 5.0], "distance_mm": 700.0}])

@@ -1,0 +1,145 @@
+"""Intrinsics and target poses from detected target points (OpenCV).
+
+For a thin lens, pinhole calibration measures ``focal_length_px = s / p`` (the sensor distance
+over the pixel pitch), because the centre of every blur disk lies on the chief ray through
+the lens centre. The image scale changes with focus (focus breathing), so each lens setting
+gets its own focal length in pixels; the principal point and distortion are shared between
+settings (estimated from all views together, then held fixed per setting).
+
+Planar PnP has a two-fold ambiguity; both IPPE solutions are scored by reprojection error and
+the pose is flagged ``ambiguous`` when the runner-up is nearly as good.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lensfit.errors import InputError
+from lensfit.targets import Detection
+
+MIN_VIEWS = 3
+MIN_POINTS = 6
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    focal_length_px: float
+    principal_point_px: tuple[float, float]
+    distortion: tuple[float, ...]  # OpenCV (k1, k2, p1, p2, k3)
+    rms_px: float
+    views: int
+    source: str  # "calibrated" or "manifest"
+
+    @property
+    def camera_matrix(self) -> np.ndarray:
+        f = self.focal_length_px
+        cx, cy = self.principal_point_px
+        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class TargetPose:
+    """``X_cam = R_cam_target @ X_target + t_cam_target_mm``."""
+
+    R_cam_target: np.ndarray
+    t_cam_target_mm: np.ndarray
+    rms_px: float
+    ambiguous: bool
+
+    def to_camera(self, points_mm: np.ndarray) -> np.ndarray:
+        pts = np.asarray(points_mm, np.float64)
+        if pts.shape[-1] == 2:
+            pts = np.concatenate([pts, np.zeros(pts.shape[:-1] + (1,))], axis=-1)
+        return pts @ self.R_cam_target.T + self.t_cam_target_mm
+
+
+def project(points_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Camera-frame points (N, 3) -> pixels (N, 2) through the calibrated model (with distortion)."""
+    import cv2
+
+    pts = np.asarray(points_cam, np.float64).reshape(-1, 1, 3)
+    out, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), intr.camera_matrix, np.asarray(intr.distortion))
+    return out.reshape(-1, 2)
+
+
+def _usable(dets: list[Detection]) -> list[Detection]:
+    return [d for d in dets if len(d.ids) >= MIN_POINTS]
+
+
+def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, int], *,
+              fix_principal_point: bool = True) -> dict[str, Intrinsics]:
+    """Per-setting focal length in pixels, shared principal point and distortion.
+
+    Parameters
+    ----------
+    detections : setting label -> detections of targets in that setting's images
+    image_shape : (height, width)
+    fix_principal_point : hold the principal point at the image centre (recommended unless many
+        strongly tilted views constrain it)
+
+    Raises
+    ------
+    InputError
+        A setting with fewer than 3 usable views (argument ``setting``), naming the fix.
+    """
+    import cv2
+
+    h, w = image_shape
+    for label, dets in detections.items():
+        if len(_usable(dets)) < MIN_VIEWS:
+            raise InputError("setting", label, f"seen in at least {MIN_VIEWS} images with {MIN_POINTS}+ detected "
+                             "corners", f"only {len(_usable(dets))} usable view(s); add views (some tilted) or give "
+                             "focal_length_px in stack.toml")
+    flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
+    if fix_principal_point:
+        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+    K0 = np.array([[1.0, 0.0, (w - 1) / 2], [0.0, 1.0, (h - 1) / 2], [0.0, 0.0, 1.0]])
+
+    def run(dets, K, dist, extra):
+        obj = [d.object_points_mm.astype(np.float32) for d in _usable(dets)]
+        img = [d.image_points_px.astype(np.float32) for d in _usable(dets)]
+        rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (w, h), K.copy(), dist.copy(), flags=flags | extra,
+                                                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+        return rms, K, dist
+
+    out: dict[str, Intrinsics] = {}
+    if len(detections) == 1:
+        (label, dets), = detections.items()
+        rms, K, dist = run(dets, K0, np.zeros(5), 0)
+        out[label] = Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
+                                float(rms), len(_usable(dets)), "calibrated")
+        return out
+    # Shared principal point and distortion from all views, then each setting's focal length.
+    everything = [d for dets in detections.values() for d in dets]
+    _, K_all, dist_all = run(everything, K0, np.zeros(5), 0)
+    fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
+    for label, dets in detections.items():
+        rms, K, dist = run(dets, K_all, dist_all, fixed)
+        out[label] = Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
+                                float(rms), len(_usable(dets)), "calibrated")
+    return out
+
+
+def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:
+    """Pose of a planar target; None with fewer than 4 points."""
+    import cv2
+
+    if len(det.ids) < 4:
+        return None
+    obj = det.object_points_mm.astype(np.float64).reshape(-1, 1, 3)
+    img = det.image_points_px.astype(np.float64).reshape(-1, 1, 2)
+    K, dist = intr.camera_matrix, np.asarray(intr.distortion)
+    n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if n == 0:
+        return None
+    errs = np.asarray(errs).ravel()
+    order = np.argsort(errs)
+    best = order[0]
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvecs[best].copy(), tvecs[best].copy())
+    R, _ = cv2.Rodrigues(rvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj - img) ** 2, axis=-1))))
+    ambiguous = bool(n > 1 and errs[order[1]] < 1.5 * errs[best] + 0.05)
+    return TargetPose(R, tvec.ravel().astype(np.float64), rms, ambiguous)

@@ -1,0 +1,216 @@
+"""Calibration targets: their printed geometry, detection in images, and their straight edges.
+
+Board frame (OpenCV's): origin at the pattern's top-left corner, x along the columns, y down
+the rows, z = 0 on the board; mm. Detection works on a display-encoded 8-bit copy of the
+linear image (contrast stretched, gamma 1/2.2), which is what OpenCV's detectors are tuned for;
+measurement later uses the linear image.
+
+Kinds (``stack.toml`` ``[[target]] kind``):
+
+- ``charuco``: OpenCV >= 4.7 ``CharucoDetector``; ``legacy_pattern = true`` for boards made
+  before OpenCV 4.6 with an even number of rows.
+- ``checkerboard``: ``cv2.findChessboardCornersSB`` on the inner corners.
+- ``slanted-edge``: a dark square (side ``edge_mm``) on a light ground, found as the largest
+  dark convex quadrilateral.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Corresponding points of one target in one image."""
+
+    target_id: str
+    object_points_mm: np.ndarray  # (N, 3) board frame
+    image_points_px: np.ndarray  # (N, 2)
+    ids: np.ndarray  # (N,) corner ids (board-specific numbering)
+
+
+@dataclass(frozen=True)
+class EdgeSegment:
+    """A straight dark/light boundary on a target, with the clean room on each side.
+
+    ``clear_left_mm``/``clear_right_mm``: distance from the edge, on each side (left = the side
+    of the normal (-dy, dx) of start->end), over which the target is uniform.
+    """
+
+    id: str
+    start_mm: tuple[float, float]
+    end_mm: tuple[float, float]
+    clear_left_mm: float
+    clear_right_mm: float
+    corner_ids: tuple[int, int] = (-1, -1)
+
+
+def display_8bit(linear: np.ndarray) -> np.ndarray:
+    """Linear image -> 8-bit gamma-encoded copy for the detectors."""
+    lo, hi = np.percentile(linear, [0.5, 99.5])
+    v = np.clip((linear - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    return np.round(255.0 * v ** (1 / 2.2)).astype(np.uint8)
+
+
+@dataclass
+class Target:
+    """A target as the manifest describes it."""
+
+    spec: dict[str, Any]
+    _board: Any = field(default=None, repr=False)
+
+    @property
+    def id(self) -> str:
+        return self.spec["id"]
+
+    @property
+    def kind(self) -> str:
+        return self.spec["kind"]
+
+    def charuco_board(self):
+        import cv2
+
+        if self._board is None:
+            d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.spec["dictionary"]))
+            board = cv2.aruco.CharucoBoard(tuple(self.spec["squares"]), float(self.spec["square_mm"]),
+                                           float(self.spec["marker_mm"]), d)
+            if self.spec.get("legacy_pattern"):
+                board.setLegacyPattern(True)
+            self._board = board
+        return self._board
+
+    # ------------------------------------------------------------------ geometry
+
+    def square_is_dark(self) -> np.ndarray:
+        """(rows, cols) boolean: which squares of a board are dark."""
+        nx, ny = self.spec["squares"]
+        if self.kind == "checkerboard":
+            return (np.add.outer(np.arange(ny), np.arange(nx)) % 2) == 0
+        n = 32
+        img = self.charuco_board().generateImage((nx * n, ny * n), marginSize=0, borderBits=1)
+        return img[2::n, 2::n][:ny, :nx] < 128  # a square's own colour shows in its corner
+
+    def inner_corners_mm(self) -> np.ndarray:
+        """(rows-1)*(cols-1) inner corners, row-major (the ids of OpenCV's ChArUco corners)."""
+        nx, ny = self.spec["squares"]
+        sq = float(self.spec["square_mm"])
+        jj, ii = np.mgrid[1:ny, 1:nx]
+        return np.stack([ii.ravel() * sq, jj.ravel() * sq, np.zeros(ii.size)], axis=1)
+
+    def edges(self) -> list[EdgeSegment]:
+        """Straight edges between adjacent inner corners (boards) or the square's sides."""
+        out: list[EdgeSegment] = []
+        if self.kind in ("charuco", "checkerboard"):
+            nx, ny = self.spec["squares"]
+            sq = float(self.spec["square_mm"])
+            dark = self.square_is_dark()
+            # Light squares of a ChArUco board hold a marker: clear room is the white border.
+            light_clear = sq if self.kind == "checkerboard" else 0.5 * (sq - float(self.spec["marker_mm"]))
+            cols = nx - 1
+
+            def clear(r, c):
+                return sq if dark[r, c] else light_clear
+
+            for r in range(1, ny):
+                for c in range(1, nx - 1):  # horizontal: corners (r, c) -> (r, c+1), squares above/below
+                    a = (r - 1) * cols + (c - 1)
+                    # start->end is +x; its left normal (-dy, dx) = +y points to row r (below).
+                    out.append(EdgeSegment(f"h{r}_{c}", (c * sq, r * sq), ((c + 1) * sq, r * sq),
+                                           clear_left_mm=clear(r, c), clear_right_mm=clear(r - 1, c),
+                                           corner_ids=(a, a + 1)))
+            for c in range(1, nx):
+                for r in range(1, ny - 1):  # vertical: corners (r, c) -> (r+1, c), squares left/right
+                    a = (r - 1) * cols + (c - 1)
+                    # start->end is +y; its left normal (-dy, dx) = -x points to column c - 1.
+                    out.append(EdgeSegment(f"v{c}_{r}", (c * sq, r * sq), (c * sq, (r + 1) * sq),
+                                           clear_left_mm=clear(r, c - 1), clear_right_mm=clear(r, c),
+                                           corner_ids=(a, a + cols)))
+        elif self.kind == "slanted-edge":
+            e = float(self.spec["edge_mm"])
+            pts = [(0.0, 0.0), (e, 0.0), (e, e), (0.0, e)]
+            for k, name in enumerate(("top", "right", "bottom", "left")):
+                out.append(EdgeSegment(name, pts[k], pts[(k + 1) % 4], clear_left_mm=0.5 * e,
+                                       clear_right_mm=0.5 * e, corner_ids=(k, (k + 1) % 4)))
+        return out
+
+    # ------------------------------------------------------------------ detection
+
+    def detect(self, linear: np.ndarray) -> Detection | None:
+        """Find the target in a linear image; None when it is not there."""
+        grey = display_8bit(linear)
+        if self.kind == "charuco":
+            return self._detect_charuco(grey)
+        if self.kind == "checkerboard":
+            return self._detect_checkerboard(grey)
+        return self._detect_square(grey)
+
+    def _detect_charuco(self, grey):
+        import cv2
+
+        detector = _charuco_detector(self)
+        corners, ids, _, _ = detector.detectBoard(grey)
+        if ids is None or len(ids) < 4:
+            return None
+        ids = ids.ravel().astype(int)
+        obj = self.inner_corners_mm()[ids]
+        return Detection(self.id, obj, corners.reshape(-1, 2).astype(np.float64), ids)
+
+    def _detect_checkerboard(self, grey):
+        import cv2
+
+        nx, ny = self.spec["squares"]
+        ok, corners = cv2.findChessboardCornersSB(grey, (nx - 1, ny - 1), flags=cv2.CALIB_CB_EXHAUSTIVE
+                                                  | cv2.CALIB_CB_ACCURACY)
+        if not ok:
+            return None
+        ids = np.arange((nx - 1) * (ny - 1))
+        return Detection(self.id, self.inner_corners_mm(), corners.reshape(-1, 2).astype(np.float64), ids)
+
+    def _detect_square(self, grey):
+        import cv2
+
+        _, mask = cv2.threshold(grey, 0, 255, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)
+        contours, _ = cv2.findContours(mask, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        best = None
+        for cnt in contours:
+            area = cv2.contourArea(cnt)
+            if area < 400:
+                continue
+            poly = cv2.approxPolyDP(cnt, 0.02 * cv2.arcLength(cnt, True), True)
+            if len(poly) == 4 and cv2.isContourConvex(poly) and (best is None or area > best[0]):
+                best = (area, poly.reshape(4, 2).astype(np.float64))
+        if best is None:
+            return None
+        quad = best[1]
+        # Order: the corner nearest the top-left first, then clockwise in the image (x right, y down).
+        centre = quad.mean(axis=0)
+        ang = np.arctan2(quad[:, 1] - centre[1], quad[:, 0] - centre[0])
+        quad = quad[np.argsort(ang)]
+        start = int(np.argmin(quad.sum(axis=1)))
+        quad = np.roll(quad, -start, axis=0)
+        # The blurred outline sits half a blur width outside the edge; refine to the edge lines later.
+        e = float(self.spec["edge_mm"])
+        obj = np.array([[0, 0, 0], [e, 0, 0], [e, e, 0], [0, e, 0]], np.float64)
+        return Detection(self.id, obj, quad, np.arange(4))
+
+
+@functools.lru_cache(maxsize=32)
+def _detector_for(dictionary: str, squares: tuple, square_mm: float, marker_mm: float, legacy: bool):
+    import cv2
+
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    board = cv2.aruco.CharucoBoard(squares, square_mm, marker_mm, d)
+    if legacy:
+        board.setLegacyPattern(True)
+    params = cv2.aruco.CharucoParameters()
+    return cv2.aruco.CharucoDetector(board, params)
+
+
+def _charuco_detector(target: Target):
+    s = target.spec
+    return _detector_for(s["dictionary"], tuple(s["squares"]), float(s["square_mm"]), float(s["marker_mm"]),
+                         bool(s.get("legacy_pattern", False)))
