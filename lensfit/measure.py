@@ -140,7 +140,40 @@ def _edge_tasks(target: Target, det: Detection, pose: TargetPose, intr: Intrinsi
     return out
 
 
-def measure(stack: Stack | str | Path, estimator: str = "edge", *,
+def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> Detection:
+    """Corners as the least-squares intersections of the edge lines through them.
+
+    OpenCV's saddle-point corners carry errors of about 0.1 px on sharp or blurred synthetic
+    boards (measured: a 0.4 % focal-length error on a clean stack); the edge lines located by
+    the blur estimator are an order of magnitude more precise. A corner keeps its detected
+    position unless two lines at least 20 degrees apart pass through it.
+    """
+    through: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for seg in target.edges():
+        if seg.id not in lines:
+            continue
+        q0, q1 = (np.asarray(p, float) for p in lines[seg.id])
+        t = q1 - q0
+        t = t / np.linalg.norm(t)
+        for cid in seg.corner_ids:
+            through.setdefault(int(cid), []).append((q0, np.array([-t[1], t[0]])))
+    points = det.image_points_px.copy()
+    for k, cid in enumerate(det.ids):
+        ls = through.get(int(cid), [])
+        if len(ls) < 2:
+            continue
+        normals = np.array([n for _, n in ls])
+        if abs(np.linalg.det(normals.T @ normals)) < np.sin(np.radians(20)) ** 2:
+            continue
+        A = normals.T @ normals
+        b = sum(n * (n @ q) for q, n in ls)
+        x = np.linalg.solve(A, b)
+        if np.linalg.norm(x - points[k]) < 3.0:  # a refinement, never a jump
+            points[k] = x
+    return Detection(det.target_id, det.object_points_mm, points, det.ids)
+
+
+def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
             progress: Callable[[str, int, int], None] | None = None) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
 
@@ -148,6 +181,8 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *,
     ----------
     stack : a :class:`~lensfit.stack.Stack` or the path of a stack folder
     estimator : a name from ``lensfit.estimators.ESTIMATORS``
+    refine : refine the detected corners by intersecting the measured edge lines, then
+        calibrate and solve the poses again (more precise intrinsics and distances)
     progress : callable(stage, done, total), optional
 
     Returns
@@ -159,6 +194,8 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *,
     lensfit.errors.SpecError, lensfit.errors.InputError
         Unreadable or inconsistent input, saturated targets, a setting that cannot be calibrated.
     """
+    from lensfit.estimators import edge as edge_estimator
+
     fn = get_estimator(estimator)
     if not isinstance(stack, Stack):
         stack = load_stack(stack)
@@ -166,7 +203,16 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *,
     if not targets:
         raise SpecError(stack.manifest_path, "target", "no [[target]] tables; describe the calibration targets "
                         "(kind, squares, square_mm, ...) so that they can be found")
+    by_id = {t.id: t for t in targets}
     n = len(stack.images)
+    total = 3 * n if refine else 2 * n
+    step = [0]
+
+    def tick(stage):
+        step[0] += 1
+        if progress:
+            progress(stage, step[0], total)
+
     images: dict[int, np.ndarray] = {}
     detections: dict[int, list[Detection]] = {}
     for i in range(n):
@@ -176,31 +222,62 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *,
         for d in found:
             _check_saturation(stack, i, img, d)
         detections[i] = found
-        if progress:
-            progress("detect", i + 1, n)
+        tick("detect")
     table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape)
     missing = [stack.images[i].file.name for i in range(n) if not detections[i]]
     if missing:
         table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
-    by_setting: dict[str, list[Detection]] = {}
-    for i in range(n):
-        by_setting.setdefault(stack.images[i].setting, []).extend(detections[i])
-    table.intrinsics = calibrate({k: v for k, v in by_setting.items()}, stack.shape)
-    by_id = {t.id: t for t in targets}
-    for i in range(n):
-        entry = stack.images[i]
-        intr = table.intrinsics[entry.setting]
+
+    def calibrate_all():
+        by_setting: dict[str, list[Detection]] = {}
+        for i in range(n):
+            by_setting.setdefault(stack.images[i].setting, []).extend(detections[i])
+        return calibrate(by_setting, stack.shape)
+
+    def tasks_for(i, intrinsics):
+        intr = intrinsics[stack.images[i].setting]
         tasks, meta = [], []
         for det in detections[i]:
             pose = estimate_pose(det, intr)
             if pose is None:
                 continue
-            table.poses[(entry.file.name, det.target_id)] = pose
             for seg, task, z in _edge_tasks(by_id[det.target_id], det, pose, intr):
                 tasks.append(task)
                 meta.append((det.target_id, seg, z, pose))
-        estimates = fn(images[i], tasks) if tasks else []
+        return tasks, meta
+
+    table.intrinsics = calibrate_all()
+    first: dict[int, tuple[list, list, list]] = {}
+    if refine or estimator == "edge":
+        for i in range(n):
+            tasks, meta = tasks_for(i, table.intrinsics)
+            estimates = edge_estimator.measure(images[i], tasks) if tasks else []
+            first[i] = (tasks, meta, estimates)
+            tick("edges")
+    if refine:
+        for i in range(n):
+            tasks, meta, estimates = first[i]
+            refined = []
+            for det in detections[i]:
+                lines = {seg.id: est.line_px for (tid, seg, _, _), est in zip(meta, estimates)
+                         if tid == det.target_id and est.line_px is not None}
+                refined.append(refine_corners(det, by_id[det.target_id], lines))
+            detections[i] = refined
+        table.intrinsics = calibrate_all()
+    for i in range(n):
+        entry = stack.images[i]
+        tasks, meta = tasks_for(i, table.intrinsics)
+        if estimator == "edge" and i in first:
+            # Blur from the first pass (the edge lines are located in the image itself, so the
+            # refined poses move nothing); distances from the refined poses.
+            by_key = {(m[0], m[1].id): e for m, e in zip(first[i][1], first[i][2])}
+            estimates = [by_key.get((m[0], m[1].id)) for m in meta]
+            estimates = [e if e is not None else edge_estimator.measure(images[i], [t])[0]
+                         for e, t in zip(estimates, tasks)]
+        else:
+            estimates = fn(images[i], tasks) if tasks else []
         for (tid, seg, z, pose), task, est in zip(meta, tasks, estimates):
+            table.poses[(entry.file.name, tid)] = pose
             flags = list(est.flags)
             if pose.ambiguous:
                 flags.append("pose_ambiguous")
@@ -215,9 +292,5 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source))
         images.pop(i)
-        if progress:
-            progress("measure", i + 1, n)
+        tick("measure")
     return table
-
-
-

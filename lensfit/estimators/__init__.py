@@ -36,11 +36,15 @@ class EdgeTask:
 
 @dataclass(frozen=True)
 class BlurEstimate:
+    """``line_px``: the edge line as the image shows it (two points), where the estimator
+    locates it; used to refine the target's corners for calibration."""
+
     coc_diameter_px: float | None
     sigma_px: float | None
     flags: tuple[str, ...] = ()
     pixels: int = 0
     rms_residual: float | None = None
+    line_px: tuple[tuple[float, float], tuple[float, float]] | None = None
 
 
 Estimator = Callable[[np.ndarray, list[EdgeTask]], list[BlurEstimate]]

@@ -93,7 +93,8 @@ def _select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: fl
     if keep.sum() < MIN_PIXELS:
         return None
     s, d, v = s[keep], d[keep], image[y0:y1 + 1, x0:x1 + 1][keep].astype(np.float64)
-    d = d - _edge_line(s, d, v)
+    line_a, line_b = _edge_line(s, d, v)
+    d = d - (line_a + line_b * s)
     # Bin the super-sampled profile; the bin's mean distance keeps the binning exact to first order.
     idx = np.floor(d / BIN_PX).astype(int)
     idx -= idx.min()
@@ -109,11 +110,13 @@ def _select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: fl
     # A bin of one pixel has no spread of its own: borrow the median spread of the others.
     spread = np.where(count > 1, spread, np.median(spread[count > 1]) if np.any(count > 1) else 0.0)
     se = np.sqrt((spread + floor) / count)
-    return sum_d / count, mean_v, se, n, L, margin < end_margin, int(count.sum())
+    # The edge line found in the image, before the fitted offset d0: d_pred = a + b s.
+    line = (p0 + line_a * n, p0 + L * t + (line_a + line_b * L) * n)
+    return sum_d / count, mean_v, se, n, L, margin < end_margin, int(count.sum()), line
 
 
-def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Offset of the image's edge from the predicted line, as a linear function of s.
+def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+    """Offset of the image's edge from the predicted line, ``a + b s`` (returns a, b).
 
     In each of a few strips along the edge, the edge sits at the centroid of the profile's
     derivative; a straight line through those centroids corrects small errors of the pose
@@ -139,9 +142,9 @@ def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> np.ndarray:
         centres.append(0.5 * (edges[k] + edges[k + 1]))
         positions.append(float(np.sum(grad * mid) / grad.sum()))
     if len(centres) < 3:
-        return np.zeros_like(s)
+        return 0.0, 0.0
     slope, offset = np.polyfit(centres, positions, 1)
-    return offset + slope * s
+    return float(offset), float(slope)
 
 
 def _model(theta, d, nx, ny):
@@ -245,6 +248,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask]) -> list[BlurEstimate]:
     radius: list[float | None] = [None] * len(tasks)
     flags: list[list[str]] = [[] for _ in tasks]
     npixels = [0] * len(tasks)
+    lines: list = [None] * len(tasks)
     for attempt in range(2):
         batch, index = [], []
         for i, task in enumerate(tasks):
@@ -256,7 +260,8 @@ def measure(image: np.ndarray, tasks: list[EdgeTask]) -> list[BlurEstimate]:
                 results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
                 radius[i] = None
                 continue
-            d, v, se, n, L, short, pixels = sel
+            d, v, se, n, L, short, pixels, line = sel
+            lines[i] = (line, n)
             if attempt == 1:
                 flags[i] = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
                 angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
@@ -288,5 +293,8 @@ def measure(image: np.ndarray, tasks: list[EdgeTask]) -> list[BlurEstimate]:
             contrast = abs(float(theta[3] - theta[2]))
             if contrast < 10 * max(rms, 1e-12) * float(np.median(batch[index.index(i)][2])):
                 f.append("low_contrast")
-            results[i] = BlurEstimate(c, sigma, tuple(f), npixels[i], rms)
+            (q0, q1), n = lines[i]
+            d0 = float(theta[0])
+            line_px = (tuple(float(x) for x in q0 + d0 * n), tuple(float(x) for x in q1 + d0 * n))
+            results[i] = BlurEstimate(c, sigma, tuple(f), npixels[i], rms, line_px)
     return [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
