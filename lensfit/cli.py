@@ -20,6 +20,8 @@ EXIT_OK = 0
 EXIT_USAGE = 2  # bad arguments or input files (argparse uses 2 too)
 
 # Library argument names -> the options a user typed, so that errors name what they wrote.
+_MEASURE_OPTIONS = {"estimator": "--estimator", "setting": "setting"}
+
 _DOF_OPTIONS = {
     "focal_length_mm": "--focal-length",
     "f_number": "--f-number",
@@ -144,6 +146,52 @@ def _dof_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------- measure
+
+
+def _measure_command(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from lensfit.estimators import ESTIMATORS
+    from lensfit.jaxcache import enable_compilation_cache
+    from lensfit.measure import measure
+    from lensfit.stack import load_stack
+
+    if args.estimator not in ESTIMATORS:
+        raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
+    out = Path(args.out)
+    if out.suffix.lower() not in (".csv", ".json"):
+        raise CliError(f"--out must end in .csv or .json, got {args.out!r}")
+    if out.exists() and not args.force:
+        raise CliError(f"--out {args.out} already exists; pass --force to replace it")
+    stack = load_stack(args.stack)
+    enable_compilation_cache()
+    console = Console(stderr=True)
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TimeElapsedColumn(), console=console,
+                  disable=not console.is_terminal and not args.progress) as bar:
+        task = bar.add_task("measuring", total=None)
+
+        def progress(stage, done, total):
+            bar.update(task, description=stage, completed=done, total=total)
+
+        table = measure(stack, args.estimator, progress=progress)
+    tmp = out.with_name(f".{out.name}.partial")
+    table.write(tmp)
+    tmp.replace(out)
+    valid = table.valid()
+    for w in table.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    intr = ", ".join(f"{k}: {v.focal_length_px:.2f} px ({v.views} views, rms {v.rms_px:.3f} px)"
+                     for k, v in table.intrinsics.items())
+    print(f"{len(valid)} of {len(table)} edges measured in {len(stack.images)} images with '{args.estimator}'; "
+          f"focal length in px per setting: {intr}; wrote {out}")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -181,6 +229,18 @@ def build_parser() -> argparse.ArgumentParser:
                      help="pixel pitch, mm, to express the CoC in pixels (default: from --sensor when known)")
     dof.add_argument("--json", action="store_true", help="print a JSON object instead of a table")
     dof.set_defaults(func=_dof_command, prog="lensfit dof")
+
+    m = sub.add_parser(
+        "measure", help="measure blur diameter versus distance on the targets of an image stack",
+        description="Detect the targets of STACK (a folder with stack.toml), calibrate, solve poses and "
+                    "measure the blur-disk diameter on every target edge.")
+    m.add_argument("stack", help="stack folder (or its stack.toml)")
+    m.add_argument("--out", required=True, metavar="FILE", help="samples file: .csv or .json")
+    m.add_argument("--estimator", default="edge", metavar="NAME",
+                   help="blur estimator: edge (fast) or target (analysis by synthesis)")
+    m.add_argument("--force", action="store_true", help="replace an existing --out file")
+    m.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    m.set_defaults(func=_measure_command, prog="lensfit measure")
     return parser
 
 
@@ -192,7 +252,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CliError as exc:
         print(f"{args.prog}: error: {exc}", file=sys.stderr)
         return exc.code
-    except (InputError, SpecError) as exc:  # input errors the command did not map itself
+    except InputError as exc:  # input errors the command did not map itself
+        print(f"{args.prog}: error: {exc.describe(_MEASURE_OPTIONS)}", file=sys.stderr)
+        return EXIT_USAGE
+    except SpecError as exc:
         print(f"{args.prog}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
 

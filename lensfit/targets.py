@@ -1,9 +1,9 @@
 """Calibration targets: their printed geometry, detection in images, and their straight edges.
 
 Board frame (OpenCV's): origin at the pattern's top-left corner, x along the columns, y down
-the rows, z = 0 on the board; mm. Detection works on a display-encoded 8-bit copy of the
-linear image (contrast stretched, gamma 1/2.2), which is what OpenCV's detectors are tuned for;
-measurement later uses the linear image.
+the rows, z = 0 on the board; mm. Detection works on 8-bit copies of the linear image (what
+OpenCV's detectors take); measurement later uses the linear image itself, and the detected
+corners are refined from the measured edge lines (``lensfit.measure.refine_corners``).
 
 Kinds (``stack.toml`` ``[[target]] kind``):
 
@@ -49,11 +49,11 @@ class EdgeSegment:
     corner_ids: tuple[int, int] = (-1, -1)
 
 
-def display_8bit(linear: np.ndarray) -> np.ndarray:
-    """Linear image -> 8-bit gamma-encoded copy for the detectors."""
-    lo, hi = np.percentile(linear, [0.5, 99.5])
-    v = np.clip((linear - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
-    return np.round(255.0 * v ** (1 / 2.2)).astype(np.uint8)
+def display_8bit(linear: np.ndarray, gamma: float = 1.0) -> np.ndarray:
+    """Linear image -> 8-bit copy for the detectors (scaled to its 99.9th percentile)."""
+    hi = max(float(np.percentile(linear, 99.9)), 1e-12)
+    v = np.clip(linear / hi, 0.0, 1.0)
+    return np.round(255.0 * v ** (1 / gamma)).astype(np.uint8)
 
 
 @dataclass
@@ -140,13 +140,24 @@ class Target:
     # ------------------------------------------------------------------ detection
 
     def detect(self, linear: np.ndarray) -> Detection | None:
-        """Find the target in a linear image; None when it is not there."""
-        grey = display_8bit(linear)
-        if self.kind == "charuco":
-            return self._detect_charuco(grey)
-        if self.kind == "checkerboard":
-            return self._detect_checkerboard(grey)
-        return self._detect_square(grey)
+        """Find the target in a linear image; None when it is not there.
+
+        The detectors run on 8-bit copies, linear and gamma-encoded (2.2); the one that finds
+        the most corners wins (ArUco's adaptive threshold prefers linear contrast on blurred
+        markers, dark scenes are better served by the gamma copy).
+        """
+        best = None
+        for gamma in (1.0, 2.2):
+            grey = display_8bit(linear, gamma)
+            if self.kind == "charuco":
+                found = self._detect_charuco(grey)
+            elif self.kind == "checkerboard":
+                found = self._detect_checkerboard(grey)
+            else:
+                found = self._detect_square(grey)
+            if found is not None and (best is None or len(found.ids) > len(best.ids)):
+                best = found
+        return best
 
     def _detect_charuco(self, grey):
         import cv2

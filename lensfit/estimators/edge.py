@@ -49,8 +49,8 @@ from lensfit.psf import pixel_edge_profile
 MODEL_FLOOR_REL = 0.003
 MODEL_FLOOR_PX = 0.02
 MIN_PIXELS = 24
-RADIUS_GRID = np.geomspace(0.05, 200.0, 48)
-OFFSET_GRID = np.linspace(-1.5, 1.5, 7)
+RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
+OFFSET_GRID = np.linspace(-0.8, 0.8, 3)
 BATCH = 16
 QUANTISATION_VARIANCE = (1.0 / 65535.0) ** 2 / 12.0
 MODEL_FLOOR_INTENSITY = 3e-4
@@ -59,8 +59,8 @@ SUB_PIXEL_SIGMA_PX = 0.2
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
 
 
-BIN_PX = 1.0 / 8.0  # super-sampling of the edge profile (ISO 12233 uses 1/4 px bins)
-STRIPS = 8
+BIN_PX = 1.0 / 8.0  # super-sampling of the edge profile (ISO 12233 uses 1/4 px)
+STRIPS = 2
 
 
 def _select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: float):
@@ -68,7 +68,7 @@ def _select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: fl
     with the line re-fitted to the image and the profile binned.
 
     Returns (d, v, se, normal, length, shortened, pixels) or None: ``d`` the mean normal distance
-    and ``v`` the mean value of the pixels in each 1/8 px bin, ``se`` the standard error of that
+    and ``v`` the mean value of the pixels in each 1/8 px bin (per strip along the edge), ``se`` the standard error of that
     mean from the spread within the bin (noise is often heteroscedastic: a render is noisy only
     where the blur mixes two levels, a sensor more where it is bright), floored by the model
     error and quantisation.
@@ -95,24 +95,35 @@ def _select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: fl
     s, d, v = s[keep], d[keep], image[y0:y1 + 1, x0:x1 + 1][keep].astype(np.float64)
     line_a, line_b = _edge_line(s, d, v)
     d = d - (line_a + line_b * s)
-    # Bin the super-sampled profile; the bin's mean distance keeps the binning exact to first order.
+    # Bin the super-sampled profile in strips along the edge (so that the fit can still turn
+    # the line); the bin's mean position keeps the binning exact to first order.
+    s_rel = s - 0.5 * L
+    strip = np.clip(np.floor((s - s.min()) / max(np.ptp(s), 1e-9) * STRIPS), 0, STRIPS - 1).astype(int)
     idx = np.floor(d / BIN_PX).astype(int)
-    idx -= idx.min()
+    idx = (idx - idx.min()) * STRIPS + strip
     count = np.bincount(idx)
     used = count > 0
     sum_d = np.bincount(idx, weights=d)[used]
+    sum_s = np.bincount(idx, weights=s_rel)[used]
     sum_v = np.bincount(idx, weights=v)[used]
     sum_v2 = np.bincount(idx, weights=v * v)[used]
     count = count[used].astype(np.float64)
     mean_v = sum_v / count
-    spread = np.maximum(sum_v2 - count * mean_v**2, 0.0) / np.maximum(count - 1.0, 1.0)
+    # Noise variance pooled over 1 px bands across the edge (noise is often heteroscedastic: a
+    # render is noisy only where the blur mixes two levels, a sensor more where it is bright);
+    # per-bin spreads of a few pixels would make noisy weights and bias the fit.
+    sq_dev = np.maximum(sum_v2 - count * mean_v**2, 0.0)
+    band = np.floor((sum_d / count) / 1.0).astype(int)
+    band -= band.min()
+    dof = np.bincount(band, weights=count - 1.0)
+    pooled = np.bincount(band, weights=sq_dev) / np.maximum(dof, 1.0)
+    overall = sq_dev.sum() / max((count - 1.0).sum(), 1.0)
+    spread = np.where(dof[band] >= 3, pooled[band], overall)
     floor = (MODEL_FLOOR_INTENSITY * (np.percentile(v, 95) - np.percentile(v, 5))) ** 2 + QUANTISATION_VARIANCE
-    # A bin of one pixel has no spread of its own: borrow the median spread of the others.
-    spread = np.where(count > 1, spread, np.median(spread[count > 1]) if np.any(count > 1) else 0.0)
     se = np.sqrt((spread + floor) / count)
     # The edge line found in the image, before the fitted offset d0: d_pred = a + b s.
     line = (p0 + line_a * n, p0 + L * t + (line_a + line_b * L) * n)
-    return sum_d / count, mean_v, se, n, L, margin < end_margin, int(count.sum()), line
+    return sum_d / count, sum_s / count, mean_v, se, n, L, margin < end_margin, int(count.sum()), line
 
 
 def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, float]:
@@ -147,19 +158,21 @@ def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, floa
     return float(offset), float(slope)
 
 
-def _model(theta, d, nx, ny):
-    # theta = (d0, rho = R^2, lo, hi): the squared radius keeps the model smooth and
-    # well-conditioned as the blur vanishes (the profile depends on R only to second order there).
-    d0, rho, lo, hi = theta[0], theta[1], theta[2], theta[3]
-    return lo + (hi - lo) * pixel_edge_profile(d - d0, jnp.sqrt(jnp.abs(rho) + 1e-12), nx, ny)
+def _model(theta, d, s, nx, ny):
+    # theta = (d0, rho = R^2, lo, hi, turn): the squared radius keeps the model smooth and
+    # well-conditioned as the blur vanishes (the profile depends on R only to second order
+    # there); `turn` rotates the edge line (radians) about the window's middle, so that the
+    # line's own uncertainty is part of the covariance.
+    d0, rho, lo, hi, turn = theta[0], theta[1], theta[2], theta[3], theta[4]
+    return lo + (hi - lo) * pixel_edge_profile(d - d0 - turn * s, jnp.sqrt(jnp.abs(rho) + 1e-12), nx, ny)
 
 
 def _residuals(theta, args):
-    d, v, w, nx, ny = args  # w = 1 / standard error of the bin mean; 0 for padding
-    return w * (v - _model(theta, d, nx, ny))
+    d, s, v, w, nx, ny = args  # w = 1 / standard error of the bin mean; 0 for padding
+    return w * (v - _model(theta, d, s, nx, ny))
 
 
-def _grid_start(d, v, w, nx, ny):
+def _grid_start(d, s, v, w, nx, ny):
     """Best (offset, radius) on a grid, with the two levels solved by weighted linear least squares."""
     radii, offsets = np.meshgrid(RADIUS_GRID, OFFSET_GRID)
     radii, offsets = jnp.asarray(radii.ravel()), jnp.asarray(offsets.ravel())
@@ -173,32 +186,33 @@ def _grid_start(d, v, w, nx, ny):
 
     costs, coefs = jax.vmap(rss)(radii, offsets)
     k = jnp.argmin(costs)
-    return jnp.stack([offsets[k], radii[k] ** 2, coefs[k][0], coefs[k][1]])
+    return jnp.stack([offsets[k], radii[k] ** 2, coefs[k][0], coefs[k][1], 0.0])
 
 
 @partial(jax.jit)
-def _fit_batch(d, v, w, nx, ny):
+def _fit_batch(d, s, v, w, nx, ny):
     import optimistix as optx
 
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
 
-    def one(d, v, w, nx, ny):
-        y0 = _grid_start(d, v, w, nx, ny)
-        sol = optx.least_squares(_residuals, solver, y0, args=(d, v, w, nx, ny), max_steps=100, throw=False)
+    def one(d, s, v, w, nx, ny):
+        args = (d, s, v, w, nx, ny)
+        y0 = _grid_start(*args)
+        sol = optx.least_squares(_residuals, solver, y0, args=args, max_steps=100, throw=False)
         theta = sol.value
-        J = jax.jacfwd(_residuals)(theta, (d, v, w, nx, ny))
-        r = _residuals(theta, (d, v, w, nx, ny))
+        J = jax.jacfwd(_residuals)(theta, args)
+        r = _residuals(theta, args)
         n_eff = jnp.sum(w > 0)  # bins
         # Residuals are in units of each bin's own standard error; a reduced chi-square above 1
         # (model misfit) inflates the covariance, one below 1 does not shrink it.
-        chi2 = jnp.maximum(jnp.sum(r * r) / jnp.maximum(n_eff - 4, 1), 1.0)
+        chi2 = jnp.maximum(jnp.sum(r * r) / jnp.maximum(n_eff - 5, 1), 1.0)
         JTJ = J.T @ J
         cov = chi2 * jnp.linalg.pinv(JTJ, rtol=1e-14)
-        s2 = jnp.sum(r * r) / jnp.maximum(n_eff - 4, 1)
+        s2 = jnp.sum(r * r) / jnp.maximum(n_eff - 5, 1)
         ok = sol.result == optx.RESULTS.successful
         return theta, cov, jnp.sqrt(s2), ok
 
-    return jax.vmap(one)(d, v, w, nx, ny)
+    return jax.vmap(one)(d, s, v, w, nx, ny)
 
 
 def _bucket(n: int, minimum: int) -> int:
@@ -206,24 +220,25 @@ def _bucket(n: int, minimum: int) -> int:
 
 
 def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]):
-    """Fit a list of (d, values, counts, normal); returns theta, cov, rms, ok per item (numpy)."""
+    """Fit a list of (d, s, values, standard errors, normal); returns theta, cov, rms, ok per item."""
     if not samples:
         return []
     npix = _bucket(max(len(s[0]) for s in samples), 128)
     nbatch = BATCH * math.ceil(len(samples) / BATCH)
     D = np.tile(np.linspace(-4.0, 4.0, npix), (nbatch, 1))  # padding rows: a harmless dummy problem
     V = np.zeros((nbatch, npix))
+    S = np.zeros((nbatch, npix))
     W = np.zeros((nbatch, npix))
     NX = np.ones(nbatch)
     NY = np.zeros(nbatch)
-    for i, (d, v, se, n) in enumerate(samples):
-        D[i, :len(d)], V[i, :len(d)], W[i, :len(d)] = d, v, 1.0 / se
+    for i, (d, s_along, v, se, n) in enumerate(samples):
+        D[i, :len(d)], S[i, :len(d)], V[i, :len(d)], W[i, :len(d)] = d, s_along, v, 1.0 / se
         NX[i], NY[i] = n
     parts = []
     with jax.enable_x64(True):
         for k in range(0, nbatch, BATCH):  # fixed batch shape: one compilation per pixel bucket
             sl = slice(k, k + BATCH)
-            parts.append([np.asarray(x) for x in _fit_batch(jnp.asarray(D[sl]), jnp.asarray(V[sl]),
+            parts.append([np.asarray(x) for x in _fit_batch(jnp.asarray(D[sl]), jnp.asarray(S[sl]), jnp.asarray(V[sl]),
                                                             jnp.asarray(W[sl]), jnp.asarray(NX[sl]),
                                                             jnp.asarray(NY[sl]))])
     theta, cov, rms, ok = (np.concatenate([p[j] for p in parts]) for j in range(4))
@@ -260,14 +275,14 @@ def measure(image: np.ndarray, tasks: list[EdgeTask]) -> list[BlurEstimate]:
                 results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
                 radius[i] = None
                 continue
-            d, v, se, n, L, short, pixels, line = sel
+            d, s_along, v, se, n, L, short, pixels, line = sel
             lines[i] = (line, n)
             if attempt == 1:
                 flags[i] = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
                 angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
                 if min(angle, 90.0 - angle) < AXIS_ALIGNED_DEG:
                     flags[i].append("axis_aligned")
-            batch.append((d, v, se, n))
+            batch.append((d, s_along, v, se, n))
             npixels[i] = pixels
             index.append(i)
         for i, (theta, cov, rms, ok) in zip(index, _fit(batch)):
@@ -291,10 +306,12 @@ def measure(image: np.ndarray, tasks: list[EdgeTask]) -> list[BlurEstimate]:
                 sigma = max(sigma, SUB_PIXEL_SIGMA_PX)
                 f.append("sub_pixel_blur")
             contrast = abs(float(theta[3] - theta[2]))
-            if contrast < 10 * max(rms, 1e-12) * float(np.median(batch[index.index(i)][2])):
+            if contrast < 10 * max(rms, 1e-12) * float(np.median(batch[index.index(i)][3])):
                 f.append("low_contrast")
             (q0, q1), n = lines[i]
-            d0 = float(theta[0])
-            line_px = (tuple(float(x) for x in q0 + d0 * n), tuple(float(x) for x in q1 + d0 * n))
+            d0, turn = float(theta[0]), float(theta[4])
+            half_len = 0.5 * float(np.linalg.norm(q1 - q0))
+            line_px = (tuple(float(x) for x in q0 + (d0 - turn * half_len) * n),
+                       tuple(float(x) for x in q1 + (d0 + turn * half_len) * n))
             results[i] = BlurEstimate(c, sigma, tuple(f), npixels[i], rms, line_px)
     return [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
