@@ -1,0 +1,264 @@
+"""Blur measurement against independent references: brute-force integration of the disk ESF,
+renders whose CoC comes from the thin-lens formula, Monte-Carlo coverage of the stated sigma."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lensfit.errors import InputError, SpecError
+from lensfit.estimators import EdgeTask, get_estimator
+from lensfit.estimators import edge as edge_estimator
+from lensfit.psf import pixel_edge_profile
+from lensfit.stack import load_stack, read_image
+from synth.render import render
+from synth.scene import scene_from_dict
+from synth.stack import write_stack
+
+
+def brute_force_profile(d, radius, nx, ny, n=300):
+    """Pixel average of the disk ESF by n x n sub-samples (independent of lensfit.psf)."""
+    q = (np.arange(n) + 0.5) / n - 0.5
+    t = (q[:, None] * nx + q[None, :] * ny).ravel()
+    out = []
+    for di in np.atleast_1d(d):
+        x = np.clip((di + t) / max(radius, 1e-12), -1, 1)
+        out.append(np.mean(0.5 + (x * np.sqrt(1 - x * x) + np.arcsin(x)) / np.pi))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("radius", [0.05, 0.4, 1.0, 7.0])
+@pytest.mark.parametrize("angle_deg", [0.0, 3.0, 30.0, 45.0, 100.0])
+def test_pixel_edge_profile_is_the_exact_pixel_average(radius, angle_deg):
+    a = math.radians(angle_deg)
+    d = np.linspace(-radius - 2, radius + 2, 23)
+    with jax.enable_x64(True):
+        model = np.asarray(pixel_edge_profile(jnp.asarray(d), radius, math.cos(a), math.sin(a)))
+    np.testing.assert_allclose(model, brute_force_profile(d, radius, math.cos(a), math.sin(a)), atol=2e-4)
+
+
+def slanted_edge_image(c_px, *, pitch=0.006, f=50.0, D=2000.0, size=None, method="auto", spp=64, seed=0):
+    """A slanted-edge square rendered by synth with CoC diameter c_px (object beyond focus)."""
+    s = 1 / (1 / f - 1 / D)
+    A = f / 2.0
+    # c = A s (1/D - 1/d) / p  ->  1/d = 1/D - c p / (A s)
+    d = 1.0 / (1.0 / D - c_px * pitch / (A * s))
+    R = c_px / 2
+    edge_px = max(140.0, 4 * R + 60)
+    size = size or int(edge_px + 4 * R + 80)
+    mm_per_px = pitch * d / s
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": pitch, "width_px": size, "height_px": size},
+        "lens": {"focal_length_mm": f, "f_number": 2.0, "focus_distance_mm": D},
+        "render": {"method": method, "samples_per_pixel": spp, "seed": seed},
+        "background": {"value": 0.5},
+        "object": [{"id": "edge", "target": "slanted-edge", "distance_mm": d, "angle_deg": 5.0,
+                    "edge_mm": edge_px * mm_per_px, "size_mm": [size * mm_per_px * 1.2] * 2}],
+    })
+    result = render(scene)
+    img = next(iter(result.images.values())).astype(np.float64)
+    target = result.truth["images"][0]["targets"][0]
+    return img, target
+
+
+def tasks_from_truth(target, clear_px):
+    return [EdgeTask(np.array(e["start_px"]), np.array(e["end_px"]), clear_px, clear_px) for e in target["edges"]]
+
+
+@pytest.mark.parametrize("c_px", [0.6, 2.0, 8.0, 25.0, 60.0])
+def test_edge_estimator_recovers_the_coc_of_the_formula(c_px):
+    img, target = slanted_edge_image(c_px)
+    clear = 0.5 * float(np.hypot(*np.subtract(target["edges"][0]["end_px"], target["edges"][0]["start_px"])))
+    results = edge_estimator.measure(img, tasks_from_truth(target, clear))
+    truth = np.array([e["coc_diameter_px"][1] for e in target["edges"]])
+    measured = np.array([r.coc_diameter_px for r in results])
+    # Stated tolerance: 2 % + 0.05 px on noise-free renders, for every side of the square.
+    assert np.all(np.abs(measured - truth) <= 0.02 * truth + 0.05), (measured, truth)
+
+
+def test_estimates_grow_monotonically_with_blur():
+    values = []
+    for c_px in (1.0, 3.0, 9.0):
+        img, target = slanted_edge_image(c_px, size=260)
+        res = edge_estimator.measure(img, tasks_from_truth(target, 60.0))
+        values.append(np.median([r.coc_diameter_px for r in res]))
+    assert values == sorted(values)
+
+
+def test_invariant_to_brightness_and_orientation_and_bit_depth():
+    img, target = slanted_edge_image(5.0)
+    tasks = tasks_from_truth(target, 70.0)
+    base = np.array([r.coc_diameter_px for r in edge_estimator.measure(img, tasks)])
+    # The four sides (four orientations of the edge) agree.
+    assert np.ptp(base) < 0.05
+    scaled = np.array([r.coc_diameter_px for r in edge_estimator.measure(0.37 * img, tasks)])
+    np.testing.assert_allclose(scaled, base, atol=0.01)
+    eight_bit = np.round(img * 255) / 255
+    sixteen_bit = np.round(img * 65535) / 65535
+    a = np.array([r.coc_diameter_px for r in edge_estimator.measure(eight_bit, tasks)])
+    b = np.array([r.coc_diameter_px for r in edge_estimator.measure(sixteen_bit, tasks)])
+    np.testing.assert_allclose(a, b, atol=0.05)
+
+
+def test_stated_sigma_is_honest_under_noise():
+    """About 68 % of errors within the stated 1 sigma, over many edges and noise draws."""
+    rng = np.random.default_rng(11)
+    inside, total = 0, 0
+    for c_px in (1.5, 4.0, 10.0):
+        img, target = slanted_edge_image(c_px)
+        tasks = tasks_from_truth(target, 70.0)
+        truth = np.array([e["coc_diameter_px"][1] for e in target["edges"]])
+        for _ in range(6):
+            # Shot noise plus read noise, as a camera at high ISO (SNR about 25 at mid grey), where
+            # noise rather than the model-error floor sets the uncertainty.
+            noisy = img + rng.normal(0.0, 1.0, img.shape) * np.sqrt(0.0008 * img + 0.0001)
+            res = edge_estimator.measure(noisy, tasks)
+            for r, t in zip(res, truth):
+                total += 1
+                inside += abs(r.coc_diameter_px - t) <= r.sigma_px
+    fraction = inside / total  # 72 edges: binomial 1-sigma about 0.055 around 0.68
+    assert 0.52 <= fraction <= 0.86, fraction
+
+
+def test_unknown_estimator_lists_valid_names():
+    with pytest.raises(InputError) as info:
+        get_estimator("gaussian")
+    assert "edge" in str(info.value) and "target" in str(info.value)
+
+
+# --------------------------------------------------------------------------- whole pipeline
+
+
+@pytest.fixture(scope="module")
+def calibration_stack(tmp_path_factory):
+    """A small ChArUco stack (8 shots, some tilted) rendered by synth."""
+    shots = []
+    for k, (dist, tilt) in enumerate([(450, [0, 0]), (550, [25, 0]), (650, [0, -30]), (800, [-20, 15]),
+                                      (950, [0, 25]), (1100, [20, -20]), (1300, [0, 0]), (1500, [-25, 10])]):
+        shots.append({"pose": [{"id": "board", "distance_mm": float(dist), "tilt_deg": tilt}]})
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": 0.006, "width_px": 640, "height_px": 480},
+        "lens": {"focal_length_mm": 16.0, "f_number": 8.0, "focus_distance_mm": 800.0},
+        "render": {"samples_per_pixel": 64},
+        "background": {"value": 0.3},
+        "object": [{"id": "board", "target": "charuco", "squares": [6, 4], "square_mm": 30.0, "marker_mm": 22.0,
+                    "dictionary": "DICT_4X4_50", "size_mm": [190.0, 130.0], "distance_mm": 800.0}],
+        "shot": shots,
+    })
+    out = tmp_path_factory.mktemp("stack") / "calib"
+    write_stack(render(scene), out)
+    return out
+
+
+def test_measure_pipeline_intrinsics_distances_and_blur(calibration_stack):
+    from scipy.ndimage import map_coordinates
+
+    from lensfit.measure import measure
+
+    truth = json.loads((calibration_stack / "truth.json").read_text())
+    table = measure(calibration_stack)
+    f_px = table.intrinsics["a"].focal_length_px
+    assert f_px == pytest.approx(truth["settings"]["a"]["focal_length_px"], rel=1e-3)  # within 0.1 %
+    valid = table.valid()
+    assert len(valid) >= 0.8 * len(table) and len(valid) > 80
+    dist_err, coc_err = [], []
+    for s in valid:
+        entry = next(i for i in truth["images"] if i["file"] == s.image)
+        maps = np.load(calibration_stack / entry["maps"])
+        mid = (np.array(s.start_px) + np.array(s.end_px)) / 2
+        z = map_coordinates(maps["depth_mm"], [[mid[1]], [mid[0]]], order=1)[0]
+        c = map_coordinates(maps["coc_diameter_px"], [[mid[1]], [mid[0]]], order=1)[0]
+        dist_err.append(s.distance_mm / z - 1)
+        if c > 1.5:
+            coc_err.append(abs(s.coc_diameter_px - c) / c)
+    assert np.median(np.abs(dist_err)) < 1e-3  # distances from PnP within 0.1 %
+    assert np.max(np.abs(dist_err)) < 5e-3
+    assert np.median(coc_err) < 0.02
+
+
+def test_measure_cli_writes_samples_and_refuses_overwrite(calibration_stack, tmp_path, capsys):
+    from lensfit.cli import main
+
+    out = tmp_path / "samples.csv"
+    assert main(["measure", str(calibration_stack), "--out", str(out)]) == 0
+    header = out.read_text().splitlines()[0].split(",")
+    for column in ("image", "setting", "target", "edge", "distance_mm", "coc_diameter_px", "sigma_px", "estimator",
+                   "flags"):
+        assert column in header
+    before = out.read_text()
+    capsys.readouterr()
+    assert main(["measure", str(calibration_stack), "--out", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert out.read_text() == before
+
+
+# --------------------------------------------------------------------------- reading stacks
+
+
+def _write_manifest(folder, files):
+    lines = ["[camera]\npixel_pitch_mm = 0.006\n"]
+    for f in files:
+        lines.append(f'[[image]]\nfile = "{f}"\n')
+    (folder / "stack.toml").write_text("\n".join(lines))
+
+
+def test_inconsistent_sizes_are_refused(tmp_path):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((20, 30), np.uint16))
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((20, 31), np.uint16))
+    _write_manifest(tmp_path, ["a.png", "b.png"])
+    with pytest.raises(SpecError, match="b.png.*same size"):
+        load_stack(tmp_path)
+
+
+def test_truncated_and_nan_images_are_refused(tmp_path):
+    import cv2
+    import tifffile
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((40, 40), 1000, np.uint16))
+    data = (tmp_path / "a.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(SpecError, match="cut.png"):
+        read_image(tmp_path / "cut.png")
+    img = np.ones((8, 8), np.float32)
+    img[2, 3] = np.nan
+    tifffile.imwrite(tmp_path / "nan.tiff", img)
+    with pytest.raises(SpecError, match="nan.tiff.*NaN"):
+        read_image(tmp_path / "nan.tiff")
+
+
+def test_bit_depths_and_srgb_read_to_the_same_linear_values(tmp_path):
+    import cv2
+    import tifffile
+
+    rng = np.random.default_rng(0)
+    linear = rng.uniform(0, 1, (16, 16))
+    cv2.imwrite(str(tmp_path / "l16.png"), np.round(linear * 65535).astype(np.uint16))
+    tifffile.imwrite(tmp_path / "f.tiff", linear.astype(np.float32))
+    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    cv2.imwrite(str(tmp_path / "s16.png"), np.round(srgb * 65535).astype(np.uint16))
+    np.testing.assert_allclose(read_image(tmp_path / "l16.png"), linear, atol=1e-5)
+    np.testing.assert_allclose(read_image(tmp_path / "f.tiff"), linear, atol=1e-7)
+    np.testing.assert_allclose(read_image(tmp_path / "s16.png", "srgb"), linear, atol=1e-4)
+
+
+def test_saturated_target_is_refused(tmp_path):
+    from lensfit.measure import measure
+
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": 0.006, "width_px": 640, "height_px": 480},
+        "lens": {"focal_length_mm": 16.0, "f_number": 8.0, "focus_distance_mm": 800.0},
+        "background": {"value": 0.3},
+        "object": [{"id": "board", "target": "checkerboard", "squares": [7, 5], "square_mm": 15.0,
+                    "light": 1.5, "size_mm": [115.0, 85.0], "distance_mm": 700.0}],
+    })
+    out = tmp_path / "sat"
+    write_stack(render(scene), out)
+    with pytest.raises(SpecError, match="shot_000.png.*saturated"):
+        measure(out)
