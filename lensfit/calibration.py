@@ -21,6 +21,7 @@ from lensfit.targets import Detection
 
 MIN_VIEWS = 3
 MIN_POINTS = 6
+DISTORTION_GAIN = 0.9  # keep k1, k2 only if they cut the reprojection RMS below 90 %
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,15 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
                                                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
         return rms, K, dist
 
+    # Radial distortion only when the data ask for it: it must cut the reprojection error by
+    # a tenth; otherwise (narrow views, little distortion) k1, k2 merely trade off against the
+    # focal length and the principal point.
+    everything = [d for dets in detections.values() for d in dets]
+    rms_plain, _, _ = run(everything, K0, np.zeros(5), cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2)
+    rms_radial, _, _ = run(everything, K0, np.zeros(5), 0)
+    if rms_radial > DISTORTION_GAIN * rms_plain:
+        flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
+
     out: dict[str, Intrinsics] = {}
     if len(detections) == 1:
         (label, dets), = detections.items()
@@ -112,7 +122,6 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
                                 float(rms), len(_usable(dets)), "calibrated")
         return out
     # Shared principal point and distortion from all views, then each setting's focal length.
-    everything = [d for dets in detections.values() for d in dets]
     _, K_all, dist_all = run(everything, K0, np.zeros(5), 0)
     fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
     for label, dets in detections.items():

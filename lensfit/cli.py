@@ -192,6 +192,38 @@ def _measure_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _bench_measure_command(args: argparse.Namespace) -> int:
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from lensfit.bench_measure import run, run_stack
+
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        result = run(draws=args.draws, progress=lambda m: status.update(f"benchmarking: {m}"))
+        if args.stack:
+            result["stack"] = run_stack(args.stack, progress=lambda m: status.update(f"benchmarking: {m}"))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    table = Table(title="edge estimator on slanted edges (synth, 256 spp)")
+    for col in ("CoC px", "noise", "edges", "RMS error px", "bias px", "median sigma px", "within 1 sigma", "ms/edge"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        table.add_row(f"{r['coc_diameter_px']:g}", f"{r['noise']:g}", str(r["edges"]), f"{r['rms_error_px']:.3f}",
+                      f"{r['bias_px']:+.3f}", f"{r['median_sigma_px']:.3f}", f"{r['within_1_sigma']:.2f}",
+                      f"{1000 * r['seconds_per_edge']:.1f}")
+    Console().print(table)
+    for r in result.get("stack", []):
+        print(f"{r['estimator']}: {r['compared']} edges (CoC >= 1.5 px) of {r['edges']}: RMS error "
+              f"{r['rms_error_px']:.3f} px, median |error| {r['median_abs_error_px']:.3f} px, bias {r['bias_px']:+.3f} px, "
+              f"{100 * r['within_1_sigma']:.0f}% within 1 sigma, {1000 * r['seconds_per_edge']:.0f} ms per edge "
+              f"({r['seconds_total']:.1f} s with detection and calibration)")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -241,6 +273,14 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--force", action="store_true", help="replace an existing --out file")
     m.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     m.set_defaults(func=_measure_command, prog="lensfit measure")
+
+    bm = sub.add_parser("bench-measure", help="accuracy and time per edge of the blur estimators",
+                        description="Benchmark: slanted edges rendered by synth at several CoC diameters and "
+                                    "noise levels; optionally both estimators on a rendered STACK with truth.")
+    bm.add_argument("--stack", metavar="DIR", help="also run every estimator on this rendered stack")
+    bm.add_argument("--draws", type=int, default=3, help="noise draws per case (default 3)")
+    bm.add_argument("--json", action="store_true", help="print JSON")
+    bm.set_defaults(func=_bench_measure_command, prog="lensfit bench-measure")
     return parser
 
 

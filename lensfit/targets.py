@@ -23,6 +23,29 @@ from typing import Any
 import numpy as np
 
 
+def charuco_texels_per_square(square_mm: float, marker_mm: float, dictionary: str, minimum: int = 48) -> int:
+    """Raster resolution (texels per square) at which OpenCV's ChArUco drawing is exact.
+
+    The marker must span a whole number of texels, each of its (bits + 2) cells too, and the
+    white border around it as well; otherwise ``generateImage`` resamples the marker and every
+    bit edge moves by up to a texel. Returns the smallest such resolution >= ``minimum`` (or the
+    closest one up to 512).
+    """
+    import cv2
+
+    cells = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).markerSize + 2
+    ratio = marker_mm / square_mm
+    best, best_err = minimum, float("inf")
+    for n in range(minimum, 513):
+        marker = n * ratio
+        err = abs(marker / cells - round(marker / cells)) * cells + abs((n - marker) / 2 - round((n - marker) / 2))
+        if err < 1e-6:
+            return n
+        if err < best_err:
+            best, best_err = n, err
+    return best
+
+
 @dataclass(frozen=True)
 class Detection:
     """Corresponding points of one target in one image."""

@@ -3,8 +3,8 @@
 Each target is a function ``value(x_mm, y_mm)`` in the target's own frame (origin at the
 centre, x along the width, y along the height, down). Boards, slanted edges and stars are
 evaluated analytically (their edges are exact lines); a ChArUco board is OpenCV's own
-rendering, held as a raster with an integer number of texels per square and looked up with
-nearest-neighbour, so the texture *is* a piecewise-constant function whose square edges are
+rendering, held as a raster with a whole number of texels per square *and* per marker cell
+(``lensfit.targets.charuco_texels_per_square``) and looked up with nearest-neighbour, so the texture *is* a piecewise-constant function whose square edges are
 exactly where the board says; image files are looked up bilinearly. Anti-aliasing is not done
 here: both render methods integrate over the pixel footprint (and the aperture), which is the
 proper filter for a point-sampled texture.
@@ -25,7 +25,7 @@ import numpy as np
 
 from synth.scene import TargetSpec
 
-CHARUCO_TEXELS_PER_SQUARE = 96
+CHARUCO_TEXELS_PER_SQUARE = 64  # at least; raised until marker cells are whole texels
 
 
 @dataclass(frozen=True)
@@ -43,9 +43,17 @@ def _charuco_raster(p: dict) -> np.ndarray:
     board = cv2.aruco.CharucoBoard(tuple(p["squares"]), p["square_mm"], p["marker_mm"], dictionary)
     if p.get("legacy_pattern"):
         board.setLegacyPattern(True)
-    n = CHARUCO_TEXELS_PER_SQUARE
+    n = charuco_texels(p)
     img = board.generateImage((p["squares"][0] * n, p["squares"][1] * n), marginSize=0, borderBits=1)
     return np.where(img > 127, p["light"], p["dark"]).astype(np.float32)
+
+
+def charuco_texels(p: dict) -> int:
+    """Texels per square at which OpenCV draws the board exactly (whole-texel marker cells)."""
+    from lensfit.targets import charuco_texels_per_square
+
+    return charuco_texels_per_square(p["square_mm"], p["marker_mm"], p["dictionary"],
+                                     minimum=CHARUCO_TEXELS_PER_SQUARE)
 
 
 def _image_raster(p: dict) -> np.ndarray:
@@ -169,7 +177,7 @@ def edges(target: TargetSpec) -> list[dict]:
         x0, y0 = -0.5 * nx * sq, -0.5 * ny * sq
         if kind == "charuco":
             raster = texture(target).raster
-            n = CHARUCO_TEXELS_PER_SQUARE
+            n = charuco_texels(p)
             # A square's own colour is what its corner region shows (markers sit in the middle).
             dark = raster[n // 16::n, n // 16::n][:ny, :nx] < 0.5 * (p["dark"] + p["light"])
         else:
