@@ -128,7 +128,7 @@ def read_raw(path: Path) -> np.ndarray:
         with rawpy.imread(str(path)) as raw:
             rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, user_flip=0,
                                   use_camera_wb=True, output_color=rawpy.ColorSpace.raw,
-                                  demosaic_algorithm=rawpy.DemosaicAlgorithm.AHD)
+                                  demosaic_algorithm=rawpy.DemosaicAlgorithm.AHD, adjust_maximum_thr=0.0)
     except FileNotFoundError:
         raise SpecError(path, "", "file not found") from None
     except Exception as exc:  # rawpy opens corrupt files and fails only when decoding

@@ -262,3 +262,33 @@ def test_saturated_target_is_refused(tmp_path):
     write_stack(render(scene), out)
     with pytest.raises(SpecError, match="shot_000.png.*saturated"):
         measure(out)
+
+
+def write_grey_dng(path, linear, black=512, white=16383):
+    """A minimal CFA DNG (RGGB, identity colour matrix, neutral white balance) of a grey image,
+    written with tifffile as rawpy/LibRaw expects it (see ../shared/DOMAIN.md)."""
+    import tifffile
+
+    cfa = np.round(black + np.clip(linear, 0, 1) * (white - black)).astype(np.uint16)
+    tags = [(50706, "B", 4, (1, 4, 0, 0)), (50708, "s", 0, "lensfit test"), (33421, "H", 2, (2, 2)),
+            (33422, "B", 4, (0, 1, 1, 2)), (50714, "H", 1, (black,)), (50717, "H", 1, (white,)),
+            (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1)),
+            (50778, "H", 1, (21,)), (50728, "2I", 3, (1, 1, 1, 1, 1, 1))]
+    tifffile.imwrite(path, cfa, photometric=32803, extratags=tags, subfiletype=0)
+
+
+def test_dng_and_png_of_the_same_render_agree(tmp_path):
+    import cv2
+
+    img, target = slanted_edge_image(6.0)
+    cv2.imwrite(str(tmp_path / "a.png"), np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
+    write_grey_dng(tmp_path / "a.dng", img)
+    png = read_image(tmp_path / "a.png")
+    dng = read_image(tmp_path / "a.dng")  # rawpy, linear: no gamma, no auto-brightening, no max scaling
+    # Same linear levels; demosaicking (AHD) only touches pixels on edges, by up to 2 %.
+    assert np.median(np.abs(dng - png)) < 1e-4
+    assert np.max(np.abs(dng - png)) < 0.03
+    tasks = tasks_from_truth(target, 70.0)
+    a = [r.coc_diameter_px for r in edge_estimator.measure(png, tasks)]
+    b = [r.coc_diameter_px for r in edge_estimator.measure(dng, tasks)]
+    np.testing.assert_allclose(a, b, atol=0.03)
