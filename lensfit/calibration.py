@@ -91,8 +91,8 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
     for label, dets in detections.items():
         if len(_usable(dets)) < MIN_VIEWS:
             raise InputError("setting", label, f"seen in at least {MIN_VIEWS} images with {MIN_POINTS}+ detected "
-                             "corners", f"only {len(_usable(dets))} usable view(s); add views (some tilted) or give "
-                             "focal_length_px in stack.toml")
+                             "corners", f"only {len(_usable(dets))} usable view(s); add views of the targets (some "
+                             "tilted by 20-40 degrees) in this setting")
     flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
     if fix_principal_point:
         flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
