@@ -183,7 +183,6 @@ class Target:
         return best
 
     def _detect_charuco(self, grey):
-        import cv2
 
         detector = _charuco_detector(self)
         corners, ids, _, _ = detector.detectBoard(grey)

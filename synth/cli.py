@@ -24,7 +24,7 @@ def _render_command(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from lensfit.jaxcache import enable_compilation_cache
-    from synth.render import plan, render
+    from synth.render import render
     from synth.scene import load_scene
     from synth.stack import check_out_dir, write_stack
 
