@@ -140,8 +140,18 @@ def _edge_tasks(target: Target, det: Detection, pose: TargetPose, intr: Intrinsi
     return out
 
 
+def known_intrinsics(entry: dict, shape: tuple[int, int]) -> Intrinsics:
+    """Intrinsics given in stack.toml ``[[intrinsics]]`` (principal point defaults to the centre)."""
+    h, w = shape
+    pp = entry.get("principal_point_px", [(w - 1) / 2, (h - 1) / 2])
+    return Intrinsics(float(entry["focal_length_px"]), (float(pp[0]), float(pp[1])),
+                      tuple(float(v) for v in entry.get("distortion", [0.0] * 5)), 0.0, 0, "manifest")
+
+
 def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> Detection:
     """Corners as the least-squares intersections of the edge lines through them.
+
+    ``lines`` maps edge ids to ((point, point), CoC diameter in px) as the estimator found them.
 
     OpenCV's saddle-point corners carry errors of about 0.1 px on sharp or blurred synthetic
     boards (measured: a 0.4 % focal-length error on a clean stack); the edge lines located by
@@ -149,14 +159,17 @@ def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> D
     position unless two lines at least 20 degrees apart pass through it.
     """
     through: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    reach: dict[int, float] = {}
     for seg in target.edges():
         if seg.id not in lines:
             continue
-        q0, q1 = (np.asarray(p, float) for p in lines[seg.id])
+        (p0, p1), coc = lines[seg.id]
+        q0, q1 = np.asarray(p0, float), np.asarray(p1, float)
         t = q1 - q0
         t = t / np.linalg.norm(t)
         for cid in seg.corner_ids:
             through.setdefault(int(cid), []).append((q0, np.array([-t[1], t[0]])))
+            reach[int(cid)] = max(reach.get(int(cid), 0.0), coc or 0.0)
     points = det.image_points_px.copy()
     for k, cid in enumerate(det.ids):
         ls = through.get(int(cid), [])
@@ -168,7 +181,9 @@ def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> D
         A = normals.T @ normals
         b = sum(n * (n @ q) for q, n in ls)
         x = np.linalg.solve(A, b)
-        if np.linalg.norm(x - points[k]) < 3.0:  # a refinement, never a jump
+        # A refinement, never a jump: blur rounds a thresholded square's corners inward by up to
+        # about the blur diameter, saddle-point corners move far less.
+        if np.linalg.norm(x - points[k]) < 3.0 + reach.get(int(cid), 0.0):
             points[k] = x
     return Detection(det.target_id, det.object_points_mm, points, det.ids)
 
@@ -232,7 +247,9 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         by_setting: dict[str, list[Detection]] = {}
         for i in range(n):
             by_setting.setdefault(stack.images[i].setting, []).extend(detections[i])
-        return calibrate(by_setting, stack.shape)
+        known = {k: known_intrinsics(v, stack.shape) for k, v in stack.intrinsics.items()}
+        todo = {k: v for k, v in by_setting.items() if k not in known}
+        return {**(calibrate(todo, stack.shape) if todo else {}), **known}
 
     def tasks_for(i, intrinsics):
         intr = intrinsics[stack.images[i].setting]
@@ -259,7 +276,7 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             tasks, meta, estimates = first[i]
             refined = []
             for det in detections[i]:
-                lines = {seg.id: est.line_px for (tid, seg, _, _), est in zip(meta, estimates)
+                lines = {seg.id: (est.line_px, est.coc_diameter_px) for (tid, seg, _, _), est in zip(meta, estimates)
                          if tid == det.target_id and est.line_px is not None}
                 refined.append(refine_corners(det, by_id[det.target_id], lines))
             detections[i] = refined

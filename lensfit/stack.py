@@ -57,6 +57,7 @@ class Stack:
     images: list[ImageEntry]
     shape: tuple[int, int]
     camera: dict[str, Any] = field(default_factory=dict)
+    intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def settings(self) -> list[str]:
@@ -218,5 +219,12 @@ def load_stack(path: str | Path) -> Stack:
             pitch = sensor_format(cam["sensor"]).width_mm / shape[1]
         except InputError as exc:
             raise SpecError(manifest_path, "camera.sensor", f"got {cam['sensor']!r}: unknown; {exc.hint}") from None
+    known = {}
+    labels = {im.setting for im in images}
+    for i, entry in enumerate(data.get("intrinsics", [])):
+        if entry["setting"] not in labels:
+            raise SpecError(manifest_path, f"intrinsics[{i}].setting", f"got {entry['setting']!r}: no image has this "
+                            f"setting; valid: {', '.join(sorted(labels))}")
+        known[entry["setting"]] = dict(entry)
     return Stack(path=folder, manifest_path=manifest_path, pixel_pitch_mm=pitch, targets=list(data.get("target", [])),
-                 images=images, shape=shape, camera=dict(cam))
+                 images=images, shape=shape, camera=dict(cam), intrinsics=known)

@@ -292,3 +292,32 @@ def test_dng_and_png_of_the_same_render_agree(tmp_path):
     a = [r.coc_diameter_px for r in edge_estimator.measure(png, tasks)]
     b = [r.coc_diameter_px for r in edge_estimator.measure(dng, tasks)]
     np.testing.assert_allclose(a, b, atol=0.03)
+
+
+def test_slanted_edge_stack_with_known_intrinsics(tmp_path):
+    """One image, one slanted-edge square, intrinsics from the manifest: no calibration needed."""
+    from lensfit.measure import measure
+
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": 0.006, "width_px": 600, "height_px": 400},
+        "lens": {"focal_length_mm": 50.0, "f_number": 2.8, "focus_distance_mm": 2000.0},
+        "background": {"value": 0.2},
+        "object": [{"target": "slanted-edge", "distance_mm": 1500.0, "size_mm": [150.0, 100.0], "edge_mm": 50.0}],
+    })
+    out = tmp_path / "edge"
+    result = render(scene)
+    write_stack(result, out)
+    f_px = result.truth["settings"]["a"]["focal_length_px"]
+    manifest = out / "stack.toml"
+    manifest.write_text(manifest.read_text() + f'\n[[intrinsics]]\nsetting = "a"\nfocal_length_px = {f_px}\n')
+    table = measure(out)
+    edges = result.truth["images"][0]["targets"][0]["edges"]
+    true_c = np.mean([e["coc_diameter_px"][1] for e in edges])
+    assert len(table.valid()) == 4
+    for s in table.valid():
+        assert s.distance_mm == pytest.approx(1500.0, rel=1e-3)
+        assert s.coc_diameter_px == pytest.approx(true_c, rel=0.01)
+    bad = manifest.read_text().replace('setting = "a"\nfocal_length_px', 'setting = "b"\nfocal_length_px')
+    manifest.write_text(bad)
+    with pytest.raises(SpecError, match=r"intrinsics\[0\]\.setting"):
+        load_stack(out)
