@@ -228,11 +228,10 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         if progress:
             progress(stage, step[0], total)
 
-    images: dict[int, np.ndarray] = {}
+    # Images are read again where needed rather than held: a stack of RAW files would not fit.
     detections: dict[int, list[Detection]] = {}
     for i in range(n):
         img = stack.read(i)
-        images[i] = img
         found = [d for d in (t.detect(img) for t in targets) if d is not None]
         for d in found:
             _check_saturation(stack, i, img, d)
@@ -268,7 +267,7 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     if refine or estimator == "edge":
         for i in range(n):
             tasks, meta = tasks_for(i, table.intrinsics)
-            estimates = edge_estimator.measure(images[i], tasks) if tasks else []
+            estimates = edge_estimator.measure(stack.read(i), tasks) if tasks else []
             first[i] = (tasks, meta, estimates)
             tick("edges")
     if refine:
@@ -289,10 +288,11 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             # refined poses move nothing); distances from the refined poses.
             by_key = {(m[0], m[1].id): e for m, e in zip(first[i][1], first[i][2])}
             estimates = [by_key.get((m[0], m[1].id)) for m in meta]
-            estimates = [e if e is not None else edge_estimator.measure(images[i], [t])[0]
-                         for e, t in zip(estimates, tasks)]
+            if any(e is None for e in estimates):
+                again = edge_estimator.measure(stack.read(i), tasks)
+                estimates = [e if e is not None else a for e, a in zip(estimates, again)]
         else:
-            estimates = fn(images[i], tasks) if tasks else []
+            estimates = fn(stack.read(i), tasks) if tasks else []
         for (tid, seg, z, pose), task, est in zip(meta, tasks, estimates):
             table.poses[(entry.file.name, tid)] = pose
             flags = list(est.flags)
@@ -308,6 +308,5 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                 coc_diameter_px=est.coc_diameter_px, sigma_px=est.sigma_px, estimator=estimator,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source))
-        images.pop(i)
         tick("measure")
     return table
