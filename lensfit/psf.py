@@ -29,8 +29,11 @@ function, e.g. Smith, *Modern Optical Engineering*, 4th ed., sec. 11.9.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 def disk_esf(x):
     """Edge-spread function of the unit disk at x = t/R (any real x)."""
@@ -104,3 +107,21 @@ def pixel_edge_profile(d, radius_px, nx, ny):
                + H(d - 0.5 * (a + b_safe))) / (a * b_safe)
     one_box = (G(d + 0.5 * a) - G(d - 0.5 * a)) / a
     return jnp.where(thin, one_box, two_box)
+
+
+def disk_kernel(diameter: float, oversample: int = 8) -> np.ndarray:
+    """Area-weighted uniform disk of ``diameter`` cells, centred on the middle cell, unit sum.
+
+    Each cell's weight is the fraction of ``oversample**2`` sub-points inside the disk; a disk
+    smaller than one cell degenerates to the single centre cell (a delta).
+    """
+    r = 0.5 * diameter
+    half = int(math.ceil(r + 0.5))
+    n = 2 * half + 1
+    sub = (np.arange(oversample) + 0.5) / oversample - 0.5
+    fine = (np.arange(-half, half + 1)[:, None] + sub[None, :]).ravel()
+    inside = (fine[:, None] ** 2 + fine[None, :] ** 2) <= r * r
+    k = inside.reshape(n, oversample, n, oversample).mean(axis=(1, 3))
+    if k.sum() == 0:
+        k[half, half] = 1.0
+    return (k / k.sum()).astype(np.float64)

@@ -73,7 +73,8 @@ class Stack:
         return read_image(entry.file, entry.encoding)
 
 
-def _srgb_to_linear(v: np.ndarray) -> np.ndarray:
+def srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding to linear light (values in [0, 1])."""
     return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
 
 
@@ -146,7 +147,7 @@ def read_image(path: str | Path, encoding: str = "linear") -> np.ndarray:
     if suffix not in RASTER_SUFFIXES:
         raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, DNG or a camera RAW file")
     img = read_raster(path)
-    return _srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
+    return srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
 
 
 def _image_size(path: Path) -> tuple[int, int]:

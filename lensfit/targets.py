@@ -23,6 +23,18 @@ from typing import Any
 import numpy as np
 
 
+def charuco_board(squares, square_mm: float, marker_mm: float, dictionary: str, legacy_pattern: bool = False):
+    """OpenCV's ``CharucoBoard`` (OpenCV >= 4.7 API); ``legacy_pattern`` for boards made
+    before OpenCV 4.6 with an even number of rows."""
+    import cv2
+
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    board = cv2.aruco.CharucoBoard(tuple(squares), float(square_mm), float(marker_mm), d)
+    if legacy_pattern:
+        board.setLegacyPattern(True)
+    return board
+
+
 def charuco_texels_per_square(square_mm: float, marker_mm: float, dictionary: str, minimum: int = 48) -> int:
     """Raster resolution (texels per square) at which OpenCV's ChArUco drawing is exact.
 
@@ -95,15 +107,10 @@ class Target:
         return self.spec["kind"]
 
     def charuco_board(self):
-        import cv2
-
         if self._board is None:
-            d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.spec["dictionary"]))
-            board = cv2.aruco.CharucoBoard(tuple(self.spec["squares"]), float(self.spec["square_mm"]),
-                                           float(self.spec["marker_mm"]), d)
-            if self.spec.get("legacy_pattern"):
-                board.setLegacyPattern(True)
-            self._board = board
+            s = self.spec
+            self._board = charuco_board(s["squares"], s["square_mm"], s["marker_mm"], s["dictionary"],
+                                        bool(s.get("legacy_pattern", False)))
         return self._board
 
     # ------------------------------------------------------------------ geometry
@@ -235,12 +242,8 @@ class Target:
 def _detector_for(dictionary: str, squares: tuple, square_mm: float, marker_mm: float, legacy: bool):
     import cv2
 
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    board = cv2.aruco.CharucoBoard(squares, square_mm, marker_mm, d)
-    if legacy:
-        board.setLegacyPattern(True)
-    params = cv2.aruco.CharucoParameters()
-    return cv2.aruco.CharucoDetector(board, params)
+    board = charuco_board(squares, square_mm, marker_mm, dictionary, legacy)
+    return cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters())
 
 
 def _charuco_detector(target: Target):

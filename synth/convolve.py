@@ -34,30 +34,19 @@ import numpy as np
 import scipy.fft
 import scipy.signal
 
+from lensfit import psf
 from synth import area, textures
 from synth.scene import PlacedObject, Shot
 
 
 def disk_kernel(diameter: float, oversample: int = 8) -> np.ndarray:
-    """Area-weighted uniform disk of ``diameter`` cells, centred on the middle cell, unit sum.
+    """The area-weighted disk of ``lensfit.psf.disk_kernel``.
 
-    Each cell's weight is the fraction of ``oversample**2`` sub-points inside the disk; a disk
-    smaller than one cell degenerates to the single centre cell (a delta). Convolving cell
-    averages with it is accurate to O(cell^2) for blur of several cells; for a blur of about a
-    pixel or less the error near sharp edges reaches 1e-3 to 1e-2 of the contrast (measured in
-    tests/test_synth_render.py), which is why ``auto`` ray traces such shots.
+    Convolving cell averages with it is accurate to O(cell^2) for blur of several cells; for a
+    blur of about a pixel or less the error near sharp edges reaches 1e-3 to 1e-2 of the contrast
+    (measured in tests/test_synth_render.py), which is why ``auto`` ray traces such shots.
     """
-    r = 0.5 * diameter
-    half = int(math.ceil(r + 0.5))
-    n = 2 * half + 1
-    sub = (np.arange(oversample) + 0.5) / oversample - 0.5
-    coords = np.arange(n) - half
-    fine = (coords[:, None] + sub[None, :]).ravel()
-    inside = (fine[:, None] ** 2 + fine[None, :] ** 2) <= r * r
-    k = inside.reshape(n, oversample, n, oversample).mean(axis=(1, 3))
-    if k.sum() == 0:
-        k[half, half] = 1.0
-    return (k / k.sum()).astype(np.float64)
+    return psf.disk_kernel(diameter, oversample)
 
 
 @partial(jax.jit, static_argnames=("static",))

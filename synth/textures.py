@@ -37,12 +37,10 @@ class Texture:
 
 
 def _charuco_raster(p: dict) -> np.ndarray:
-    import cv2
+    from lensfit.targets import charuco_board
 
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, p["dictionary"]))
-    board = cv2.aruco.CharucoBoard(tuple(p["squares"]), p["square_mm"], p["marker_mm"], dictionary)
-    if p.get("legacy_pattern"):
-        board.setLegacyPattern(True)
+    board = charuco_board(p["squares"], p["square_mm"], p["marker_mm"], p["dictionary"],
+                          bool(p.get("legacy_pattern", False)))
     n = charuco_texels(p)
     img = board.generateImage((p["squares"][0] * n, p["squares"][1] * n), marginSize=0, borderBits=1)
     return np.where(img > 127, p["light"], p["dark"]).astype(np.float32)
@@ -65,7 +63,9 @@ def _image_raster(p: dict) -> np.ndarray:
     scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
     v = img.astype(np.float64) / scale
     if p["encoding"] == "srgb":
-        v = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+        from lensfit.stack import srgb_to_linear
+
+        v = srgb_to_linear(v)
     return v.astype(np.float32)
 
 

@@ -35,6 +35,7 @@ import scipy.optimize
 import scipy.signal
 
 from lensfit.estimators import BlurEstimate, EdgeTask
+from lensfit.psf import disk_kernel
 
 SUB = 4
 MAX_ALONG_PX = 64.0  # patch size caps: enough pixels for a precise fit, bounded cost
@@ -47,15 +48,10 @@ MODEL_FLOOR_PX = 0.02
 def _texture(kind: str, key: tuple) -> tuple[np.ndarray, float]:
     """(raster with values in [0, 1], mm per texel), board frame origin at texel (0, 0) corner."""
     if kind == "charuco":
-        import cv2
+        from lensfit.targets import charuco_board, charuco_texels_per_square
 
         squares, square_mm, marker_mm, dictionary, legacy = key
-        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-        board = cv2.aruco.CharucoBoard(squares, square_mm, marker_mm, d)
-        if legacy:
-            board.setLegacyPattern(True)
-        from lensfit.targets import charuco_texels_per_square
-
+        board = charuco_board(squares, square_mm, marker_mm, dictionary, legacy)
         n = charuco_texels_per_square(square_mm, marker_mm, dictionary)
         img = board.generateImage((squares[0] * n, squares[1] * n), marginSize=0, borderBits=1)
         return (img > 127).astype(np.float64), square_mm / n
@@ -64,18 +60,6 @@ def _texture(kind: str, key: tuple) -> tuple[np.ndarray, float]:
         dark = (np.add.outer(np.arange(squares[1]), np.arange(squares[0])) % 2) == 0
         return (~dark).astype(np.float64), square_mm
     raise ValueError(kind)
-
-
-def _disk(diameter: float) -> np.ndarray:
-    r = 0.5 * diameter
-    half = int(math.ceil(r + 0.5))
-    o = 8
-    sub = (np.arange(o) + 0.5) / o - 0.5
-    fine = (np.arange(-half, half + 1)[:, None] + sub[None, :]).ravel()
-    k = ((fine[:, None] ** 2 + fine[None, :] ** 2) <= r * r).reshape(2 * half + 1, o, 2 * half + 1, o).mean(axis=(1, 3))
-    if k.sum() == 0:
-        k[half, half] = 1.0
-    return k / k.sum()
 
 
 def _sample_texture(task: EdgeTask, xs: np.ndarray, ys: np.ndarray) -> np.ndarray | None:
@@ -150,7 +134,7 @@ def _measure_one(image: np.ndarray, task: EdgeTask) -> BlurEstimate:
     max_c = 2.0 * (pad - 1)
 
     def synth(c):
-        k = _disk(c * SUB)
+        k = disk_kernel(c * SUB)
         blurred = scipy.signal.fftconvolve(sharp, k, mode="same") if k.size > 1 else sharp
         px = blurred.reshape(nyp, SUB, nxp, SUB).mean(axis=(1, 3))
         return px[pad:pad + (y1 - y0 + 1), pad:pad + (x1 - x0 + 1)][mask]
