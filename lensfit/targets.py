@@ -97,6 +97,7 @@ class Target:
 
     spec: dict[str, Any]
     _board: Any = field(default=None, repr=False)
+    _texture: Any = field(default=None, repr=False)
 
     @property
     def id(self) -> str:
@@ -123,6 +124,21 @@ class Target:
         n = 32
         img = self.charuco_board().generateImage((nx * n, ny * n), marginSize=0, borderBits=1)
         return img[2::n, 2::n][:ny, :nx] < 128  # a square's own colour shows in its corner
+
+    def texture(self) -> tuple[np.ndarray, float]:
+        """A board's printed pattern as (raster, mm per texel): 1 light, 0 dark; origin at the
+        pattern's top-left corner. ChArUco rasters have whole-texel marker cells, so the raster
+        is exact (``charuco_texels_per_square``)."""
+        if self._texture is None:
+            s = self.spec
+            if self.kind == "charuco":
+                n = charuco_texels_per_square(s["square_mm"], s["marker_mm"], s["dictionary"])
+                nx, ny = s["squares"]
+                img = self.charuco_board().generateImage((nx * n, ny * n), marginSize=0, borderBits=1)
+                self._texture = ((img > 127).astype(np.float64), float(s["square_mm"]) / n)
+            else:
+                self._texture = ((~self.square_is_dark()).astype(np.float64), float(s["square_mm"]))
+        return self._texture
 
     def inner_corners_mm(self) -> np.ndarray:
         """(rows-1)*(cols-1) inner corners, row-major (the ids of OpenCV's ChArUco corners)."""

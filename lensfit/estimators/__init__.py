@@ -7,6 +7,7 @@ blur-disk diameter at each edge with a 1-sigma uncertainty.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -45,6 +46,17 @@ class BlurEstimate:
     pixels: int = 0
     rms_residual: float | None = None
     line_px: tuple[tuple[float, float], tuple[float, float]] | None = None
+
+
+#: Model-error floor shared by the estimators: perspective across a segment and the limits of
+#: any disk model make 0.3 % of c + 0.02 px the least uncertainty worth stating.
+MODEL_FLOOR_REL = 0.003
+MODEL_FLOOR_PX = 0.02
+
+
+def with_model_floor(sigma_fit_px: float, coc_px: float) -> float:
+    """The fit's 1 sigma combined in quadrature with the model-error floor."""
+    return math.sqrt(sigma_fit_px**2 + (MODEL_FLOOR_REL * coc_px) ** 2 + MODEL_FLOOR_PX**2)
 
 
 Estimator = Callable[[np.ndarray, list[EdgeTask]], list[BlurEstimate]]

@@ -43,11 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit.estimators import BlurEstimate, EdgeTask
+from lensfit.estimators import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.psf import pixel_edge_profile
 
-MODEL_FLOOR_REL = 0.003
-MODEL_FLOOR_PX = 0.02
 MIN_PIXELS = 24
 RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
 OFFSET_GRID = np.linspace(-0.8, 0.8, 3)
@@ -299,7 +297,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask]) -> list[BlurEstimate]:
             # 1 sigma of R from that of R^2: sqrt(R^2 + sigma_rho) - R (= sigma_rho / 2R when R is
             # well determined, sqrt(sigma_rho) as R -> 0).
             sigma_r = math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - r
-            sigma = math.sqrt((2.0 * sigma_r) ** 2 + (MODEL_FLOOR_REL * c) ** 2 + MODEL_FLOOR_PX**2)
+            sigma = with_model_floor(2.0 * sigma_r, c)
             if c < SUB_PIXEL_PX:
                 # Below about half a pixel the pixel footprint dominates the profile and the fit's
                 # curvature overstates what is known about c (seen on ray-traced edges).

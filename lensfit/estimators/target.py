@@ -27,39 +27,18 @@ Reference
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
 import scipy.optimize
 import scipy.signal
 
-from lensfit.estimators import BlurEstimate, EdgeTask
+from lensfit.estimators import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.psf import disk_kernel
 
 SUB = 4
 MAX_ALONG_PX = 64.0  # patch size caps: enough pixels for a precise fit, bounded cost
 MAX_ACROSS_PX = 48.0
-MODEL_FLOOR_REL = 0.003
-MODEL_FLOOR_PX = 0.02
-
-
-@functools.lru_cache(maxsize=16)
-def _texture(kind: str, key: tuple) -> tuple[np.ndarray, float]:
-    """(raster with values in [0, 1], mm per texel), board frame origin at texel (0, 0) corner."""
-    if kind == "charuco":
-        from lensfit.targets import charuco_board, charuco_texels_per_square
-
-        squares, square_mm, marker_mm, dictionary, legacy = key
-        board = charuco_board(squares, square_mm, marker_mm, dictionary, legacy)
-        n = charuco_texels_per_square(square_mm, marker_mm, dictionary)
-        img = board.generateImage((squares[0] * n, squares[1] * n), marginSize=0, borderBits=1)
-        return (img > 127).astype(np.float64), square_mm / n
-    if kind == "checkerboard":
-        squares, square_mm = key
-        dark = (np.add.outer(np.arange(squares[1]), np.arange(squares[0])) % 2) == 0
-        return (~dark).astype(np.float64), square_mm
-    raise ValueError(kind)
 
 
 def _sample_texture(task: EdgeTask, xs: np.ndarray, ys: np.ndarray) -> np.ndarray | None:
@@ -79,11 +58,7 @@ def _sample_texture(task: EdgeTask, xs: np.ndarray, ys: np.ndarray) -> np.ndarra
         e = float(spec["edge_mm"])
         inside = (bx >= 0) & (bx <= e) & (by >= 0) & (by <= e)
         return np.where(inside, 0.0, 1.0).reshape(xs.shape)
-    if target.kind == "charuco":
-        raster, mm = _texture("charuco", (tuple(spec["squares"]), float(spec["square_mm"]), float(spec["marker_mm"]),
-                                          spec["dictionary"], bool(spec.get("legacy_pattern", False))))
-    else:
-        raster, mm = _texture("checkerboard", (tuple(spec["squares"]), float(spec["square_mm"])))
+    raster, mm = target.texture()
     ci = np.floor(bx / mm).astype(int)
     ri = np.floor(by / mm).astype(int)
     on = (ci >= 0) & (ci < raster.shape[1]) & (ri >= 0) & (ri < raster.shape[0])
@@ -160,7 +135,7 @@ def _measure_one(image: np.ndarray, task: EdgeTask) -> BlurEstimate:
     if curvature <= 0 or not math.isfinite(curvature):
         return BlurEstimate(None, None, ("flat_cost",), n_pix)
     sigma_fit = math.sqrt(2.0 * s2 / curvature)
-    sigma = math.sqrt(sigma_fit**2 + (MODEL_FLOOR_REL * c) ** 2 + MODEL_FLOOR_PX**2)
+    sigma = with_model_floor(sigma_fit, c)
     if c >= 0.95 * max_c:
         flags.append("window_truncated")
     return BlurEstimate(c, sigma, tuple(flags), n_pix, math.sqrt(s2))
