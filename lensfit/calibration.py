@@ -32,6 +32,9 @@ class Intrinsics:
     rms_px: float
     views: int
     source: str  # "calibrated" or "manifest"
+    #: 1-sigma of ``focal_length_px`` (OpenCV's estimate from the reprojection residuals for a
+    #: calibration; as stated in the manifest, else 0 = taken as exact)
+    focal_length_sigma_px: float = 0.0
 
     @property
     def camera_matrix(self) -> np.ndarray:
@@ -101,33 +104,35 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
     def run(dets, K, dist, extra):
         obj = [d.object_points_mm.astype(np.float32) for d in _usable(dets)]
         img = [d.image_points_px.astype(np.float32) for d in _usable(dets)]
-        rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (w, h), K.copy(), dist.copy(), flags=flags | extra,
-                                                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
-        return rms, K, dist
+        rms, K, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(
+            obj, img, (w, h), K.copy(), dist.copy(), flags=flags | extra,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+        # With a fixed aspect ratio OpenCV reports the spread on fy (index 1) and 0 on fx.
+        return rms, K, dist, float(max(np.ravel(std)[0], np.ravel(std)[1]))
 
     # Radial distortion only when the data ask for it: it must cut the reprojection error by
     # a tenth; otherwise (narrow views, little distortion) k1, k2 merely trade off against the
     # focal length and the principal point.
     everything = [d for dets in detections.values() for d in dets]
-    rms_plain, _, _ = run(everything, K0, np.zeros(5), cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2)
-    rms_radial, _, _ = run(everything, K0, np.zeros(5), 0)
+    rms_plain = run(everything, K0, np.zeros(5), cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2)[0]
+    rms_radial = run(everything, K0, np.zeros(5), 0)[0]
     if rms_radial > DISTORTION_GAIN * rms_plain:
         flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
 
     out: dict[str, Intrinsics] = {}
     if len(detections) == 1:
         (label, dets), = detections.items()
-        rms, K, dist = run(dets, K0, np.zeros(5), 0)
+        rms, K, dist, sigma = run(dets, K0, np.zeros(5), 0)
         out[label] = Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
-                                float(rms), len(_usable(dets)), "calibrated")
+                                float(rms), len(_usable(dets)), "calibrated", sigma)
         return out
     # Shared principal point and distortion from all views, then each setting's focal length.
-    _, K_all, dist_all = run(everything, K0, np.zeros(5), 0)
+    _, K_all, dist_all, _ = run(everything, K0, np.zeros(5), 0)
     fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
     for label, dets in detections.items():
-        rms, K, dist = run(dets, K_all, dist_all, fixed)
+        rms, K, dist, sigma = run(dets, K_all, dist_all, fixed)
         out[label] = Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
-                                float(rms), len(_usable(dets)), "calibrated")
+                                float(rms), len(_usable(dets)), "calibrated", sigma)
     return out
 
 

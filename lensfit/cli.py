@@ -10,6 +10,7 @@ import argparse
 import json
 import math
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from lensfit import __version__
@@ -18,9 +19,12 @@ from lensfit.errors import InputError, SpecError
 #: Exit codes.
 EXIT_OK = 0
 EXIT_USAGE = 2  # bad arguments or input files (argparse uses 2 too)
+EXIT_NOT_IDENTIFIABLE = 3  # the fit ran, but some parameter cannot be determined from the data
 
 # Library argument names -> the options a user typed, so that errors name what they wrote.
 _MEASURE_OPTIONS = {"estimator": "--estimator", "setting": "setting"}
+_FIT_OPTIONS = {**_MEASURE_OPTIONS, "pixel_pitch_mm": "--pixel-pitch", "focal_length_px": "--focal-length-px",
+                "loss": "--loss", "blur_floor_px": "--blur-floor"}
 
 _DOF_OPTIONS = {
     "focal_length_mm": "--focal-length",
@@ -38,6 +42,11 @@ class CliError(Exception):
     def __init__(self, message: str, code: int = EXIT_USAGE):
         super().__init__(message)
         self.code = code
+
+
+def _partial(path) -> "Path":
+    """A temporary sibling with the same suffix (writers choose the format by suffix)."""
+    return path.with_name(f".{path.stem}.partial{path.suffix}")
 
 
 def _fail_input(exc, options: dict[str, str]) -> CliError:
@@ -179,7 +188,7 @@ def _measure_command(args: argparse.Namespace) -> int:
             bar.update(task, description=stage, completed=done, total=total)
 
         table = measure(stack, args.estimator, progress=progress)
-    tmp = out.with_name(f".{out.name}.partial")
+    tmp = _partial(out)
     table.write(tmp)
     tmp.replace(out)
     valid = table.valid()
@@ -222,6 +231,141 @@ def _bench_measure_command(args: argparse.Namespace) -> int:
               f"{100 * r['within_1_sigma']:.0f}% within 1 sigma, {1000 * r['seconds_per_edge']:.0f} ms per edge "
               f"({r['seconds_total']:.1f} s with detection and calibration)")
     return EXIT_OK
+
+
+# --------------------------------------------------------------------------- fit
+
+
+def _progress_bar(console, enabled: bool):
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TimeElapsedColumn(), console=console, disable=not console.is_terminal and not enabled)
+
+
+def _fit_command(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from rich.console import Console
+    from rich.table import Table
+
+    outputs = [(opt, Path(v)) for opt, v in (("--out", args.out), ("--plot", args.plot), ("--samples", args.samples))
+               if v]
+    for opt, path in outputs:
+        if path.exists() and not args.force:
+            raise CliError(f"{opt} {path} already exists; pass --force to replace it")
+        if not path.parent.is_dir():
+            raise CliError(f"{opt} {path}: folder {path.parent} does not exist; create it or choose another path")
+    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise CliError(f"--plot must end in .png, .svg or .pdf, got {args.plot!r}")
+    if args.samples and Path(args.samples).suffix.lower() not in (".csv", ".json"):
+        raise CliError(f"--samples must end in .csv or .json, got {args.samples!r}")
+
+    from lensfit.estimators import ESTIMATORS
+
+    if args.estimator not in ESTIMATORS:
+        raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
+    source = Path(args.stack)
+    console = Console(stderr=True)
+    truth = None
+    from lensfit.jaxcache import enable_compilation_cache
+
+    enable_compilation_cache()
+    if source.is_file() and source.suffix.lower() in (".csv", ".json"):
+        from lensfit.measure import SampleTable
+
+        table = SampleTable.read(source)
+    else:
+        from lensfit.measure import measure
+        from lensfit.stack import load_stack
+
+        stack = load_stack(source)
+        with _progress_bar(console, args.progress) as bar:
+            task = bar.add_task("measuring", total=None)
+            table = measure(stack, args.estimator,
+                            progress=lambda stage, done, total: bar.update(task, description=stage, completed=done,
+                                                                           total=total))
+        truth_path = stack.path / "truth.json"
+        if truth_path.is_file():
+            try:
+                truth = json.loads(truth_path.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                print(f"warning: {truth_path} unreadable ({exc}); no comparison with the truth", file=sys.stderr)
+    for w in table.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+
+    from lensfit.fitting import fit, results_document, write_results
+
+    fpx = None
+    if args.focal_length_px is not None:
+        if not (args.focal_length_px > 0 and math.isfinite(args.focal_length_px)):
+            raise InputError("focal_length_px", args.focal_length_px, "> 0 px and finite")
+        fpx = args.focal_length_px
+    with console.status("fitting"):
+        result = fit(table, pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
+                     blur_floor_px=args.blur_floor)
+    document = results_document(result, ["lensfit", *args.argv], truth)
+
+    # Write every output to a temporary sibling first: all appear, or none.
+    pending = []
+    try:
+        if args.out:
+            tmp = _partial(Path(args.out))
+            write_results(tmp, document)
+            pending.append((tmp, Path(args.out)))
+        if args.samples:
+            tmp = _partial(Path(args.samples))
+            table.write(tmp)
+            pending.append((tmp, Path(args.samples)))
+        if args.plot:
+            from lensfit.plots import plot_fit
+
+            tmp = _partial(Path(args.plot))
+            plot_fit(result, tmp, title=f"{source.name}: {result.code}")
+            pending.append((tmp, Path(args.plot)))
+    except BaseException:
+        for tmp, _ in pending:
+            tmp.unlink(missing_ok=True)
+        raise
+    for tmp, final in pending:
+        tmp.replace(final)
+
+    if args.json:
+        print(json.dumps(document, indent=1))
+    else:
+        show = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
+                "sensor_distance_mm", "aperture_diameter_mm", "blur_floor_px")
+        out = Console()
+        for label, qs in result.settings.items():
+            t = Table(title=f"setting {label!r}: {document['settings'][label]['samples']} edges", header_style="bold")
+            for col in ("quantity", "estimate ± 1 sigma", "95% interval"):
+                t.add_column(col, justify="right" if col != "quantity" else "left", no_wrap=True)
+            rows = {r["quantity"]: r for r in document.get("truth_comparison", []) if r["setting"] == label}
+            if rows:
+                t.add_column("truth", justify="right", no_wrap=True)
+                t.add_column("error", justify="right", no_wrap=True)
+            for qn in show:
+                e = qs[qn]
+                cells = [qn, e.text(), e.interval_text()]
+                if rows:
+                    r = rows.get(qn)
+                    cells += ([f"{r['truth']:.6g}" if r["truth"] is not None else "infinity",
+                               f"{100 * r['relative_error']:+.3f}%" if r["relative_error"] is not None else ""]
+                              if r else ["", ""])
+                t.add_row(*cells)
+            out.print(t)
+        d = document["diagnostics"]
+        print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {d['rms_residual_px']:.3f} px, "
+              f"reduced chi-square {d['chi2_reduced']:.2f}, condition number {d['condition_number']:.3g}, "
+              f"loss {d['loss']}")
+        for w in result.warnings:
+            print(f"warning: {w}", file=sys.stderr)
+        for r in result.reasons:
+            print(f"not identifiable: {r}", file=sys.stderr)
+        written = ", ".join(str(final) for _, final in pending)
+        if written:
+            print(f"wrote {written}")
+    return EXIT_OK if result.ok else EXIT_NOT_IDENTIFIABLE
 
 
 # --------------------------------------------------------------------------- parser
@@ -274,6 +418,31 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     m.set_defaults(func=_measure_command, prog="lensfit measure")
 
+    ft = sub.add_parser(
+        "fit", help="measure a stack and fit focal length, f-number and focus distance",
+        description="Measure blur on every target edge of STACK (a folder with stack.toml; or a samples "
+                    ".json/.csv from 'lensfit measure') and fit the circle-of-confusion model: the shared "
+                    "focal length and, per setting, f-number and focus distance, with 1-sigma and 95%% "
+                    "intervals. Exit status 0: every parameter determined; 3: the fit ran but some parameter "
+                    "is not identifiable (the results say which and why); 2: bad input.")
+    ft.add_argument("stack", help="stack folder (or its stack.toml), or a samples .json/.csv")
+    ft.add_argument("--estimator", default="edge", metavar="NAME",
+                    help="blur estimator: edge (fast) or target (analysis by synthesis)")
+    ft.add_argument("--out", metavar="FILE", help="results JSON (CONTRACTS.md 'Fit results')")
+    ft.add_argument("--plot", metavar="FILE", help="plot of blur versus inverse distance and the fit (.png/.svg/.pdf)")
+    ft.add_argument("--samples", metavar="FILE", help="also write the measured samples (.csv/.json)")
+    ft.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"],
+                    help="robust loss (default huber; cauchy for many outliers)")
+    ft.add_argument("--blur-floor", type=_number, metavar="PX",
+                    help="fix the blur floor (px) instead of fitting it per setting")
+    ft.add_argument("--pixel-pitch", type=_number, metavar="MM", help="pixel pitch, mm (for a samples CSV)")
+    ft.add_argument("--focal-length-px", type=_number, metavar="PX",
+                    help="calibrated focal length in px (for a samples CSV, which has no intrinsics)")
+    ft.add_argument("--json", action="store_true", help="print the results JSON instead of tables")
+    ft.add_argument("--force", action="store_true", help="replace existing output files")
+    ft.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    ft.set_defaults(func=_fit_command, prog="lensfit fit")
+
     bm = sub.add_parser("bench-measure", help="accuracy and time per edge of the blur estimators",
                         description="Benchmark: slanted edges rendered by synth at several CoC diameters and "
                                     "noise levels; optionally both estimators on a rendered STACK with truth.")
@@ -286,14 +455,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    args.argv = argv
     try:
         return args.func(args)
     except CliError as exc:
         print(f"{args.prog}: error: {exc}", file=sys.stderr)
         return exc.code
     except InputError as exc:  # input errors the command did not map itself
-        print(f"{args.prog}: error: {exc.describe(_MEASURE_OPTIONS)}", file=sys.stderr)
+        print(f"{args.prog}: error: {exc.describe(_FIT_OPTIONS)}", file=sys.stderr)
         return EXIT_USAGE
     except SpecError as exc:
         print(f"{args.prog}: error: {exc}", file=sys.stderr)

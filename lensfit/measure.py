@@ -91,6 +91,52 @@ class SampleTable:
             "warnings": self.warnings,
         }
 
+    @classmethod
+    def read(cls, path: str | Path) -> "SampleTable":
+        """A table written by :meth:`write`. JSON keeps the intrinsics and pixel pitch; a CSV
+        holds only the samples (give the pitch and focal length in px to the fit)."""
+        path = Path(path)
+        if not path.is_file():
+            raise SpecError(path, "", "no such file; write samples with lensfit measure --out")
+        if path.suffix.lower() == ".csv":
+            from lensfit.fitting import read_samples_csv
+
+            rows = read_samples_csv(path)
+            doc: dict[str, Any] = {"samples": rows}
+        else:
+            try:
+                doc = json.loads(path.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+                raise SpecError(path, "", f"not valid JSON ({exc})") from None
+            if not isinstance(doc, dict) or not isinstance(doc.get("samples"), list):
+                raise SpecError(path, "samples", "missing: a samples JSON written by lensfit measure has a list here")
+        table = cls(pixel_pitch_mm=float(doc.get("pixel_pitch_mm") or float("nan")),
+                    image_shape=tuple(doc.get("image_shape_px") or (0, 0)), warnings=list(doc.get("warnings", [])))
+        for label, v in (doc.get("intrinsics") or {}).items():
+            table.intrinsics[label] = Intrinsics(
+                float(v["focal_length_px"]), tuple(v.get("principal_point_px", (0.0, 0.0))),
+                tuple(v.get("distortion", [0.0] * 5)), float(v.get("rms_px", 0.0)), int(v.get("views", 0)),
+                str(v.get("source", "file")), float(v.get("focal_length_sigma_px", 0.0)))
+        for i, r in enumerate(doc["samples"]):
+            try:
+                start = r.get("start_px") or (0.0, 0.0)
+                end = r.get("end_px") or (0.0, 0.0)
+                if isinstance(start, str):
+                    start, end = tuple(map(float, start.split())), tuple(map(float, end.split()))
+                table.samples.append(Sample(
+                    image=str(r.get("image", "")), setting=str(r["setting"]), target=str(r.get("target", "")),
+                    edge=str(r.get("edge", "")), distance_mm=float(r["distance_mm"]),
+                    distance_start_mm=float(r.get("distance_start_mm") or r["distance_mm"]),
+                    distance_end_mm=float(r.get("distance_end_mm") or r["distance_mm"]),
+                    coc_diameter_px=None if r.get("coc_diameter_px") is None else float(r["coc_diameter_px"]),
+                    sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
+                    estimator=str(r.get("estimator", "")), flags=str(r.get("flags", "") or ""),
+                    start_px=tuple(start), end_px=tuple(end), distance_source=str(r.get("distance_source", ""))))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise SpecError(path, f"samples[{i}]", f"unreadable sample ({exc!r}); expected the columns "
+                                "lensfit measure writes") from None
+        return table
+
     def write(self, path: str | Path) -> None:
         """CSV (``.csv``) or JSON (``.json``) by suffix."""
         path = Path(path)
@@ -145,7 +191,8 @@ def known_intrinsics(entry: dict, shape: tuple[int, int]) -> Intrinsics:
     h, w = shape
     pp = entry.get("principal_point_px", [(w - 1) / 2, (h - 1) / 2])
     return Intrinsics(float(entry["focal_length_px"]), (float(pp[0]), float(pp[1])),
-                      tuple(float(v) for v in entry.get("distortion", [0.0] * 5)), 0.0, 0, "manifest")
+                      tuple(float(v) for v in entry.get("distortion", [0.0] * 5)), 0.0, 0, "manifest",
+                      float(entry.get("focal_length_sigma_px", 0.0)))
 
 
 def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> Detection:

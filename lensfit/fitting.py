@@ -1,0 +1,887 @@
+"""Fit the circle-of-confusion model to blur samples: focal length, f-number, focus distance.
+
+Model
+-----
+For lens setting ``k`` (a focus distance ``D_k`` and f-number ``N_k``; all settings share the
+focal length ``f``) and a sample on an edge whose ends lie at ``d0`` and ``d1`` from the lens
+plane::
+
+    s_k  = 1 / (1/f - 1/D_k)              sensor distance (thin lens), mm
+    K_k  = A_k * s_k = f * s_k / N_k       slope of the blur "V" in inverse distance, mm^2
+    c    = sqrt( (K_k/p)^2 * [ (1/D_k - <w>)^2 + var(w) ] + b_k^2 )      px
+
+with ``w = 1/d`` along the edge (``d`` linear from ``d0`` to ``d1``: ``<w>`` and ``var(w)`` in
+closed form), ``p`` the pixel pitch and ``b_k`` the setting's blur floor in px.
+
+Why this form:
+- A blur estimator that fits one disk to an edge whose blur varies along it matches, to first
+  order, the second moment of the mixture: the RMS of the geometric diameter along the edge,
+  ``(K/p) sqrt((1/D - <w>)^2 + var(w))``. For a fronto-parallel edge ``var(w) = 0`` and this is
+  the textbook ``(A s / p) |1/D - 1/d|``.
+- Blur that is not defocus (diffraction: an Airy core of diameter about ``1.68 lambda N`` for a
+  disk of equal second moment; residual aberrations; sensor MTF the estimator does not model)
+  convolves with the defocus disk, and variances of convolved PSFs add, so the floor adds in
+  quadrature. This also makes the model smooth at the focus plane, where ``|.|`` has a kink
+  (grad(abs) at 0 is arbitrary, grad(sqrt) at 0 is infinite).
+- The floor is fitted per setting with a weak prior ``b_k ~ 0 +- 1 px`` (a regulariser that
+  matters only when no sample lies near the focus plane), or fixed by the caller.
+
+Observations: the blur samples (weights from each sample's stated 1 sigma) and, per setting,
+the calibrated focal length in px, ``f_px = s_k / p`` with its 1 sigma (a pinhole calibration
+measures the sensor distance of a thin lens). Parameters (float64, chosen to stay well
+conditioned from macro to infinity): ``log f``; per setting the inverse focus distance
+``1000/D_k`` (dioptres, 0 at infinity, allowed to cross it), ``log N_k`` and ``b_k``.
+
+Solver: a closed-form start (for each candidate vertex on a grid spanning the data, linear
+least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix
+Levenberg-Marquardt, inside iteratively reweighted least squares for a robust loss (Huber by
+default, Cauchy for heavy contamination). The covariance is ``(J^T W J)^-1`` at the solution,
+scaled by the reduced chi-square when that exceeds 1, and propagated to every derived quantity
+by the delta method (log space for positive quantities, so intervals stay positive).
+
+Identifiability (DOMAIN.md): blur at one setting fixes only ``K`` and ``D``; the calibrated
+``f_px`` supplies ``s``, hence ``f`` and ``N``. A parameter the data cannot determine (one
+distance, blur all below a pixel, no focal length in px, a vertex extrapolated far from the
+samples, a relative uncertainty over 20 %) is reported with value ``None`` and the reason and
+the capture that would fix it; never a number, NaN or inf.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from lensfit.errors import InputError, SpecError
+
+#: Weak prior on each setting's blur floor (px, 1 sigma about 0).
+FLOOR_PRIOR_SIGMA_PX = 1.0
+#: A parameter whose relative 1 sigma exceeds this is reported as not identifiable.
+MAX_RELATIVE_SIGMA = 0.2
+#: Samples whose distances spread less than this (relative) count as one distance.
+MIN_DISTANCE_SPREAD = 0.02
+#: Below this every measured blur is pixel integration, diffraction and aberration.
+MIN_USEFUL_BLUR_PX = 1.0
+#: Condition number (column-equilibrated Jacobian) above which the fit is degenerate.
+MAX_CONDITION = 1e8
+LOSSES = ("linear", "huber", "cauchy")
+_HUBER_K = 1.345
+_CAUCHY_C = 2.385
+_EPS_PX = 1e-4  # keeps sqrt differentiable exactly at the focus plane with a zero floor
+_Z95 = 1.959963984540054
+
+QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
+              "sensor_distance_mm", "aperture_diameter_mm", "blur_slope_mm2", "blur_floor_px",
+              "inverse_focus_distance_per_m")
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A fitted or derived quantity. ``value`` is None when the data cannot determine it
+    (``reason`` says why and what would fix it). ``infinite`` marks a focus distance at
+    infinity (value None, the inverse distance is then the estimate to read). An interval end
+    that is None is unbounded (a focus interval reaching infinity)."""
+
+    value: float | None
+    sigma: float | None = None
+    ci68: tuple[float | None, float | None] | None = None
+    ci95: tuple[float | None, float | None] | None = None
+    reason: str | None = None
+    infinite: bool = False
+
+    @property
+    def determined(self) -> bool:
+        return self.value is not None or self.infinite
+
+    def _decimals(self) -> int:
+        """Decimals that show two significant digits of the uncertainty."""
+        if not self.sigma or not math.isfinite(self.sigma):
+            return 4
+        return int(min(8, max(0, 1 - math.floor(math.log10(self.sigma)))))
+
+    def text(self, unit: str = "") -> str:
+        """``value ± sigma`` rounded to the uncertainty; "infinity" or "not identifiable"."""
+        if self.infinite:
+            return "infinity"
+        if self.value is None:
+            return "not identifiable"
+        n = self._decimals()
+        return f"{self.value:.{n}f}{unit} ± {self.sigma:.{n}f}"
+
+    def interval_text(self) -> str:
+        """The 95 % interval, an unbounded end shown as "infinity"."""
+        if self.ci95 is None:
+            return ""
+        n = self._decimals()
+        lo, hi = (("infinity" if v is None else f"{v:.{n}f}") for v in self.ci95)
+        return f"[{lo}, {hi}]"
+
+    def to_json_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"value": self.value, "sigma": self.sigma,
+                               "ci68": list(self.ci68) if self.ci68 else None,
+                               "ci95": list(self.ci95) if self.ci95 else None}
+        if self.infinite:
+            out["infinite"] = True
+        if self.reason:
+            out["reason"] = self.reason
+        return out
+
+
+@dataclass
+class FitResult:
+    """What ``fit`` found.
+
+    Attributes
+    ----------
+    settings : label -> quantity name (see ``QUANTITIES``) -> :class:`Estimate`
+    focal_length_mm : the shared focal length
+    code : ``"ok"`` or ``"not_identifiable"`` (some quantity is None; see ``reasons``)
+    reasons : one line per quantity that could not be determined
+    parameter_names, parameters, covariance : the free parameters of the solver, their values
+        and covariance (``log_f``, ``inv_focus_per_m[k]``, ``log_N[k]``, ``floor_px[k]``)
+    correlations : correlation matrix of the free parameters
+    condition_number : of the column-equilibrated, weighted Jacobian
+    residuals_px, weights : per used sample (measured minus model; final robust weight)
+    """
+
+    settings: dict[str, dict[str, Estimate]]
+    focal_length_mm: Estimate
+    code: str
+    reasons: list[str]
+    parameter_names: list[str]
+    parameters: np.ndarray
+    covariance: np.ndarray
+    correlations: np.ndarray
+    condition_number: float
+    n_samples: int
+    n_outliers: int
+    chi2_reduced: float
+    rms_residual_px: float
+    loss: str
+    warnings: list[str]
+    samples: "FitData"
+    residuals_px: np.ndarray
+    weights: np.ndarray
+    _full: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+
+    @property
+    def ok(self) -> bool:
+        return self.code == "ok"
+
+    def predict_px(self, setting: str, distance_mm: np.ndarray) -> np.ndarray:
+        """Model blur diameter (px) of a fronto-parallel edge at ``distance_mm`` from the lens."""
+        k = self.samples.labels.index(setting)
+        w = 1.0 / np.asarray(distance_mm, np.float64)
+        c = _model_np(self._full, len(self.samples.labels), k, w, np.zeros_like(w), self.samples.pixel_pitch_mm)
+        return c
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The results file (CONTRACTS.md "Fit results"); finite numbers or null throughout."""
+        names = self.parameter_names
+        corr = {names[i]: {names[j]: _finite(self.correlations[i, j]) for j in range(len(names))}
+                for i in range(len(names))}
+        return {
+            "focal_length_mm": self.focal_length_mm.to_json_dict(),
+            "settings": {label: {q: e.to_json_dict() for q, e in qs.items()} | {"samples": int(np.sum(
+                self.samples.setting == self.samples.labels.index(label)))} for label, qs in self.settings.items()},
+            "result": self.code,
+            "reasons": self.reasons,
+            "diagnostics": {
+                "condition_number": _finite(self.condition_number),
+                "correlations": corr,
+                "samples": self.n_samples,
+                "outliers": self.n_outliers,
+                "chi2_reduced": _finite(self.chi2_reduced),
+                "rms_residual_px": _finite(self.rms_residual_px),
+                "loss": self.loss,
+                "warnings": self.warnings,
+            },
+        }
+
+
+def _finite(x: float) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+# --------------------------------------------------------------------------- input
+
+
+@dataclass
+class FitData:
+    """Samples in the solver's terms (float64 arrays, one entry per used sample)."""
+
+    labels: list[str]
+    setting: np.ndarray  # index into labels
+    distance_mm: np.ndarray  # middle of the edge
+    w_mean: np.ndarray  # <1/d> along the edge, 1/mm
+    w_var: np.ndarray  # var(1/d) along the edge, 1/mm^2
+    coc_px: np.ndarray
+    sigma_px: np.ndarray
+    pixel_pitch_mm: float
+    focal_length_px: np.ndarray  # per setting, NaN = unknown
+    focal_length_sigma_px: np.ndarray
+    dropped: int = 0
+
+
+def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance of ``1/d`` for ``d`` uniform along a segment from ``d0`` to ``d1``.
+
+    ``<1/d> = ln(d1/d0)/(d1 - d0)``, ``<1/d^2> = 1/(d0 d1)``; written with ``m`` the middle and
+    ``r = (d1 - d0)/(d1 + d0)`` as ``atanh(r)/(r m)`` and ``(1/(1 - r^2) - (atanh(r)/r)^2)/m^2``,
+    with the series ``r^2/3 + 22 r^4/45`` for the variance where ``|r|`` is small.
+    """
+    d0, d1 = np.asarray(d0, np.float64), np.asarray(d1, np.float64)
+    m = (d0 + d1) / 2
+    r = (d1 - d0) / (d1 + d0)
+    small = np.abs(r) < 1e-3
+    rs = np.where(small, 0.5, r)
+    ratio = np.where(small, 1 + r**2 / 3 + r**4 / 5, np.arctanh(rs) / rs)
+    var = np.where(small, r**2 / 3 + 22 * r**4 / 45, 1 / (1 - rs**2) - (np.arctanh(rs) / rs) ** 2)
+    return ratio / m, np.maximum(var, 0.0) / m**2
+
+
+def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Sample rows and context (pixel pitch, intrinsics) from any accepted input."""
+    from lensfit.measure import SampleTable
+
+    if isinstance(samples, (str, Path)):
+        samples = SampleTable.read(samples)
+    if isinstance(samples, SampleTable):
+        ctx = {"pixel_pitch_mm": samples.pixel_pitch_mm,
+               "focal_length_px": {k: v.focal_length_px for k, v in samples.intrinsics.items()},
+               "focal_length_sigma_px": {k: v.focal_length_sigma_px for k, v in samples.intrinsics.items()}}
+        return samples.rows(), ctx
+    rows = []
+    for s in samples:
+        rows.append(dict(s) if isinstance(s, dict) else dict(vars(s)))
+    return rows, {}
+
+
+def _per_setting(value: Any, labels: list[str], name: str, default: float) -> np.ndarray:
+    if value is None:
+        return np.full(len(labels), default)
+    if isinstance(value, dict):
+        unknown = [k for k in value if k not in labels]
+        if unknown:
+            raise InputError(name, unknown[0], "a setting label of the samples: " + ", ".join(labels))
+        return np.array([float(value[k]) if value.get(k) is not None else default for k in labels])
+    return np.full(len(labels), float(value))
+
+
+def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
+            focal_length_px: float | dict[str, float] | None = None,
+            focal_length_sigma_px: float | dict[str, float] | None = None) -> FitData:
+    """Validate samples and turn them into :class:`FitData` (see :func:`fit`)."""
+    rows, ctx = _rows_from(samples)
+    pitch = pixel_pitch_mm if pixel_pitch_mm is not None else ctx.get("pixel_pitch_mm")
+    if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
+        raise InputError("pixel_pitch_mm", pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
+    used, dropped = [], 0
+    for i, r in enumerate(rows):
+        c, sg = r.get("coc_diameter_px"), r.get("sigma_px")
+        d = r.get("distance_mm")
+        for name in ("distance_mm", "setting"):
+            if r.get(name) is None:
+                raise InputError(f"samples[{i}].{name}", None, "present")
+        if not (isinstance(d, (int, float)) and math.isfinite(d) and d > 0):
+            raise InputError(f"samples[{i}].distance_mm", d, "> 0 mm and finite")
+        if c is None or sg is None or not (math.isfinite(c) and math.isfinite(sg) and sg > 0 and c >= 0):
+            dropped += 1  # the estimator could not measure this edge
+            continue
+        used.append(r)
+    if not used:
+        raise InputError("samples", f"{len(rows)} rows", "at least one sample with a measured coc_diameter_px and "
+                         "sigma_px", "measure a stack whose targets were detected (lensfit measure)")
+    labels = sorted({str(r["setting"]) for r in used})
+    idx = {k: i for i, k in enumerate(labels)}
+    dist = np.array([float(r["distance_mm"]) for r in used])
+    d0 = np.array([float(r.get("distance_start_mm") or r["distance_mm"]) for r in used])
+    d1 = np.array([float(r.get("distance_end_mm") or r["distance_mm"]) for r in used])
+    if np.any(d0 <= 0) or np.any(d1 <= 0):
+        raise InputError("samples.distance_start_mm", float(min(d0.min(), d1.min())), "> 0 mm")
+    w_mean, w_var = inverse_distance_moments(d0, d1)
+    fpx = _per_setting(focal_length_px if focal_length_px is not None else ctx.get("focal_length_px"),
+                       labels, "focal_length_px", math.nan)
+    fsg = _per_setting(focal_length_sigma_px if focal_length_sigma_px is not None
+                       else ctx.get("focal_length_sigma_px"), labels, "focal_length_sigma_px", 0.0)
+    bad = ~(np.isnan(fpx) | (fpx > 0))
+    if bad.any():
+        raise InputError("focal_length_px", float(fpx[bad][0]), "> 0 px")
+    if np.any(~np.isfinite(fsg) | (fsg < 0)):
+        raise InputError("focal_length_sigma_px", float(fsg[~np.isfinite(fsg) | (fsg < 0)][0]), ">= 0 px")
+    return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_var,
+                   np.array([float(r["coc_diameter_px"]) for r in used]),
+                   np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped)
+
+
+# --------------------------------------------------------------------------- model
+
+
+def _unpack(theta, m):
+    return theta[0], theta[1:1 + m], theta[1 + m:1 + 2 * m], theta[1 + 2 * m:1 + 3 * m]
+
+
+def _model(theta, m, setting, w_mean, w_var, pitch):
+    """Blur diameter in px (JAX or NumPy arrays, by the namespace of ``theta``)."""
+    import jax.numpy as jnp
+
+    log_f, inv_d, log_n, floor = _unpack(theta, m)
+    f = jnp.exp(log_f)
+    x = inv_d / 1000.0  # 1/mm
+    inv_s = jnp.maximum(1.0 / f - x, 1e-6 / f)  # focus nearer than f is not a thin-lens image
+    s = 1.0 / inv_s
+    slope_px = f * s / jnp.exp(log_n) / pitch  # K/p
+    k = setting
+    geo2 = slope_px[k] ** 2 * ((x[k] - w_mean) ** 2 + w_var)
+    return jnp.sqrt(geo2 + floor[k] ** 2 + _EPS_PX**2), s
+
+
+def _model_np(theta, m, k, w_mean, w_var, pitch):
+    log_f, inv_d, log_n, floor = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
+    f = math.exp(log_f)
+    x = inv_d[k] / 1000.0
+    s = 1.0 / max(1.0 / f - x, 1e-6 / f)
+    slope_px = f * s / math.exp(log_n[k]) / pitch
+    return np.sqrt(slope_px**2 * ((x - w_mean) ** 2 + w_var) + floor[k] ** 2 + _EPS_PX**2)
+
+
+def _residuals(theta_free, args):
+    """Weighted residuals: blur rows, then the focal-length-in-px rows, then the floor priors."""
+    import jax.numpy as jnp
+
+    (theta_fixed, free_idx, m, setting, w_mean, w_var, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w,
+     floor_w) = args
+    theta = theta_fixed.at[free_idx].set(theta_free)
+    c, s = _model(theta, m, setting, w_mean, w_var, pitch)
+    r_blur = (c - coc) * sqrt_w_over_sigma
+    r_fpx = (s / pitch - fpx) * fpx_w
+    r_floor = theta[1 + 2 * m:1 + 3 * m] * floor_w
+    return jnp.concatenate([r_blur, r_fpx, r_floor])
+
+
+_SOLVERS: dict[Any, Any] = {}
+
+
+def _solver(m: int):
+    """A jit-compiled LM solve and Jacobian for ``m`` settings (cached per m)."""
+    if m in _SOLVERS:
+        return _SOLVERS[m]
+    import jax
+    import optimistix as optx
+
+    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
+    fn = _solver_residual_fn(m)
+
+    @jax.jit
+    def solve(theta0, args):
+        sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=400, throw=False)
+        theta = sol.value
+        return theta, fn(theta, args), jax.jacfwd(fn)(theta, args), sol.result == optx.RESULTS.successful
+
+    _SOLVERS[m] = solve
+    return solve
+
+
+# --------------------------------------------------------------------------- start
+
+
+def _vertex_search(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray, fit_floor: bool,
+                   floor_px: float) -> tuple[float, float, float]:
+    """Closed-form start for one setting: (vertex 1/mm, slope px*mm, floor px).
+
+    For each candidate vertex x the model ``c^2 = k^2 (x - w)^2 + b^2`` is linear in
+    ``(k^2, b^2)``: weighted linear least squares (weights ``1/(2 c sigma)^2``, the variance of
+    ``c^2``), then the vertex with the least chi-square in ``c``. Candidates span the samples'
+    inverse distances and as much again on each side, plus infinity (x = 0).
+    """
+    lo, hi = float(w.min()), float(w.max())
+    span = max(hi - lo, 0.05 * hi)
+    grid = np.unique(np.concatenate([np.linspace(max(lo - span, -0.2 * hi), hi + span, 801), [0.0], w]))
+    cc = np.maximum(c, 0.05)
+    a2 = (grid[:, None] - w[None, :]) ** 2  # (G, n)
+    wv = wt / (2 * cc * sig) ** 2
+    y = c**2 - (0.0 if fit_floor else floor_px**2)
+    if fit_floor:
+        # Normal equations of [a2, 1] per candidate.
+        s11 = a2**2 @ wv
+        s12 = a2 @ wv
+        s22 = wv.sum()
+        t1 = a2 @ (wv * y)
+        t2 = (wv * y).sum()
+        det = s11 * s22 - s12**2
+        k2 = np.where(det > 0, (t1 * s22 - s12 * t2) / np.where(det > 0, det, 1), 0.0)
+        b2 = np.where(det > 0, (s11 * t2 - s12 * t1) / np.where(det > 0, det, 1), 0.0)
+        neg = b2 < 0  # floor cannot be negative: refit the slope alone
+        k2 = np.where(neg, t1 / np.maximum(s11, 1e-300), k2)
+        b2 = np.where(neg, 0.0, b2)
+    else:
+        k2 = (a2 @ (wv * y)) / np.maximum(a2**2 @ wv, 1e-300)
+        b2 = np.full_like(k2, floor_px**2)
+    k2 = np.maximum(k2, 0.0)
+    pred = np.sqrt(k2[:, None] * a2 + b2[:, None])
+    chi2 = ((pred - c[None, :]) ** 2 * (wt / sig**2)[None, :]).sum(axis=1)
+    best = int(np.argmin(chi2))
+    return float(grid[best]), float(np.sqrt(k2[best])), float(np.sqrt(b2[best]))
+
+
+def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
+    a = np.abs(u)
+    if loss == "huber":
+        return np.where(a <= _HUBER_K, 1.0, _HUBER_K / np.maximum(a, 1e-300))
+    if loss == "cauchy":
+        return 1.0 / (1.0 + (a / _CAUCHY_C) ** 2)
+    return np.ones_like(a)
+
+
+def _robust_scale(u: np.ndarray) -> float:
+    """Scale of standardised residuals: 1 when the stated sigmas are honest, more when not
+    (median absolute residual / 0.6745, never below 1)."""
+    return max(1.0, float(np.median(np.abs(u))) / 0.6745) if u.size else 1.0
+
+
+# --------------------------------------------------------------------------- fit
+
+
+def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
+        focal_length_px: float | dict[str, float] | None = None,
+        focal_length_sigma_px: float | dict[str, float] | None = None,
+        loss: str = "huber", blur_floor_px: float | None = None,
+        floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12) -> FitResult:
+    """Fit focal length, and per setting f-number and focus distance, to blur samples.
+
+    Parameters
+    ----------
+    samples : a :class:`~lensfit.measure.SampleTable`, the path of a samples JSON/CSV written
+        by ``lensfit measure``, or a sequence of rows (dicts or ``Sample``) with ``setting``,
+        ``distance_mm``, ``coc_diameter_px``, ``sigma_px`` and optionally
+        ``distance_start_mm``/``distance_end_mm`` (the edge's ends, for tilted edges)
+    pixel_pitch_mm : sensor pixel pitch (default: the SampleTable's)
+    focal_length_px : calibrated focal length in px (= sensor distance / pitch), one number or
+        per setting label (default: the SampleTable's intrinsics). Without it f and N cannot
+        be separated and are reported as not identifiable.
+    focal_length_sigma_px : its 1 sigma (default: the calibration's; 0 = exact)
+    loss : "huber" (default), "cauchy" (many outliers) or "linear"
+    blur_floor_px : fix the blur floor (px) instead of fitting it per setting
+    floor_prior_sigma_px : width of the weak prior on a fitted floor (about 0)
+    max_irls : reweighting rounds for the robust loss
+
+    Returns
+    -------
+    FitResult (``code`` "ok" or "not_identifiable"; never NaN or inf in it)
+
+    Raises
+    ------
+    InputError
+        No usable sample, a bad pixel pitch, focal length, loss or floor.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    if loss not in LOSSES:
+        raise InputError("loss", loss, "one of: " + ", ".join(LOSSES))
+    if blur_floor_px is not None and not (math.isfinite(blur_floor_px) and blur_floor_px >= 0):
+        raise InputError("blur_floor_px", blur_floor_px, ">= 0 px and finite")
+    if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
+        raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
+    data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
+                   focal_length_sigma_px=focal_length_sigma_px)
+    labels, m, p = data.labels, len(data.labels), data.pixel_pitch_mm
+    n = len(data.coc_px)
+    warnings: list[str] = []
+    if data.dropped:
+        warnings.append(f"{data.dropped} sample(s) without a measured blur were left out")
+
+    # ---- what cannot be determined before fitting (per setting)
+    blocked: dict[int, str] = {}
+    for k, label in enumerate(labels):
+        sel = data.setting == k
+        d = data.distance_mm[sel]
+        if sel.sum() < 4:
+            blocked[k] = (f"setting {label!r} has only {int(sel.sum())} measured edge(s); a V needs more: photograph "
+                          "the target at 3 or more distances")
+        elif (d.max() - d.min()) / np.median(d) < MIN_DISTANCE_SPREAD:
+            blocked[k] = (f"every sample of setting {label!r} lies at one distance (~{np.median(d):.0f} mm); blur at "
+                          "one distance cannot separate the V's slope from its vertex: photograph the target at 3 or "
+                          "more distances, some nearer and some farther than the focus")
+        elif data.coc_px[sel].max() < MIN_USEFUL_BLUR_PX:
+            blocked[k] = (f"every blur of setting {label!r} is below {MIN_USEFUL_BLUR_PX:g} px (largest "
+                          f"{data.coc_px[sel].max():.2f} px), where pixel integration, diffraction and aberrations "
+                          "dominate: open the aperture or place targets farther from the focus plane")
+    has_fpx = ~np.isnan(data.focal_length_px)
+    no_fpx_reason = ("no focal length in px for this setting (calibration or stack.toml [[intrinsics]]): blur fixes "
+                     "only the slope A*s and the focus distance; calibrate on tilted target views to separate f and N")
+
+    # ---- closed-form start
+    fixed_floor = blur_floor_px is not None
+    theta = np.zeros(1 + 3 * m)
+    verts, slopes = np.zeros(m), np.ones(m)
+    for k in range(m):
+        sel = data.setting == k
+        x, slope, b = _vertex_search(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], np.ones(sel.sum()),
+                                     not fixed_floor, blur_floor_px or 0.0)
+        verts[k], slopes[k] = x, max(slope, 1e-6)
+        theta[1 + 2 * m + k] = blur_floor_px if fixed_floor else max(b, 0.3)
+    f_guess = [1 / (1 / (data.focal_length_px[k] * p) + verts[k]) for k in range(m) if has_fpx[k] and k not in blocked]
+    f_guess = f_guess or [1 / (1 / (data.focal_length_px[k] * p) + verts[k]) for k in range(m) if has_fpx[k]]
+    f0 = float(np.median(f_guess)) if f_guess else 50.0
+    theta[0] = math.log(f0)
+    for k in range(m):
+        x = min(verts[k], 0.9 / f0)
+        s = 1 / (1 / f0 - x)
+        theta[1 + k] = 1000 * x
+        theta[1 + m + k] = math.log(f0 * s / (slopes[k] * p))
+
+    # ---- free parameters
+    free = np.ones(1 + 3 * m, bool)
+    if not has_fpx.any():
+        free[0] = False  # f only scales N; held at a nominal value, reported as unknown
+    for k in blocked:
+        free[[1 + k, 1 + m + k, 1 + 2 * m + k]] = False
+    if fixed_floor:
+        free[1 + 2 * m:] = False
+    if not free.any():
+        free[0] = False
+    free_idx = np.flatnonzero(free)
+
+    fpx = np.where(has_fpx, data.focal_length_px, 0.0)
+    fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * fpx)
+    fpx_w = np.where(has_fpx, 1.0 / np.maximum(fpx_sig, 1e-300), 0.0)
+    floor_w = np.where(fixed_floor, 0.0, 1.0 / floor_prior_sigma_px) * np.ones(m)
+    for k in blocked:
+        fpx_w[k] = 0.0
+        floor_w[k] = 0.0
+    # Blocked settings leave the blur rows out (their parameters are held).
+    row_on = np.array([data.setting[i] not in blocked for i in range(n)], float)
+
+    from lensfit.estimators.edge import _bucket
+
+    npad = _bucket(n, 64)
+    pad = npad - n
+
+    def padded(a, fill):
+        return np.concatenate([a, np.full(pad, fill)])
+
+    base = dict(setting=padded(data.setting, 0).astype(np.int32), w_mean=padded(data.w_mean, 1e-3),
+                w_var=padded(data.w_var, 0.0), coc=padded(data.coc_px, 1.0))
+    weights = np.ones(n)
+    converged = True
+    with jax.enable_x64(True):
+        solve = _solver(m)
+        theta_j = jnp.asarray(theta)
+        idx_j = jnp.asarray(free_idx)
+        for it in range(max(1, max_irls if loss != "linear" else 1)):
+            sw = padded(np.sqrt(weights) * row_on / data.sigma_px, 0.0)
+            args = (theta_j, idx_j, jnp.asarray(base["setting"]), jnp.asarray(base["w_mean"]),
+                    jnp.asarray(base["w_var"]), jnp.asarray(base["coc"]), jnp.asarray(sw), p, jnp.asarray(fpx),
+                    jnp.asarray(fpx_w), jnp.asarray(floor_w))
+            sol, res, jac, ok = solve(jnp.asarray(theta[free_idx]), args)
+            sol = np.asarray(sol)
+            if not np.all(np.isfinite(sol)):
+                converged = False
+                break
+            change = np.max(np.abs(sol - theta[free_idx])) if it else np.inf
+            theta[free_idx] = sol
+            theta_j = jnp.asarray(theta)
+            converged = bool(ok)
+            if loss == "linear":
+                break
+            pred = _predict_all(theta, m, data)
+            u = (data.coc_px - pred) / data.sigma_px
+            new = _robust_weights(u / _robust_scale(u[row_on > 0]), loss)
+            if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
+                break
+            weights = new
+        # Final Jacobian with the final weights.
+        sw = padded(np.sqrt(weights) * row_on / data.sigma_px, 0.0)
+        args = (theta_j, idx_j, jnp.asarray(base["setting"]), jnp.asarray(base["w_mean"]), jnp.asarray(base["w_var"]),
+                jnp.asarray(base["coc"]), jnp.asarray(sw), p, jnp.asarray(fpx), jnp.asarray(fpx_w),
+                jnp.asarray(floor_w))
+        fn = _solver_residual_fn(m)
+        jac = np.asarray(jax.jacfwd(fn)(jnp.asarray(theta[free_idx]), args))
+        res = np.asarray(fn(jnp.asarray(theta[free_idx]), args))
+    if not converged:
+        warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
+
+    pred = _predict_all(theta, m, data)
+    resid = data.coc_px - pred
+    used = row_on > 0
+    u = resid / data.sigma_px
+    n_used = int(used.sum())
+    dof = max(float(np.sum(weights[used])) - len(free_idx), 1.0)
+    chi2_red = float(np.sum(res[:npad] ** 2) / dof) if n_used else 1.0
+    scale2 = max(1.0, chi2_red)
+    n_out = int(np.sum(np.abs(u[used]) > 5 * math.sqrt(scale2)))
+
+    # ---- covariance, condition, correlations
+    names = _parameter_names(labels)
+    fnames = [names[i] for i in free_idx]
+    cov, cond, corr = _covariance(jac, scale2)
+    full_cov = np.zeros((1 + 3 * m, 1 + 3 * m))
+    full_cov[np.ix_(free_idx, free_idx)] = cov
+
+    degenerate = cond > MAX_CONDITION
+    weak: set[str] = set()
+    if degenerate and len(free_idx):
+        # The parameters in the near-null direction are the ones that cannot be told apart.
+        js = _null_direction(jac)
+        weak = {fnames[i] for i in range(len(fnames)) if abs(js[i]) > 0.3}
+
+    # ---- derived quantities
+    settings: dict[str, dict[str, Estimate]] = {}
+    reasons: list[str] = []
+    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons)
+    code = "ok" if not reasons else "not_identifiable"
+    return FitResult(settings, f_est, code, reasons, fnames, theta[free_idx], cov, corr, cond, n_used, n_out,
+                     chi2_red, float(np.sqrt(np.mean(resid[used] ** 2))) if n_used else 0.0, loss, warnings, data,
+                     resid, weights, theta.copy())
+
+
+def _solver_residual_fn(m):
+    def fn(theta_free, args):
+        return _residuals(theta_free, (*args[:2], m, *args[2:]))
+
+    return fn
+
+
+def _predict_all(theta: np.ndarray, m: int, data: FitData) -> np.ndarray:
+    out = np.empty(len(data.coc_px))
+    for k in range(m):
+        sel = data.setting == k
+        out[sel] = _model_np(theta, m, k, data.w_mean[sel], data.w_var[sel], data.pixel_pitch_mm)
+    return out
+
+
+def _parameter_names(labels: list[str]) -> list[str]:
+    return (["log_f"] + [f"inv_focus_per_m[{k}]" for k in labels] + [f"log_N[{k}]" for k in labels]
+            + [f"floor_px[{k}]" for k in labels])
+
+
+def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Covariance by SVD of the column-equilibrated Jacobian; its condition number; correlations."""
+    if jac.shape[1] == 0:
+        return np.zeros((0, 0)), 1.0, np.zeros((0, 0))
+    norms = np.linalg.norm(jac, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    u, sv, vt = np.linalg.svd(jac / norms, full_matrices=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    inv = np.where(sv > sv[0] * 1e-15, 1.0 / np.maximum(sv, 1e-300) ** 2, 0.0)
+    cov_scaled = (vt.T * inv) @ vt
+    cov = scale2 * cov_scaled / np.outer(norms, norms)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    corr = cov / np.outer(np.where(sd > 0, sd, 1), np.where(sd > 0, sd, 1))
+    return cov, cond, np.clip(corr, -1, 1)
+
+
+def _null_direction(jac: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(jac, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    _, _, vt = np.linalg.svd(jac / norms, full_matrices=False)
+    return vt[-1]
+
+
+def _positive(value: float, sigma_log: float) -> Estimate:
+    """A positive quantity with its log-space sigma: intervals ``value * exp(+-z sigma_log)``."""
+    z1 = math.exp(sigma_log)
+    z2 = math.exp(_Z95 * sigma_log)
+    return Estimate(value, value * sigma_log, (value / z1, value * z1), (value / z2, value * z2))
+
+
+def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons) -> Estimate:
+    """Fill ``settings`` with every reported quantity; returns the shared focal length."""
+    import jax
+    import jax.numpy as jnp
+
+    def quantities(t):
+        log_f, inv_d, log_n, floor = _unpack(t, m)
+        f = jnp.exp(log_f)
+        x = inv_d / 1000.0
+        s = 1.0 / jnp.maximum(1.0 / f - x, 1e-6 / f)
+        n_ = jnp.exp(log_n)
+        return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
+                "log_K": log_f + jnp.log(s) - log_n, "inv_d": inv_d, "floor": floor, "s": s, "N": n_, "f": f}
+
+    with jax.enable_x64(True):
+        t = jnp.asarray(theta)
+        q = {k: np.asarray(v) for k, v in quantities(t).items()}
+        jacs = {k: np.asarray(v) for k, v in jax.jacfwd(quantities)(t).items()}
+
+    def sd(name, k=None):
+        g = jacs[name] if k is None else jacs[name][k]
+        return float(math.sqrt(max(g @ cov @ g, 0.0)))
+
+    f_val = float(q["f"])
+    f_reason = None
+    if not has_fpx.any():
+        f_reason = "no focal length in px for any setting: " + no_fpx_reason.split(": ", 1)[1]
+    elif "log_f" in weak:
+        f_reason = "the focal length is degenerate with other parameters (condition number above 1e8)"
+    elif sd("log_f") > MAX_RELATIVE_SIGMA:
+        f_reason = (f"the focal length is poorly constrained (relative 1 sigma {100 * sd('log_f'):.0f}%): "
+                    "the focus distance of the calibrated setting(s) is not located by the blur")
+    elif all(k in blocked for k in range(m) if has_fpx[k]):
+        f_reason = "the focal length needs the focus distance of a calibrated setting, which is not determined"
+    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(f_val, sd("log_f"))
+    if f_reason:
+        reasons.append(f"focal_length_mm: {f_reason}")
+
+    for k, label in enumerate(data.labels):
+        out: dict[str, Estimate] = {}
+        sel = data.setting == k
+        why = blocked.get(k)
+        inv_d, s_inv = float(q["inv_d"][k]), sd("inv_d", k)
+        w = data.w_mean[sel] * 1000.0
+        w_span = float(w.max() - w.min()) if sel.any() else 0.0
+        if why is None:
+            name = f"inv_focus_per_m[{label}]"
+            if name in weak:
+                why = f"the focus distance of setting {label!r} is degenerate with other parameters"
+            elif s_inv > 0.25 * max(w_span, 1e-12) and s_inv > MAX_RELATIVE_SIGMA * abs(inv_d):
+                side = "nearer" if np.all(w > inv_d) else "farther" if np.all(w < inv_d) else ""
+                why = (f"the focus distance of setting {label!r} is poorly located (inverse distance 1 sigma "
+                       f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m)")
+                if side:
+                    why += (f"; every sample is {side} than the focus: add targets on the other side of the focus "
+                            "distance, or spread the targets over a wider range of distances")
+        # Focus distance (lens plane) and the inverse distance.
+        if why:
+            for qn in QUANTITIES:
+                if qn != "focal_length_mm":
+                    out[qn] = Estimate(None, reason=why)
+            reasons.append(f"settings.{label}: {why}")
+        else:
+            lo95, hi95 = inv_d - _Z95 * s_inv, inv_d + _Z95 * s_inv
+            lo68, hi68 = inv_d - s_inv, inv_d + s_inv
+            out["inverse_focus_distance_per_m"] = Estimate(inv_d, s_inv, (lo68, hi68), (lo95, hi95))
+
+            def dist(lo, hi):  # an inverse-distance interval as a distance interval (None = infinity)
+                return (1000.0 / hi if hi > 0 else None, 1000.0 / lo if lo > 0 else None)
+
+            s_val = float(q["s"][k])
+            if inv_d > 0:
+                dval = 1000.0 / inv_d
+                out["focus_distance_mm"] = Estimate(dval, dval * s_inv / inv_d, dist(lo68, hi68), dist(lo95, hi95))
+                ds = out["focus_distance_mm"]
+                out["focus_distance_from_sensor_mm"] = Estimate(
+                    dval + s_val, ds.sigma, tuple(None if v is None else v + s_val for v in ds.ci68),
+                    tuple(None if v is None else v + s_val for v in ds.ci95))
+            else:
+                note = (f"focus at infinity within the uncertainty (inverse focus distance {inv_d:.3g} +- "
+                        f"{s_inv:.2g} /m)")
+                out["focus_distance_mm"] = Estimate(None, None, dist(lo68, hi68), dist(lo95, hi95), note, True)
+                out["focus_distance_from_sensor_mm"] = Estimate(None, None, None, None, note, True)
+            fl = float(q["floor"][k])
+            s_fl = sd("floor", k)
+            out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - s_fl, 0.0), abs(fl) + s_fl),
+                                            (max(abs(fl) - _Z95 * s_fl, 0.0), abs(fl) + _Z95 * s_fl))
+            out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k))
+            lens_reason = None
+            if f_reason:
+                lens_reason = f_reason
+            elif not has_fpx[k] and not has_fpx.any():
+                lens_reason = no_fpx_reason
+            elif sd("log_N", k) > MAX_RELATIVE_SIGMA:
+                lens_reason = f"the f-number of setting {label!r} is poorly constrained ({100 * sd('log_N', k):.0f}%)"
+            if lens_reason:
+                for qn in ("f_number", "aperture_diameter_mm", "sensor_distance_mm"):
+                    out[qn] = Estimate(None, reason=lens_reason)
+                if not out["focus_distance_from_sensor_mm"].infinite:
+                    out["focus_distance_from_sensor_mm"] = Estimate(None, reason=lens_reason)
+                reasons.append(f"settings.{label}.f_number: {lens_reason}")
+            else:
+                out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k))
+                out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k))
+                out["sensor_distance_mm"] = _positive(s_val, sd("log_s", k))
+        out["focal_length_mm"] = f_est
+        settings[label] = {qn: out[qn] for qn in QUANTITIES}
+    return f_est
+
+
+# --------------------------------------------------------------------------- files
+
+
+def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
+    """Rows of a samples CSV written by ``lensfit measure`` (numbers parsed, blanks None)."""
+    path = Path(path)
+    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px")
+    rows = []
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in (reader.fieldnames
+                                                                                                      or [])]
+        if missing:
+            raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
+        for i, r in enumerate(reader, start=2):
+            row: dict[str, Any] = dict(r)
+            for c in numeric:
+                if c in row:
+                    v = (row[c] or "").strip()
+                    try:
+                        row[c] = float(v) if v else None
+                    except ValueError:
+                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a number") from None
+            rows.append(row)
+    return rows
+
+
+def results_document(result: FitResult, command: Iterable[str] | None = None,
+                     truth: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The results JSON with provenance (and, when given, the truth and relative errors)."""
+    import datetime
+    import platform
+
+    from lensfit import __version__
+
+    doc = result.to_json_dict()
+    doc["provenance"] = {"version": __version__, "command": " ".join(command) if command else None,
+                         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                         "python": platform.python_version(), "machine": platform.machine()}
+    if truth is not None:
+        doc["truth_comparison"] = compare_with_truth(result, truth)
+    return doc
+
+
+def compare_with_truth(result: FitResult, truth: dict[str, Any]) -> list[dict[str, Any]]:
+    """Rows (setting, quantity, estimate, sigma, truth, relative error, within 95 %) for the
+    quantities ``truth.json`` states (CONTRACTS.md ground truth)."""
+    rows = []
+    true_f = truth.get("focal_length_mm")
+    for label, qs in result.settings.items():
+        t = truth.get("settings", {}).get(label, {})
+        for qn, tv in (("focal_length_mm", true_f), ("f_number", t.get("f_number")),
+                       ("focus_distance_mm", t.get("focus_distance_mm")),
+                       ("sensor_distance_mm", t.get("sensor_distance_mm"))):
+            if tv is None or qn not in qs:
+                continue
+            e = qs[qn]
+            tv = float(tv)
+            rel = None if e.value is None or not math.isfinite(tv) else e.value / tv - 1
+            inside = None
+            if e.ci95 is not None:
+                lo, hi = e.ci95
+                inside = (lo is None or lo <= tv) and (hi is None or tv <= hi)
+            rows.append({"setting": label, "quantity": qn, "estimate": e.value, "sigma": e.sigma,
+                         "truth": tv if math.isfinite(tv) else None, "relative_error": rel, "within_ci95": inside,
+                         "infinite": e.infinite})
+    return rows
+
+
+def write_results(path: str | Path, document: dict[str, Any]) -> None:
+    """Write atomically (a temporary sibling, then rename); finite numbers or null only."""
+    path = Path(path)
+    text = json.dumps(document, indent=1, allow_nan=False)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+__all__ = ["fit", "FitResult", "Estimate", "FitData", "prepare", "inverse_distance_moments", "results_document",
+           "compare_with_truth", "write_results", "read_samples_csv", "QUANTITIES", "LOSSES"]

@@ -1,0 +1,73 @@
+"""Pictures of a fit: blur diameter against inverse distance with the fitted V, and residuals.
+
+Matplotlib with the Agg backend (no display needed); imported only when a plot is asked for.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from lensfit.fitting import FitResult
+
+
+def plot_fit(result: FitResult, path: str | Path, *, title: str | None = None) -> None:
+    """Write a PNG/SVG/PDF (by suffix) of the samples, the fitted V per setting and residuals.
+
+    Top: measured blur diameter (px, with 1-sigma bars) against inverse distance (1/m); the
+    fitted model for a fronto-parallel edge; the focus distance marked. Bottom: residuals in
+    units of each sample's sigma, outliers (robust weight below 0.5) hollow.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    data = result.samples
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.2]},
+                                  layout="constrained")
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    w_all = 1000.0 * data.w_mean
+    lo, hi = float(w_all.min()), float(w_all.max())
+    for k, label in enumerate(data.labels):
+        col = colours[k % len(colours)]
+        sel = data.setting == k
+        w = 1000.0 * data.w_mean[sel]
+        good = result.weights[sel] >= 0.5
+        ax.errorbar(w[good], data.coc_px[sel][good], yerr=data.sigma_px[sel][good], fmt="o", ms=3, color=col,
+                    alpha=0.7, lw=0.8, label=f"setting {label}: {int(sel.sum())} edges")
+        if (~good).any():
+            ax.plot(w[~good], data.coc_px[sel][~good], "o", mfc="none", color=col, ms=5, label="down-weighted")
+        est = result.settings[label]
+        inv = est["inverse_focus_distance_per_m"]
+        x0 = min(lo, inv.value if inv.value is not None else lo)
+        x1 = max(hi, inv.value if inv.value is not None else hi)
+        pad = 0.05 * (x1 - x0 or 1.0)
+        grid = np.linspace(max(x0 - pad, 1e-6), x1 + pad, 400)
+        if inv.value is not None:
+            c = result.predict_px(label, 1000.0 / grid)
+            text = _describe(result, label)
+            ax.plot(grid, c, "-", color=col, lw=1.5, label=text)
+            ax.axvline(inv.value, color=col, ls=":", lw=1)
+        axr.plot(w[good], result.residuals_px[sel][good] / data.sigma_px[sel][good], "o", ms=3, color=col, alpha=0.7)
+        if (~good).any():
+            axr.plot(w[~good], result.residuals_px[sel][~good] / data.sigma_px[sel][~good], "o", mfc="none",
+                     color=col, ms=5)
+    ax.set_ylabel("blur-disk diameter (px)")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=8, loc="best")
+    ax.set_title(title or f"Blur versus inverse distance: fit {result.code}")
+    ax.grid(alpha=0.3)
+    axr.axhline(0, color="k", lw=0.8)
+    axr.set_ylabel("residual / sigma")
+    axr.set_xlabel("inverse distance from the lens (1/m)")
+    axr.grid(alpha=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _describe(result: FitResult, label: str) -> str:
+    est = result.settings[label]
+    return (f"fit: f {est['focal_length_mm'].text(' mm')}, N {est['f_number'].text()}, "
+            f"focus {est['focus_distance_mm'].text(' mm')}")
