@@ -12,6 +12,7 @@ the pose is flagged ``ambiguous`` when the runner-up is nearly as good.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,13 +69,29 @@ def project(points_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
     return out.reshape(-1, 2)
 
 
+@contextlib.contextmanager
+def _one_thread():
+    """OpenCV's calibration sums in parallel in an order that varies from call to call (focal
+    lengths differed by 1e-8 px between identical calls), which made measurements that depend on
+    it irreproducible; one thread makes it deterministic and costs little here."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def _usable(dets: list[Detection]) -> list[Detection]:
     return [d for d in dets if len(d.ids) >= MIN_POINTS]
 
 
 def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, int], *,
               fix_principal_point: bool = True) -> dict[str, Intrinsics]:
-    """Per-setting focal length in pixels, shared principal point and distortion.
+    """Per-setting focal length in pixels, shared principal point and distortion (deterministic:
+    see :func:`_one_thread`).
 
     Parameters
     ----------
@@ -88,6 +105,12 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
     InputError
         A setting with fewer than 3 usable views (argument ``setting``), naming the fix.
     """
+    with _one_thread():
+        return _calibrate(detections, image_shape, fix_principal_point)
+
+
+def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, int],
+               fix_principal_point: bool) -> dict[str, Intrinsics]:
     import cv2
 
     h, w = image_shape
@@ -145,13 +168,15 @@ def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:
     obj = det.object_points_mm.astype(np.float64).reshape(-1, 1, 3)
     img = det.image_points_px.astype(np.float64).reshape(-1, 1, 2)
     K, dist = intr.camera_matrix, np.asarray(intr.distortion)
-    n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    with _one_thread():
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
     if n == 0:
         return None
     errs = np.asarray(errs).ravel()
     order = np.argsort(errs)
     best = order[0]
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvecs[best].copy(), tvecs[best].copy())
+    with _one_thread():
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvecs[best].copy(), tvecs[best].copy())
     R, _ = cv2.Rodrigues(rvec)
     proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
     rms = float(np.sqrt(np.mean(np.sum((proj - img) ** 2, axis=-1))))

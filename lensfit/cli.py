@@ -355,9 +355,12 @@ def _fit_command(args: argparse.Namespace) -> int:
                 t.add_row(*cells)
             out.print(t)
         d = document["diagnostics"]
-        print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {d['rms_residual_px']:.3f} px, "
-              f"reduced chi-square {d['chi2_reduced']:.2f}, condition number {d['condition_number']:.3g}, "
-              f"loss {d['loss']}")
+        def num(x, spec):
+            return "n/a" if x is None else format(x, spec)
+
+        print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {num(d['rms_residual_px'], '.3f')} px, "
+              f"reduced chi-square {num(d['chi2_reduced'], '.2f')}, condition number "
+              f"{num(d['condition_number'], '.3g')}, loss {d['loss']}")
         for w in result.warnings:
             print(f"warning: {w}", file=sys.stderr)
         for r in result.reasons:

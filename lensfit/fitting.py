@@ -542,8 +542,10 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
 
     # ---- free parameters
     free = np.ones(1 + 3 * m, bool)
-    if not has_fpx.any():
-        free[0] = False  # f only scales N; held at a nominal value, reported as unknown
+    if not any(has_fpx[k] and k not in blocked for k in range(m)):
+        # Without a calibrated setting whose V is determined, f only scales N: held at a
+        # nominal value and reported as unknown.
+        free[0] = False
     for k in blocked:
         free[[1 + k, 1 + m + k, 1 + 2 * m + k]] = False
     if fixed_floor:
@@ -574,23 +576,24 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
                 w_var=padded(data.w_var, 0.0), coc=padded(data.coc_px, 1.0))
     weights = np.ones(n)
     converged = True
+    fn = _solver_residual_fn(m)
+
+    def make_args(weights):
+        sw = padded(np.sqrt(weights) * row_on / data.sigma_px, 0.0)
+        return (jnp.asarray(theta), jnp.asarray(free_idx), jnp.asarray(base["setting"]), jnp.asarray(base["w_mean"]),
+                jnp.asarray(base["w_var"]), jnp.asarray(base["coc"]), jnp.asarray(sw), p, jnp.asarray(fpx),
+                jnp.asarray(fpx_w), jnp.asarray(floor_w))
+
     with jax.enable_x64(True):
-        solve = _solver(m)
-        theta_j = jnp.asarray(theta)
-        idx_j = jnp.asarray(free_idx)
-        for it in range(max(1, max_irls if loss != "linear" else 1)):
-            sw = padded(np.sqrt(weights) * row_on / data.sigma_px, 0.0)
-            args = (theta_j, idx_j, jnp.asarray(base["setting"]), jnp.asarray(base["w_mean"]),
-                    jnp.asarray(base["w_var"]), jnp.asarray(base["coc"]), jnp.asarray(sw), p, jnp.asarray(fpx),
-                    jnp.asarray(fpx_w), jnp.asarray(floor_w))
-            sol, res, jac, ok = solve(jnp.asarray(theta[free_idx]), args)
+        rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
+        for it in range(rounds):
+            sol, _, _, ok = _solver(m)(jnp.asarray(theta[free_idx]), make_args(weights))
             sol = np.asarray(sol)
             if not np.all(np.isfinite(sol)):
                 converged = False
                 break
             change = np.max(np.abs(sol - theta[free_idx])) if it else np.inf
             theta[free_idx] = sol
-            theta_j = jnp.asarray(theta)
             converged = bool(ok)
             if loss == "linear":
                 break
@@ -600,14 +603,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
             if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
                 break
             weights = new
-        # Final Jacobian with the final weights.
-        sw = padded(np.sqrt(weights) * row_on / data.sigma_px, 0.0)
-        args = (theta_j, idx_j, jnp.asarray(base["setting"]), jnp.asarray(base["w_mean"]), jnp.asarray(base["w_var"]),
-                jnp.asarray(base["coc"]), jnp.asarray(sw), p, jnp.asarray(fpx), jnp.asarray(fpx_w),
-                jnp.asarray(floor_w))
-        fn = _solver_residual_fn(m)
-        jac = np.asarray(jax.jacfwd(fn)(jnp.asarray(theta[free_idx]), args))
+        # Residuals and Jacobian with the final weights.
+        args = make_args(weights)
         res = np.asarray(fn(jnp.asarray(theta[free_idx]), args))
+        jac = (np.asarray(jax.jacfwd(fn)(jnp.asarray(theta[free_idx]), args)) if free_idx.size
+               else np.zeros((len(res), 0)))
     if not converged:
         warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
 
@@ -673,7 +673,9 @@ def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float, np.n
     norms = np.where(norms > 0, norms, 1.0)
     u, sv, vt = np.linalg.svd(jac / norms, full_matrices=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-    inv = np.where(sv > sv[0] * 1e-15, 1.0 / np.maximum(sv, 1e-300) ** 2, 0.0)
+    keep = sv > sv[0] * 1e-15
+    inv = np.zeros_like(sv)
+    inv[keep] = 1.0 / sv[keep] ** 2
     cov_scaled = (vt.T * inv) @ vt
     cov = scale2 * cov_scaled / np.outer(norms, norms)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
