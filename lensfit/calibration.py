@@ -163,14 +163,18 @@ def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:
     """Pose of a planar target; None with fewer than 4 points."""
     import cv2
 
-    if len(det.ids) < 4:
+    if len(det.ids) < 4 or not np.all(np.isfinite(det.image_points_px)):
         return None
     obj = det.object_points_mm.astype(np.float64).reshape(-1, 1, 3)
     img = det.image_points_px.astype(np.float64).reshape(-1, 1, 2)
     K, dist = intr.camera_matrix, np.asarray(intr.distortion)
     with _one_thread():
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    if n == 0:
+        if n == 0 or not all(np.all(np.isfinite(v)) for v in (*rvecs, *tvecs)):
+            # IPPE in float64 returns NaN for some near fronto-parallel squares (seen with
+            # OpenCV 5.0 on a 4-corner target); SQPnP has no such degeneracy (one solution).
+            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+    if n == 0 or not all(np.all(np.isfinite(v)) for v in (*rvecs, *tvecs)):
         return None
     errs = np.asarray(errs).ravel()
     order = np.argsort(errs)
@@ -180,5 +184,7 @@ def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:
     R, _ = cv2.Rodrigues(rvec)
     proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
     rms = float(np.sqrt(np.mean(np.sum((proj - img) ** 2, axis=-1))))
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(tvec)) and np.isfinite(rms)):
+        return None
     ambiguous = bool(n > 1 and errs[order[1]] < 1.5 * errs[best] + 0.05)
     return TargetPose(R, tvec.ravel().astype(np.float64), rms, ambiguous)

@@ -396,7 +396,15 @@ def _solver(m: int):
 
 def _vertex_search(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray, fit_floor: bool,
                    floor_px: float) -> tuple[float, float, float]:
-    """Closed-form start for one setting: (vertex 1/mm, slope px*mm, floor px).
+    """Closed-form start for one setting: (vertex 1/mm, slope px*mm, floor px)."""
+    grid, chi2, k, b = _vertex_profile(w, c, sig, wt, fit_floor, floor_px)
+    best = int(np.argmin(chi2))
+    return float(grid[best]), float(k[best]), float(b[best])
+
+
+def _vertex_profile(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray, fit_floor: bool,
+                    floor_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Chi-square of the best V for each candidate vertex: (vertices 1/mm, chi2, slope, floor).
 
     For each candidate vertex x the model ``c^2 = k^2 (x - w)^2 + b^2`` is linear in
     ``(k^2, b^2)``: weighted linear least squares (weights ``1/(2 c sigma)^2``, the variance of
@@ -429,8 +437,24 @@ def _vertex_search(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray
     k2 = np.maximum(k2, 0.0)
     pred = np.sqrt(k2[:, None] * a2 + b2[:, None])
     chi2 = ((pred - c[None, :]) ** 2 * (wt / sig**2)[None, :]).sum(axis=1)
-    best = int(np.argmin(chi2))
-    return float(grid[best]), float(np.sqrt(k2[best])), float(np.sqrt(b2[best]))
+    return grid, chi2, np.sqrt(k2), np.sqrt(b2)
+
+
+def _side_hint(w: np.ndarray, x: float) -> str:
+    """"; every sample is nearer/farther than the focus" when all inverse distances ``w`` lie on
+    one side of the vertex ``x`` (same units), else ""."""
+    if np.all(w > x):
+        return "; every sample is nearer than the focus"
+    if np.all(w < x):
+        return "; every sample is farther than the focus"
+    return ""
+
+
+def _clusters(d: np.ndarray, gap: float = MIN_DISTANCE_SPREAD) -> list[float]:
+    """Distinct distances: the means of groups separated by relative gaps above ``gap``."""
+    d = np.sort(np.asarray(d, np.float64))
+    cuts = np.flatnonzero(np.diff(d) / d[:-1] > gap) + 1
+    return [float(g.mean()) for g in np.split(d, cuts)]
 
 
 def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
@@ -508,6 +532,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         if sel.sum() < 4:
             blocked[k] = (f"setting {label!r} has only {int(sel.sum())} measured edge(s); a V needs more: photograph "
                           "the target at 3 or more distances")
+        elif (d.max() - d.min()) / np.median(d) >= MIN_DISTANCE_SPREAD and len(_clusters(d)) == 2:
+            a, b = _clusters(d)
+            blocked[k] = (f"the samples of setting {label!r} lie at two distances only (~{a:.0f} and ~{b:.0f} mm); a "
+                          "V through two distances fits twice (focus between them, or beyond both): photograph the "
+                          "target at 3 or more distances")
         elif (d.max() - d.min()) / np.median(d) < MIN_DISTANCE_SPREAD:
             blocked[k] = (f"every sample of setting {label!r} lies at one distance (~{np.median(d):.0f} mm); blur at "
                           "one distance cannot separate the V's slope from its vertex: photograph the target at 3 or "
@@ -635,6 +664,23 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         js = _null_direction(jac)
         weak = {fnames[i] for i in range(len(fnames)) if abs(js[i]) > 0.3}
 
+    # ---- a second, distinct V that fits about as well (discrete ambiguity the covariance misses)
+    for k, label in enumerate(labels):
+        if k in blocked:
+            continue
+        sel = data.setting == k
+        grid, chi2, _, _ = _vertex_profile(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], weights[sel],
+                                           not fixed_floor, blur_floor_px or 0.0)
+        x_fit = theta[1 + k] / 1000.0
+        sd_x = math.sqrt(max(full_cov[1 + k, 1 + k], 0.0)) / 1000.0
+        far = np.abs(grid - x_fit) > max(5 * sd_x, 0.02 * np.ptp(data.w_mean[sel]))
+        if far.any() and chi2[far].min() < chi2.min() + 9.0 * scale2:
+            alt = grid[far][np.argmin(chi2[far])]
+            alt_mm = f"{1 / alt:.0f} mm" if alt > 0 else "infinity"
+            blocked[k] = (f"two focus distances fit setting {label!r} about equally well ({1 / x_fit:.0f} mm and "
+                          f"{alt_mm}){_side_hint(data.w_mean[sel], x_fit)}: add targets on both sides of the focus "
+                          "and spread them over more distances")
+
     # ---- derived quantities
     settings: dict[str, dict[str, Estimate]] = {}
     reasons: list[str] = []
@@ -747,12 +793,9 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
             if name in weak:
                 why = f"the focus distance of setting {label!r} is degenerate with other parameters"
             elif s_inv > 0.25 * max(w_span, 1e-12) and s_inv > MAX_RELATIVE_SIGMA * abs(inv_d):
-                side = "nearer" if np.all(w > inv_d) else "farther" if np.all(w < inv_d) else ""
                 why = (f"the focus distance of setting {label!r} is poorly located (inverse distance 1 sigma "
-                       f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m)")
-                if side:
-                    why += (f"; every sample is {side} than the focus: add targets on the other side of the focus "
-                            "distance, or spread the targets over a wider range of distances")
+                       f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m){_side_hint(w, inv_d)}: add targets "
+                       "on the other side of the focus distance, or spread them over a wider range of distances")
         # Focus distance (lens plane) and the inverse distance.
         if why:
             for qn in QUANTITIES:

@@ -230,7 +230,7 @@ def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> D
         x = np.linalg.solve(A, b)
         # A refinement, never a jump: blur rounds a thresholded square's corners inward by up to
         # about the blur diameter, saddle-point corners move far less.
-        if np.linalg.norm(x - points[k]) < 3.0 + reach.get(int(cid), 0.0):
+        if np.all(np.isfinite(x)) and np.linalg.norm(x - points[k]) < 3.0 + reach.get(int(cid), 0.0):
             points[k] = x
     return Detection(det.target_id, det.object_points_mm, points, det.ids)
 

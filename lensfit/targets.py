@@ -231,14 +231,21 @@ class Target:
 
         _, mask = cv2.threshold(grey, 0, 255, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)
         contours, _ = cv2.findContours(mask, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        h, w = grey.shape
         best = None
         for cnt in contours:
             area = cv2.contourArea(cnt)
             if area < 400:
                 continue
+            x, y, bw, bh = cv2.boundingRect(cnt)
+            if x <= 1 or y <= 1 or x + bw >= w - 1 or y + bh >= h - 1:
+                continue  # cut by the frame (or a dark surround seen as a quad): not a whole square
             poly = cv2.approxPolyDP(cnt, 0.02 * cv2.arcLength(cnt, True), True)
-            if len(poly) == 4 and cv2.isContourConvex(poly) and (best is None or area > best[0]):
-                best = (area, poly.reshape(4, 2).astype(np.float64))
+            if len(poly) != 4 or not cv2.isContourConvex(poly) or (best is not None and area <= best[0]):
+                continue
+            if not _dark_on_light(grey, poly.reshape(4, 2)):
+                continue
+            best = (area, poly.reshape(4, 2).astype(np.float64))
         if best is None:
             return None
         quad = best[1]
@@ -252,6 +259,22 @@ class Target:
         e = float(self.spec["edge_mm"])
         obj = np.array([[0, 0, 0], [e, 0, 0], [e, e, 0], [0, e, 0]], np.float64)
         return Detection(self.id, obj, quad, np.arange(4))
+
+
+def _dark_on_light(grey: np.ndarray, quad: np.ndarray) -> bool:
+    """Is the quadrilateral darker inside than in a ring around it (a dark square on a light
+    ground, not a dark surround or a gap between light patches)?"""
+    import cv2
+
+    inside = np.zeros(grey.shape, np.uint8)
+    cv2.fillConvexPoly(inside, quad.astype(np.int32), 1)
+    size = max(3, int(0.15 * np.sqrt(cv2.contourArea(quad.astype(np.float32)))))
+    grown = cv2.dilate(inside, np.ones((2 * size + 1, 2 * size + 1), np.uint8))
+    core = cv2.erode(inside, np.ones((2 * size + 1, 2 * size + 1), np.uint8))
+    ring = (grown > 0) & (cv2.dilate(inside, np.ones((5, 5), np.uint8)) == 0)
+    if not ring.any() or not core.any():
+        return False
+    return float(np.median(grey[ring])) > float(np.median(grey[core > 0])) + 0.25 * float(np.ptp(grey))
 
 
 @functools.lru_cache(maxsize=32)

@@ -249,6 +249,15 @@ def test_single_distance_is_refused_with_a_reason():
     assert "3 or more distances" in r.settings["a"]["focus_distance_mm"].reason
 
 
+def test_two_distances_are_refused_as_ambiguous():
+    """Through two distances a V fits twice: focus between them, or beyond both."""
+    rng = np.random.default_rng(13)
+    rows, fpx, fsig = simulate(50.0, 2.8, 2000.0, np.repeat([1200.0, 1500.0], 15), rng)
+    r = run_fit(rows, fpx, fsig)
+    assert_refused(r, "focus_distance_mm", "a", "two distances", "3 or more distances")
+    assert_refused(r, "f_number", "a")
+
+
 def test_all_blur_below_a_pixel_is_refused():
     f, N, D = 24.0, 8.0, 3000.0
     d = spread(2500, 3600)
