@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(VENV)/bin/lensfit dof --focal-length 25 --f-number 11 --focus-distance 1000 --sensor demo-7.2x4.8
 	$(VENV)/bin/synth render data_specs/scenes/demo.toml --out out/demo --force
-	$(VENV)/bin/lensfit measure out/demo --out out/demo_samples.csv --force
+	$(VENV)/bin/lensfit fit out/demo --out out/demo_results.json --plot out/demo_fit.png --samples out/demo_samples.csv --force
 
 test: setup
 	$(PY) -m pytest -q

@@ -335,10 +335,10 @@ def _fit_command(args: argparse.Namespace) -> int:
     else:
         show = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
                 "sensor_distance_mm", "aperture_diameter_mm", "blur_floor_px")
-        out = Console()
+        out = Console(width=None if sys.stdout.isatty() else 120)  # logs and pipes get whole rows
         for label, qs in result.settings.items():
             t = Table(title=f"setting {label!r}: {document['settings'][label]['samples']} edges", header_style="bold")
-            for col in ("quantity", "estimate ± 1 sigma", "95% interval"):
+            for col in ("quantity", "estimate ± 1σ", "95% interval"):
                 t.add_column(col, justify="right" if col != "quantity" else "left", no_wrap=True)
             rows = {r["quantity"]: r for r in document.get("truth_comparison", []) if r["setting"] == label}
             if rows:
@@ -369,6 +369,42 @@ def _fit_command(args: argparse.Namespace) -> int:
         if written:
             print(f"wrote {written}")
     return EXIT_OK if result.ok else EXIT_NOT_IDENTIFIABLE
+
+
+def _bench_fit_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from lensfit.bench_fit import run
+    from lensfit.jaxcache import enable_compilation_cache
+
+    if not (Path(args.stack) / "truth.json").is_file():
+        raise CliError(f"--stack {args.stack} has no truth.json; render one with synth render")
+    if args.seeds < 2:
+        raise CliError(f"--seeds must be at least 2 (a scatter needs two draws), got {args.seeds}")
+    enable_compilation_cache()
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        result = run(args.stack, seeds=args.seeds, full_well_e=args.full_well, read_noise_e=args.read_noise,
+                     estimator=args.estimator, progress=lambda m: status.update(f"benchmarking: {m}"))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    table = Table(title=f"{args.stack}: {args.seeds} noise draws, full well {args.full_well:g} e-, read noise "
+                        f"{args.read_noise:g} e-")
+    for col in ("quantity", "clean error", "noisy mean error", "noisy max |error|", "observed scatter",
+                "stated sigma", "stated/observed"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        def pct(x):
+            return "refused" if x is None else f"{100 * x:+.3f}%"
+        table.add_row(r["quantity"], pct(r["clean_relative_error"]), pct(r["noisy_mean_relative_error"]),
+                      f"{100 * r['noisy_max_abs_relative_error']:.3f}%", f"{r['observed_scatter']:.4g}",
+                      f"{r['median_stated_sigma']:.4g}",
+                      "" if r["stated_over_observed"] is None else f"{r['stated_over_observed']:.2f}")
+    Console(width=None if sys.stdout.isatty() else 120).print(table)
+    print(f"measure {result['seconds_measure']:.1f} s, fit {result['seconds_fit']:.2f} s per stack")
+    return EXIT_OK
 
 
 # --------------------------------------------------------------------------- parser
@@ -445,6 +481,17 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--force", action="store_true", help="replace existing output files")
     ft.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     ft.set_defaults(func=_fit_command, prog="lensfit fit")
+
+    bf = sub.add_parser("bench-fit", help="accuracy of f, N, focus distance and honesty of sigma under noise",
+                        description="Measure and fit a rendered STACK (with truth.json) clean and with seeded "
+                                    "photon + read noise; report errors, observed scatter and stated sigma.")
+    bf.add_argument("--stack", required=True, metavar="DIR", help="a stack rendered by synth (linear PNGs)")
+    bf.add_argument("--seeds", type=int, default=5, help="noise draws (default 5)")
+    bf.add_argument("--full-well", type=_number, default=20000.0, metavar="E", help="electrons at white (20000)")
+    bf.add_argument("--read-noise", type=_number, default=5.0, metavar="E", help="read noise, electrons (5)")
+    bf.add_argument("--estimator", default="edge", metavar="NAME", help="blur estimator (edge)")
+    bf.add_argument("--json", action="store_true", help="print JSON")
+    bf.set_defaults(func=_bench_fit_command, prog="lensfit bench-fit")
 
     bm = sub.add_parser("bench-measure", help="accuracy and time per edge of the blur estimators",
                         description="Benchmark: slanted edges rendered by synth at several CoC diameters and "

@@ -901,9 +901,9 @@ def compare_with_truth(result: FitResult, truth: dict[str, Any]) -> list[dict[st
     true_f = truth.get("focal_length_mm")
     for label, qs in result.settings.items():
         t = truth.get("settings", {}).get(label, {})
-        for qn, tv in (("focal_length_mm", true_f), ("f_number", t.get("f_number")),
-                       ("focus_distance_mm", t.get("focus_distance_mm")),
-                       ("sensor_distance_mm", t.get("sensor_distance_mm"))):
+        for qn, tv in (("focal_length_mm", true_f), *((q, t.get(q)) for q in (
+                "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm", "sensor_distance_mm",
+                "aperture_diameter_mm"))):
             if tv is None or qn not in qs:
                 continue
             e = qs[qn]
