@@ -11,4 +11,13 @@ try:
 except PackageNotFoundError:  # a source tree that was not installed
     __version__ = "0.0.0+unknown"
 
-__all__ = ["__version__"]
+__all__ = ["__version__", "fit"]
+
+
+def __getattr__(name: str):
+    """``lensfit.fit`` without importing JAX when the package is imported."""
+    if name == "fit":
+        from lensfit.fitting import fit
+
+        return fit
+    raise AttributeError(f"module 'lensfit' has no attribute {name!r}")

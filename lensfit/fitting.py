@@ -372,7 +372,10 @@ _SOLVERS: dict[Any, Any] = {}
 
 
 def _solver(m: int):
-    """A jit-compiled LM solve and Jacobian for ``m`` settings (cached per m)."""
+    """Jit-compiled functions for ``m`` settings (cached per m; compiled once per shape and kept
+    in the persistent cache by the CLI): ``solve(theta0, args) -> (theta, converged)`` (LM),
+    ``evaluate(theta, args) -> (residuals, Jacobian)`` and ``derived(theta_full) -> (values,
+    Jacobians)`` of the reported quantities."""
     if m in _SOLVERS:
         return _SOLVERS[m]
     import jax
@@ -384,11 +387,28 @@ def _solver(m: int):
     @jax.jit
     def solve(theta0, args):
         sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=400, throw=False)
-        theta = sol.value
-        return theta, fn(theta, args), jax.jacfwd(fn)(theta, args), sol.result == optx.RESULTS.successful
+        return sol.value, sol.result == optx.RESULTS.successful
 
-    _SOLVERS[m] = solve
-    return solve
+    @jax.jit
+    def evaluate(theta, args):
+        return fn(theta, args), jax.jacfwd(fn)(theta, args)
+
+    def quantities(t):
+        import jax.numpy as jnp
+
+        log_f, inv_d, log_n, floor = _unpack(t, m)
+        f = jnp.exp(log_f)
+        s = 1.0 / jnp.maximum(1.0 / f - inv_d / 1000.0, 1e-6 / f)
+        return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
+                "log_K": log_f + jnp.log(s) - log_n, "inv_d": inv_d, "floor": floor, "s": s, "N": jnp.exp(log_n),
+                "f": f}
+
+    @jax.jit
+    def derived(t):
+        return quantities(t), jax.jacfwd(quantities)(t)
+
+    _SOLVERS[m] = (solve, evaluate, derived)
+    return _SOLVERS[m]
 
 
 # --------------------------------------------------------------------------- start
@@ -616,7 +636,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     with jax.enable_x64(True):
         rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
         for it in range(rounds):
-            sol, _, _, ok = _solver(m)(jnp.asarray(theta[free_idx]), make_args(weights))
+            sol, ok = _solver(m)[0](jnp.asarray(theta[free_idx]), make_args(weights))
             sol = np.asarray(sol)
             if not np.all(np.isfinite(sol)):
                 converged = False
@@ -634,9 +654,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
             weights = new
         # Residuals and Jacobian with the final weights.
         args = make_args(weights)
-        res = np.asarray(fn(jnp.asarray(theta[free_idx]), args))
-        jac = (np.asarray(jax.jacfwd(fn)(jnp.asarray(theta[free_idx]), args)) if free_idx.size
-               else np.zeros((len(res), 0)))
+        if free_idx.size:
+            res, jac = (np.asarray(a) for a in _solver(m)[1](jnp.asarray(theta[free_idx]), args))
+        else:
+            res = np.asarray(fn(jnp.asarray(theta[free_idx]), args))
+            jac = np.zeros((len(res), 0))
     if not converged:
         warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
 
@@ -748,19 +770,10 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
     import jax
     import jax.numpy as jnp
 
-    def quantities(t):
-        log_f, inv_d, log_n, floor = _unpack(t, m)
-        f = jnp.exp(log_f)
-        x = inv_d / 1000.0
-        s = 1.0 / jnp.maximum(1.0 / f - x, 1e-6 / f)
-        n_ = jnp.exp(log_n)
-        return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
-                "log_K": log_f + jnp.log(s) - log_n, "inv_d": inv_d, "floor": floor, "s": s, "N": n_, "f": f}
-
     with jax.enable_x64(True):
-        t = jnp.asarray(theta)
-        q = {k: np.asarray(v) for k, v in quantities(t).items()}
-        jacs = {k: np.asarray(v) for k, v in jax.jacfwd(quantities)(t).items()}
+        values, grads = _solver(m)[2](jnp.asarray(theta))
+        q = {k: np.asarray(v) for k, v in values.items()}
+        jacs = {k: np.asarray(v) for k, v in grads.items()}
 
     def sd(name, k=None):
         g = jacs[name] if k is None else jacs[name][k]

@@ -277,10 +277,12 @@ def test_one_side_of_focus_with_little_spread_is_refused():
 
 
 def test_without_focal_length_in_px_only_slope_and_focus_distance():
+    import lensfit
+
     f, N, D = 50.0, 2.8, 2000.0
     rng = np.random.default_rng(10)
     rows, *_ = simulate(f, N, D, spread(800, 6000), rng)
-    r = fit(rows, pixel_pitch_mm=PITCH)
+    r = lensfit.fit(rows, pixel_pitch_mm=PITCH)  # the package-level API
     est = r.settings["a"]
     check_close(est["focus_distance_mm"], D, 0.005)
     s = f * D / (D - f)
