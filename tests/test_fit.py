@@ -228,6 +228,22 @@ def test_focus_bracket_shares_the_focal_length():
     assert len(r.parameter_names) == 1 + 3 * 3
 
 
+def test_a_setting_without_calibration_borrows_the_shared_focal_length():
+    """Only one setting of a bracket calibrated: the shared f gives the others' sensor distance
+    (s = 1/(1/f - 1/D)), so every f-number is still determined."""
+    f = 50.0
+    rng = np.random.default_rng(31)
+    rows, fpx = [], {}
+    for label, (N, D) in {"calibrated": (2.8, 1000.0), "bare": (5.6, 3000.0)}.items():
+        r_, fpx[label], _ = simulate(f, N, D, spread(D / 2, D * 3, 40), rng, setting=label)
+        rows += r_
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px={"calibrated": fpx["calibrated"]},
+            focal_length_sigma_px={"calibrated": 1e-4 * fpx["calibrated"]})
+    assert r.ok, r.reasons
+    check_close(r.settings["bare"]["f_number"], 5.6, 0.01)
+    check_close(r.settings["bare"]["sensor_distance_mm"], f * 3000 / (3000 - f), 0.002)
+
+
 # --------------------------------------------------------------------------- refusals
 
 
