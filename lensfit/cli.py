@@ -407,6 +407,37 @@ def _bench_fit_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _bench_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from lensfit.bench import list_suites, load_suite, provenance, run_suite
+    from lensfit.report import write_report
+
+    if args.jobs < 1:
+        raise CliError(f"--jobs must be at least 1, got {args.jobs}")
+    try:
+        suite = load_suite(args.suite)
+    except InputError as exc:
+        raise CliError(f"--suite {args.suite!r} is not a suite; available: {', '.join(list_suites())} "
+                       "(or the path of a suite .toml)") from exc
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out {out} is a file; give a folder")
+    if out.exists() and any(out.iterdir()) and not args.resume:
+        raise CliError(f"--out {out} is not empty; pass --resume to continue the run there, or choose another folder")
+    console = Console(stderr=True)
+    n_cases = sum(len(t["cases"]) for t in suite.tasks())
+    with _progress_bar(console, args.progress) as bar:
+        task = bar.add_task(f"suite {suite.name}", total=n_cases)
+        records = run_suite(suite, out, jobs=args.jobs, resume=args.resume, executor=args.executor,
+                            progress=lambda done, total: bar.update(task, completed=done, total=total))
+    files = write_report(records, suite, provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor), out)
+    failed = sum(1 for r in records if r.get("error"))
+    print(f"{len(records)} cases ({failed} refused by the input checks); wrote "
+          + ", ".join(str(f) for f in files.values()))
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -481,6 +512,20 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--force", action="store_true", help="replace existing output files")
     ft.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     ft.set_defaults(func=_fit_command, prog="lensfit fit")
+
+    bs = sub.add_parser("bench", help="run a benchmark suite and write its report",
+                        description="Run a suite of data_specs/bench/ (scenes x render quality x noise x "
+                                    "estimators x solver settings x seeds): render, measure and fit each case, then "
+                                    "write results.json, report.md and a self-contained report.html to --out. "
+                                    "Finished cases are cached: --resume continues an interrupted run.")
+    bs.add_argument("--suite", default="quick", metavar="NAME", help="quick (default), standard, hard, or a .toml path")
+    bs.add_argument("--out", required=True, metavar="DIR", help="output folder (new or empty, unless --resume)")
+    bs.add_argument("--jobs", type=int, default=1, metavar="N", help="parallel processes or Dask workers (default 1)")
+    bs.add_argument("--resume", action="store_true", help="continue a run in --out, keeping finished cases")
+    bs.add_argument("--executor", default="local", metavar="KIND",
+                    help="local (process pool, default), dask (a local Dask cluster) or dask://HOST:PORT")
+    bs.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    bs.set_defaults(func=_bench_command, prog="lensfit bench")
 
     bf = sub.add_parser("bench-fit", help="accuracy of f, N, focus distance and honesty of sigma under noise",
                         description="Measure and fit a rendered STACK (with truth.json) clean and with seeded "

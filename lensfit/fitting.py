@@ -183,6 +183,7 @@ class FitResult:
     residuals_px: np.ndarray
     weights: np.ndarray
     _full: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    _setup: dict[str, Any] = field(repr=False, default_factory=dict)  # solver rows, for cramer_rao
 
     @property
     def ok(self) -> bool:
@@ -633,25 +634,13 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     # Blocked settings leave the blur rows out (their parameters are held).
     row_on = np.array([data.setting[i] not in blocked for i in range(n)], float)
 
-    from lensfit.estimators.edge import _bucket
-
-    npad = _bucket(n, 64)
-    pad = npad - n
-
-    def padded(a, fill):
-        return np.concatenate([a, np.full(pad, fill)])
-
-    base = dict(setting=padded(data.setting, 0).astype(np.int32), coc=padded(data.coc_px, 1.0),
-                w_nodes=np.concatenate([data.w_nodes, np.full((pad, EDGE_NODES), 1e-3)]))
+    npad = _padded_size(n)
+    fn = _solver_residual_fn(m)
     weights = np.ones(n)
     converged = True
-    fn = _solver_residual_fn(m)
 
     def make_args(weights):
-        sw = padded(np.sqrt(weights) * row_on / data.sigma_px, 0.0)
-        return (jnp.asarray(theta), jnp.asarray(free_idx), jnp.asarray(base["setting"]), jnp.asarray(base["w_nodes"]),
-                jnp.asarray(base["coc"]), jnp.asarray(sw), p, jnp.asarray(fpx), jnp.asarray(fpx_w),
-                jnp.asarray(floor_w))
+        return _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w)
 
     with jax.enable_x64(True):
         rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
@@ -730,7 +719,30 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     code = "ok" if not reasons else "not_identifiable"
     return FitResult(settings, f_est, code, reasons, fnames, theta[free_idx], cov, corr, cond, n_used, n_out,
                      chi2_red, float(np.sqrt(np.mean(resid[used] ** 2))) if n_used else 0.0, loss, warnings, data,
-                     resid, weights, theta.copy())
+                     resid, weights, theta.copy(),
+                     dict(free_idx=free_idx, fpx=fpx, fpx_w=fpx_w, floor_w=floor_w, row_on=row_on))
+
+
+def _padded_size(n: int) -> int:
+    """Samples are padded to a power of two (zero weight), so that stacks of similar size share
+    one compiled solver."""
+    from lensfit.estimators.edge import _bucket
+
+    return _bucket(n, 64)
+
+
+def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w):
+    """The solver's ``args`` (JAX arrays), samples padded to :func:`_padded_size`."""
+    import jax.numpy as jnp
+
+    pad = _padded_size(len(data.coc_px)) - len(data.coc_px)
+
+    def padded(a, fill):
+        return jnp.asarray(np.concatenate([a, np.full((pad, *np.shape(a)[1:]), fill)]))
+
+    return (jnp.asarray(theta), jnp.asarray(free_idx), padded(data.setting.astype(np.int32), 0),
+            padded(data.w_nodes, 1e-3), padded(data.coc_px, 1.0), padded(sqrt_w_over_sigma, 0.0),
+            data.pixel_pitch_mm, jnp.asarray(fpx), jnp.asarray(fpx_w), jnp.asarray(floor_w))
 
 
 def _solver_residual_fn(m):
@@ -883,6 +895,56 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
     return f_est
 
 
+def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tuple[float, float]]
+               ) -> dict[str, dict[str, float | None]]:
+    """Cramer-Rao lower bound (1 sigma) on f, N and the focus distance for the capture a fit saw.
+
+    The same samples (depths along each edge, each sample's stated sigma as its noise), the
+    same calibration rows and floor prior, the Fisher information evaluated at the true
+    parameters (``settings``: label -> (f-number, focus distance from the lens, mm; inf allowed))
+    with no floor. The bound is what an unbiased estimator with these measurements could reach
+    at best; a benchmark compares the observed scatter with it.
+
+    Returns label -> {"focal_length_mm", "f_number", "focus_distance_mm"} -> sigma (None where
+    the parameter was not free in the fit).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    data, setup = result.samples, result._setup
+    m = len(data.labels)
+    theta = np.zeros(1 + 3 * m)
+    theta[0] = math.log(focal_length_mm)
+    for k, label in enumerate(data.labels):
+        n_true, d_true = settings[label]
+        theta[1 + k] = 0.0 if math.isinf(d_true) else 1000.0 / d_true
+        theta[1 + m + k] = math.log(n_true)
+    free_idx = setup["free_idx"]
+    with jax.enable_x64(True):
+        args = _solver_args(theta, free_idx, data, setup["row_on"] / data.sigma_px, setup["fpx"], setup["fpx_w"],
+                            setup["floor_w"])
+        _, jac = _solver(m)[1](jnp.asarray(theta[free_idx]), args)
+        values, grads = _solver(m)[2](jnp.asarray(theta))
+    cov_free, _, _ = _covariance(np.asarray(jac), 1.0)
+    cov = np.zeros((1 + 3 * m, 1 + 3 * m))
+    cov[np.ix_(free_idx, free_idx)] = cov_free
+
+    def sd(name, k=None):
+        g = np.asarray(grads[name]) if k is None else np.asarray(grads[name])[k]
+        return float(math.sqrt(max(g @ cov @ g, 0.0)))
+
+    out = {}
+    for k, label in enumerate(data.labels):
+        free_here = {1 + k, 1 + m + k} <= set(int(i) for i in free_idx)
+        v = float(np.asarray(values["inv_d"])[k])
+        out[label] = {
+            "focal_length_mm": focal_length_mm * sd("log_f") if 0 in free_idx else None,
+            "f_number": settings[label][0] * sd("log_N", k) if free_here else None,
+            "focus_distance_mm": (1000.0 * sd("inv_d", k) / v**2 if v > 0 else None) if free_here else None,
+        }
+    return out
+
+
 # --------------------------------------------------------------------------- files
 
 
@@ -961,5 +1023,5 @@ def write_results(path: str | Path, document: dict[str, Any]) -> None:
     tmp.replace(path)
 
 
-__all__ = ["fit", "FitResult", "Estimate", "FitData", "prepare", "inverse_distance_moments", "results_document",
+__all__ = ["fit", "cramer_rao", "FitResult", "Estimate", "FitData", "prepare", "inverse_distance_moments", "results_document",
            "compare_with_truth", "write_results", "read_samples_csv", "QUANTITIES", "LOSSES"]

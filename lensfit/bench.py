@@ -1,0 +1,327 @@
+"""Benchmark suites: estimated versus true lens parameters, and what accuracy costs in time.
+
+A suite (``data_specs/bench/NAME.toml``, schema ``bench.schema.json``) is a grid:
+scenes x render settings x noise levels x estimators x solver settings x seeds. The work is
+split into tasks, one per (scene, render setting, seed): a task renders its stack once (cached
+on disk), then for every noise level adds seeded photon + read noise, and for every estimator
+and solver setting measures and fits. Each finished case is written as one JSON file, so an
+interrupted run resumes where it stopped. Times are warm: a stack is rendered twice and the
+second run timed, and each process measures once untimed before its first timed case, so that
+JIT compilation (seconds, once per process) does not pose as the price of a setting. Tasks run in a local process pool (default) or on a
+Dask distributed cluster (``executor="dask"`` starts a local one; ``"dask://HOST:PORT"``
+connects to a running scheduler; workers must see the output folder).
+
+The report (``report.py``) turns the case files into results.json, report.md and report.html.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from lensfit.errors import InputError, SpecError
+from lensfit.specs import load_toml, specs_dir, validate
+
+QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
+DEFAULT_TOLERANCES = {"focal_length_mm": 0.005, "f_number": 0.01, "focus_distance_mm": 0.01}
+
+
+@dataclass(frozen=True)
+class Suite:
+    name: str
+    description: str
+    path: Path
+    seeds: tuple[int, ...]
+    scenes: tuple[Path, ...]
+    renders: tuple[dict[str, Any], ...]
+    noises: tuple[dict[str, Any], ...]
+    estimators: tuple[str, ...]
+    solvers: tuple[dict[str, Any], ...]
+    tolerances: dict[str, float]
+
+    def tasks(self) -> list[dict[str, Any]]:
+        """One task per (scene, render, seed); each lists its cases."""
+        out = []
+        for scene in self.scenes:
+            for render in self.renders:
+                for seed in self.seeds:
+                    cases = []
+                    for noise in self.noises:
+                        for est in self.estimators:
+                            for solver in self.solvers:
+                                cases.append({"noise": noise, "estimator": est, "solver": solver})
+                    task = {"scene": str(scene), "render": render, "seed": seed, "cases": cases}
+                    for c in cases:
+                        c["id"] = case_id(task, c)
+                    out.append(task)
+        return out
+
+
+def list_suites() -> list[str]:
+    return sorted(p.stem for p in (specs_dir() / "bench").glob("*.toml"))
+
+
+def load_suite(name_or_path: str | Path) -> Suite:
+    """A suite by name (``data_specs/bench/NAME.toml``) or path; validated, scenes resolved."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = specs_dir() / "bench" / f"{name_or_path}.toml"
+        if not path.is_file():
+            raise InputError("suite", str(name_or_path), "one of: " + ", ".join(list_suites()))
+    data = load_toml(path)
+    validate(data, "bench", path)
+    from lensfit.estimators import ESTIMATORS
+
+    for i, est in enumerate(data["estimators"]):
+        if est not in ESTIMATORS:
+            raise SpecError(path, f"estimators[{i}]", f"{est!r} is not an estimator; use one of {', '.join(ESTIMATORS)}")
+    scenes = []
+    for i, entry in enumerate(data["scene"]):
+        for base in (path.parent, specs_dir() / "scenes"):
+            if (base / entry["file"]).is_file():
+                scenes.append((base / entry["file"]).resolve())
+                break
+        else:
+            raise SpecError(path, f"scene[{i}].file", f"{entry['file']!r} not found beside the suite or in "
+                            "data_specs/scenes/")
+    names = [n["name"] for n in data["noise"]]
+    if len(set(names)) != len(names):
+        raise SpecError(path, "noise", "noise names must be unique")
+    return Suite(data["name"], data.get("description", ""), path, tuple(data["seeds"]), tuple(scenes),
+                 tuple(data["render"]), tuple(data["noise"]), tuple(data["estimators"]), tuple(data["solver"]),
+                 {**DEFAULT_TOLERANCES, **data.get("tolerances", {})})
+
+
+def render_label(render: dict[str, Any]) -> str:
+    text = render["method"]
+    if "samples_per_pixel" in render:
+        text += f" {render['samples_per_pixel']} spp"
+    if "supersampling" in render:
+        text += f" {render['supersampling']}x ss"
+    return text
+
+
+def solver_label(solver: dict[str, Any]) -> str:
+    return solver["loss"] + (f" floor {solver['blur_floor_px']:g}px" if "blur_floor_px" in solver else "")
+
+
+def _key(*parts: Any) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def case_id(task: dict[str, Any], case: dict[str, Any]) -> str:
+    return _key(Path(task["scene"]).read_text(), task["render"], task["seed"], case["noise"], case["estimator"],
+                case["solver"])
+
+
+# --------------------------------------------------------------------------- one task
+
+
+_WARM: set[str] = set()  # estimators already compiled in this process
+
+
+def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
+    """Render (or reuse) the task's stack, then measure and fit every case not yet done.
+    Returns the finished case records (also written to ``cache/cases/<id>.json``)."""
+    from lensfit.bench_fit import noisy_copy
+    from lensfit.fitting import cramer_rao, fit
+    from lensfit.jaxcache import enable_compilation_cache
+    from lensfit.measure import measure
+    from synth.render import render
+    from synth.scene import load_scene
+    from synth.stack import write_stack
+
+    enable_compilation_cache()
+    cache_dir = Path(cache)
+    cases_dir = cache_dir / "cases"
+    cases_dir.mkdir(parents=True, exist_ok=True)
+    todo = [c for c in task["cases"] if not (cases_dir / f"{c['id']}.json").is_file()]
+    if not todo:
+        return []
+    scene_path = Path(task["scene"])
+    stack = cache_dir / "stacks" / _key(scene_path.read_text(), task["render"], task["seed"])
+    meta_path = stack / "bench_render.json"
+    if not meta_path.is_file():
+        if stack.exists():
+            shutil.rmtree(stack)  # an interrupted render: start it again
+        def timed_render():
+            t0 = time.perf_counter()
+            out = render(load_scene(scene_path), method=task["render"]["method"],
+                         samples_per_pixel=task["render"].get("samples_per_pixel"), seed=task["seed"],
+                         supersampling=task["render"].get("supersampling"))
+            return out, time.perf_counter() - t0
+
+        # Timed warm: the first call compiles the kernels (once per process and scene structure).
+        result, _ = timed_render()
+        result, seconds = timed_render()
+        write_stack(result, stack)
+        (meta_path).write_text(json.dumps({"seconds": seconds,
+                                           "megapixels": sum(im.size for im in result.images.values()) / 1e6}))
+    render_meta = json.loads(meta_path.read_text())
+    truth = json.loads((stack / "truth.json").read_text())
+    done = []
+    by_noise: dict[str, list[dict[str, Any]]] = {}
+    for c in todo:
+        by_noise.setdefault(c["noise"]["name"], []).append(c)
+    for cases in by_noise.values():
+        noise = cases[0]["noise"]
+        with tempfile.TemporaryDirectory(prefix="lensfit-bench-", dir=cache_dir) as tmp:
+            path = stack
+            if "full_well_e" in noise:
+                path = Path(tmp) / "noisy"
+                rng = np.random.default_rng([task["seed"], int(_key(noise["name"]), 16) % 2**32])
+                noisy_copy(stack, path, rng, float(noise["full_well_e"]), float(noise.get("read_noise_e", 0.0)))
+            by_estimator: dict[str, Any] = {}
+            for c in cases:
+                record = {"id": c["id"], "scene": scene_path.stem, "render": render_label(task["render"]),
+                          "render_settings": task["render"], "seed": task["seed"], "noise": noise["name"],
+                          "estimator": c["estimator"], "solver": solver_label(c["solver"]),
+                          "seconds_render": render_meta["seconds"], "megapixels": render_meta["megapixels"]}
+                try:
+                    if c["estimator"] not in by_estimator:
+                        if c["estimator"] not in _WARM:  # compile outside the timing, once per process
+                            fit(measure(path, c["estimator"]))
+                            _WARM.add(c["estimator"])
+                        t0 = time.perf_counter()
+                        by_estimator[c["estimator"]] = (measure(path, c["estimator"]), time.perf_counter() - t0)
+                    table, t_measure = by_estimator[c["estimator"]]
+                    t0 = time.perf_counter()
+                    res = fit(table, loss=c["solver"]["loss"], blur_floor_px=c["solver"].get("blur_floor_px"))
+                    record["seconds_fit"] = time.perf_counter() - t0
+                    record["seconds_measure"] = t_measure
+                    record.update(_compare(res, truth, cramer_rao))
+                except (InputError, SpecError) as exc:  # a refusal of the input is a result too
+                    record.update({"error": str(exc), "seconds_measure": None, "seconds_fit": None, "settings": {}})
+                tmp_file = cases_dir / f".{c['id']}.partial.json"
+                tmp_file.write_text(json.dumps(record, indent=1, allow_nan=False))
+                tmp_file.replace(cases_dir / f"{c['id']}.json")
+                done.append(record)
+    return done
+
+
+def _compare(res, truth: dict[str, Any], cramer_rao: Callable) -> dict[str, Any]:
+    true_f = float(truth["focal_length_mm"])
+    true_settings = {k: (float(v["f_number"]), math.inf if v.get("focus_distance_mm") is None
+                         else float(v["focus_distance_mm"])) for k, v in truth["settings"].items()}
+    try:
+        bound = cramer_rao(res, true_f, {k: true_settings[k] for k in res.settings})
+    except KeyError:
+        bound = {}
+    out: dict[str, Any] = {"result": res.code, "reasons": res.reasons, "chi2_reduced": res.chi2_reduced,
+                           "samples": res.n_samples, "settings": {}}
+    for label, qs in res.settings.items():
+        if label not in true_settings:
+            continue
+        row = {}
+        for q, t in (("focal_length_mm", true_f), ("f_number", true_settings[label][0]),
+                     ("focus_distance_mm", true_settings[label][1])):
+            e = qs[q]
+            row[q] = {"truth": t if math.isfinite(t) else None, "value": e.value, "sigma": e.sigma,
+                      "ci68": list(e.ci68) if e.ci68 else None, "ci95": list(e.ci95) if e.ci95 else None,
+                      "infinite": e.infinite, "crlb": bound.get(label, {}).get(q),
+                      "relative_error": (e.value / t - 1) if (e.value is not None and math.isfinite(t)) else None}
+        out["settings"][label] = row
+    return out
+
+
+# --------------------------------------------------------------------------- the suite
+
+
+def run_suite(suite: Suite, out: str | Path, *, jobs: int = 1, resume: bool = False, executor: str = "local",
+              progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+    """Run every case not yet done; returns all case records (old and new), in suite order.
+
+    ``out`` must be new or empty unless ``resume`` (then finished cases are kept).
+    """
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not resume:
+        raise InputError("out", str(out), "a new or empty folder", "pass --resume to continue a run there, or "
+                         "choose another folder")
+    cache = out / "cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    tasks = suite.tasks()
+    total = sum(len(t["cases"]) for t in tasks)
+
+    def finished() -> int:
+        return sum((cache / "cases" / f"{c['id']}.json").is_file() for t in tasks for c in t["cases"])
+
+    pending = [t for t in tasks if any(not (cache / "cases" / f"{c['id']}.json").is_file() for c in t["cases"])]
+    if progress:
+        progress(finished(), total)
+    if pending:
+        if executor == "local":
+            _run_local(pending, str(cache), jobs, lambda: progress(finished(), total) if progress else None)
+        elif executor == "dask" or executor.startswith("dask://"):
+            _run_dask(pending, str(cache), jobs, executor, lambda: progress(finished(), total) if progress else None)
+        else:
+            raise InputError("executor", executor, "local, dask (a local Dask cluster) or dask://HOST:PORT")
+    records = []
+    for t in tasks:
+        for c in t["cases"]:
+            f = cache / "cases" / f"{c['id']}.json"
+            if f.is_file():
+                records.append(json.loads(f.read_text()))
+    return records
+
+
+def _run_local(tasks, cache: str, jobs: int, tick: Callable[[], None]) -> None:
+    if jobs <= 1:
+        for t in tasks:
+            run_task(t, cache)
+            tick()
+        return
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    # spawn, not fork: JAX and OpenCV hold threads that fork does not copy safely.
+    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        futures = [pool.submit(run_task, t, cache) for t in tasks]
+        for fut in cf.as_completed(futures):
+            fut.result()
+            tick()
+
+
+def _run_dask(tasks, cache: str, jobs: int, executor: str, tick: Callable[[], None]) -> None:
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError:  # pragma: no cover - dask is a dependency
+        raise InputError("executor", executor, "available: install dask[distributed]") from None
+    if executor == "dask":
+        cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        client = Client(cluster)
+    else:
+        cluster = None
+        client = Client(executor.replace("dask://", "tcp://", 1))
+    try:
+        futures = [client.submit(run_task, t, cache, pure=False) for t in tasks]
+        for fut in as_completed(futures):
+            fut.result()
+            tick()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def provenance(suite: Suite, command: list[str] | None, jobs: int, executor: str) -> dict[str, Any]:
+    import datetime
+    import platform
+
+    from lensfit import __version__
+
+    return {"version": __version__, "command": " ".join(command) if command else None,
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "machine": platform.machine(), "system": platform.platform(), "cores": os.cpu_count(),
+            "python": platform.python_version(), "jobs": jobs, "executor": executor, "suite": suite.name,
+            "suite_file": str(suite.path), "seeds": list(suite.seeds)}

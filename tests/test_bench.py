@@ -1,0 +1,132 @@
+"""lensfit bench: the quick suite end to end, its report complete and its numbers consistent
+with the per-case records; resume; the Dask executor on a local cluster started here."""
+
+from __future__ import annotations
+
+import base64
+import json
+from html.parser import HTMLParser
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from lensfit.bench import load_suite
+from lensfit.cli import main
+from lensfit.report import pareto
+
+
+@pytest.fixture(scope="module")
+def quick_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "quick"
+    assert main(["bench", "--suite", "quick", "--out", str(out), "--jobs", "2"]) == 0
+    return out
+
+
+class _Images(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.images, self.headings, self.tables = [], [], 0
+        self._in_h2 = False
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "img":
+            self.images.append(dict(attrs))
+        elif tag == "table":
+            self.tables += 1
+        self._in_h2 = tag == "h2"
+
+    def handle_data(self, data):
+        if self._in_h2:
+            self.headings.append(data)
+            self._in_h2 = False
+
+
+def test_quick_report_is_complete(quick_report):
+    suite = load_suite("quick")
+    doc = json.loads((quick_report / "results.json").read_text())
+    n_cases = len(suite.seeds) * len(suite.renders) * len(suite.noises) * len(suite.estimators) * len(suite.solvers)
+    assert len(doc["cases"]) == n_cases
+    for case in doc["cases"]:
+        assert case["seconds_render"] > 0 and case["seconds_measure"] > 0 and case["seconds_fit"] > 0
+        for q in ("focal_length_mm", "f_number", "focus_distance_mm"):
+            e = case["settings"]["a"][q]
+            assert e["truth"] > 0 and e["crlb"] is not None and e["crlb"] > 0
+    for key in ("version", "command", "date", "cores", "seeds", "machine"):
+        assert doc["provenance"][key] is not None
+    parser = _Images()
+    parser.feed((quick_report / "report.html").read_text())
+    assert len(parser.images) == 5 and parser.tables >= 4
+    for img in parser.images:
+        assert img["src"].startswith("data:image/png;base64,")  # self-contained, readable offline
+        png = iio.imread(base64.b64decode(img["src"].split(",", 1)[1]))
+        assert png.shape[0] > 200 and png.std() > 5
+    for heading in ("price of accuracy", "Calibration of the uncertainty", "Cramer-Rao", "Provenance",
+                    "Estimated versus true"):
+        assert any(heading in h for h in parser.headings), heading
+    md = (quick_report / "report.md").read_text()
+    for name in ("price_of_accuracy", "errors", "estimated_vs_true", "coverage", "efficiency"):
+        assert f"plots/{name}.png" in md and (quick_report / "plots" / f"{name}.png").is_file()
+
+
+def test_quick_report_numbers_agree_with_the_cases(quick_report):
+    doc = json.loads((quick_report / "results.json").read_text())
+    tol = doc["suite"]["tolerances"]
+    for conf in doc["configurations"]:
+        mine = [c for c in doc["cases"] if all(c[k] == conf[k] for k in ("scene", "render", "noise", "estimator",
+                                                                          "solver"))]
+        assert conf["cases"] == len(mine)
+        for q, d in conf["quantities"].items():
+            entries = [c["settings"]["a"][q] for c in mine]
+            errs = np.array([e["value"] / e["truth"] - 1 for e in entries])
+            assert d["passed"] == int(np.sum(np.abs(errs) <= tol[q]))
+            assert d["rms_relative_error"] == pytest.approx(float(np.sqrt(np.mean(errs**2))))
+            inside = [e["ci95"][0] <= e["truth"] <= e["ci95"][1] for e in entries]
+            assert d["coverage95"] == pytest.approx(np.mean(inside))
+            values = [e["value"] for e in entries]
+            assert d["observed_scatter"] == pytest.approx(np.std(values, ddof=1) / entries[0]["truth"])
+    # The Pareto front: no member is dominated, every other configuration is.
+    pts = [(c["seconds_measure_fit"], c["rms_relative_error"]) for c in doc["configurations"]]
+    front = [c["pareto_seconds_measure_fit"] for c in doc["configurations"]]
+    for (t, e), on in zip(pts, front):
+        dominated = any(t2 <= t and e2 <= e and (t2, e2) != (t, e) for t2, e2 in pts)
+        assert on == (not dominated)
+
+
+def test_pareto_front_of_known_points():
+    pts = [(1.0, 5.0), (2.0, 3.0), (3.0, 4.0), (4.0, 1.0), (5.0, 1.0), (None, 0.1)]
+    assert pareto(pts) == [True, True, False, True, False, False]
+
+
+def test_resume_keeps_finished_cases_and_refuses_a_used_folder(quick_report, capsys):
+    cases = sorted((quick_report / "cache" / "cases").glob("*.json"))
+    before = {p: p.stat().st_mtime_ns for p in cases}
+    assert main(["bench", "--suite", "quick", "--out", str(quick_report)]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main(["bench", "--suite", "quick", "--out", str(quick_report), "--resume"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in cases} == before  # nothing recomputed
+
+
+def test_unknown_suite_names_the_available_ones(tmp_path, capsys):
+    assert main(["bench", "--suite", "nonesuch", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "quick" in err and "standard" in err and "hard" in err
+
+
+def test_dask_executor_on_a_local_cluster(tmp_path):
+    """One case through Dask distributed: a LocalCluster started by the run, one worker process."""
+    pytest.importorskip("distributed")
+    suite = Path(load_suite("quick").path).read_text()
+    small = (suite.replace("seeds = [0, 1]", "seeds = [3]")
+             .replace('[[render]]\nmethod = "raytrace"\nsamples_per_pixel = 64\n', "")
+             .replace('[[noise]]\nname = "iso1600"\nfull_well_e = 2000.0\nread_noise_e = 3.0\n', ""))
+    (tmp_path / "bench_calibration.toml").write_text(
+        (Path(load_suite("quick").scenes[0])).read_text())
+    path = tmp_path / "tiny.toml"
+    path.write_text(small)
+    out = tmp_path / "out"
+    assert main(["bench", "--suite", str(path), "--out", str(out), "--executor", "dask", "--jobs", "1"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert len(doc["cases"]) == 1 and doc["provenance"]["executor"] == "dask"
+    assert abs(doc["cases"][0]["settings"]["a"]["focus_distance_mm"]["value"] / 800.0 - 1) < 0.05
