@@ -491,11 +491,30 @@ def _side_hint(w: np.ndarray, x: float) -> str:
     return ""
 
 
-def _clusters(d: np.ndarray, gap: float = MIN_DISTANCE_SPREAD) -> list[float]:
-    """Distinct distances: the means of groups separated by relative gaps above ``gap``."""
-    d = np.sort(np.asarray(d, np.float64))
-    cuts = np.flatnonzero(np.diff(d) / d[:-1] > gap) + 1
-    return [float(g.mean()) for g in np.split(d, cuts)]
+def _capture_problems(data: FitData) -> dict[int, str]:
+    """Settings whose capture cannot determine their V, with the reason and the fix."""
+    blocked: dict[int, str] = {}
+    for k, label in enumerate(data.labels):
+        sel = data.setting == k
+        d = np.sort(data.distance_mm[sel])
+        groups = np.split(d, np.flatnonzero(np.diff(d) / d[:-1] > MIN_DISTANCE_SPREAD) + 1)
+        narrow = all((g.max() - g.min()) / g.mean() < MIN_DISTANCE_SPREAD for g in groups)
+        if sel.sum() < 4:
+            blocked[k] = (f"setting {label!r} has only {int(sel.sum())} measured edge(s); a V needs more: photograph "
+                          "the target at 3 or more distances")
+        elif (d.max() - d.min()) / np.median(d) < MIN_DISTANCE_SPREAD:
+            blocked[k] = (f"every sample of setting {label!r} lies at one distance (~{np.median(d):.0f} mm); blur at "
+                          "one distance cannot separate the V's slope from its vertex: photograph the target at 3 or "
+                          "more distances, some nearer and some farther than the focus")
+        elif len(groups) == 2 and narrow:
+            blocked[k] = (f"the samples of setting {label!r} lie at two distances only (~{groups[0].mean():.0f} and "
+                          f"~{groups[1].mean():.0f} mm); a V through two distances fits twice (focus between them, or "
+                          "beyond both): photograph the target at 3 or more distances")
+        elif data.coc_px[sel].max() < MIN_USEFUL_BLUR_PX:
+            blocked[k] = (f"every blur of setting {label!r} is below {MIN_USEFUL_BLUR_PX:g} px (largest "
+                          f"{data.coc_px[sel].max():.2f} px), where pixel integration, diffraction and aberrations "
+                          "dominate: open the aperture or place targets farther from the focus plane")
+    return blocked
 
 
 def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
@@ -566,26 +585,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         warnings.append(f"{data.dropped} sample(s) without a measured blur were left out")
 
     # ---- what cannot be determined before fitting (per setting)
-    blocked: dict[int, str] = {}
-    for k, label in enumerate(labels):
-        sel = data.setting == k
-        d = data.distance_mm[sel]
-        if sel.sum() < 4:
-            blocked[k] = (f"setting {label!r} has only {int(sel.sum())} measured edge(s); a V needs more: photograph "
-                          "the target at 3 or more distances")
-        elif (d.max() - d.min()) / np.median(d) >= MIN_DISTANCE_SPREAD and len(_clusters(d)) == 2:
-            a, b = _clusters(d)
-            blocked[k] = (f"the samples of setting {label!r} lie at two distances only (~{a:.0f} and ~{b:.0f} mm); a "
-                          "V through two distances fits twice (focus between them, or beyond both): photograph the "
-                          "target at 3 or more distances")
-        elif (d.max() - d.min()) / np.median(d) < MIN_DISTANCE_SPREAD:
-            blocked[k] = (f"every sample of setting {label!r} lies at one distance (~{np.median(d):.0f} mm); blur at "
-                          "one distance cannot separate the V's slope from its vertex: photograph the target at 3 or "
-                          "more distances, some nearer and some farther than the focus")
-        elif data.coc_px[sel].max() < MIN_USEFUL_BLUR_PX:
-            blocked[k] = (f"every blur of setting {label!r} is below {MIN_USEFUL_BLUR_PX:g} px (largest "
-                          f"{data.coc_px[sel].max():.2f} px), where pixel integration, diffraction and aberrations "
-                          "dominate: open the aperture or place targets farther from the focus plane")
+    blocked = _capture_problems(data)
     has_fpx = ~np.isnan(data.focal_length_px)
     no_fpx_reason = ("no focal length in px for this setting (calibration or stack.toml [[intrinsics]]): blur fixes "
                      "only the slope A*s and the focus distance; calibrate on tilted target views to separate f and N")
@@ -620,8 +620,6 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         free[[1 + k, 1 + m + k, 1 + 2 * m + k]] = False
     if fixed_floor:
         free[1 + 2 * m:] = False
-    if not free.any():
-        free[0] = False
     free_idx = np.flatnonzero(free)
 
     fpx = np.where(has_fpx, data.focal_length_px, 0.0)

@@ -274,6 +274,18 @@ def test_two_distances_are_refused_as_ambiguous():
     assert_refused(r, "f_number", "a")
 
 
+def test_two_tilted_boards_are_not_two_distances():
+    """Two boards, each tilted so that its edges span 10 % in depth: the slopes within each
+    group tell the sides of the V apart, so the fit answers."""
+    f, N, D = 50.0, 2.8, 1500.0
+    d = np.concatenate([np.linspace(900.0, 1000.0, 20), np.linspace(2500.0, 2800.0, 20)])
+    rows, fpx, fsig = simulate(f, N, D, d, np.random.default_rng(17), noise_px=0.03, rel_noise=0.003)
+    r = run_fit(rows, fpx, fsig)
+    assert r.ok, r.reasons
+    check_close(r.settings["a"]["focus_distance_mm"], D, 0.02)
+    check_close(r.settings["a"]["f_number"], N, 0.02)
+
+
 def test_all_blur_below_a_pixel_is_refused():
     f, N, D = 24.0, 8.0, 3000.0
     d = spread(2500, 3600)
