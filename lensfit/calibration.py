@@ -158,23 +158,19 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         fs = np.array([run(usable[:i] + usable[i + 1:], K, dist, extra)[1][0, 0] for i in range(n)])
         return float(np.sqrt((n - 1) / n * np.sum((fs - fs.mean()) ** 2)))
 
-    out: dict[str, Intrinsics] = {}
+    def setting(dets, K_start, dist_start, extra):
+        rms, K, dist, sigma = run(dets, K_start, dist_start, extra)
+        return Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
+                          float(rms), len(_usable(dets)), "calibrated",
+                          jackknife(dets, K_start, dist_start, extra, sigma))
+
     if len(detections) == 1:
         (label, dets), = detections.items()
-        rms, K, dist, sigma = run(dets, K0, np.zeros(5), 0)
-        sigma = jackknife(dets, K0, np.zeros(5), 0, sigma)
-        out[label] = Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
-                                float(rms), len(_usable(dets)), "calibrated", sigma)
-        return out
+        return {label: setting(dets, K0, np.zeros(5), 0)}
     # Shared principal point and distortion from all views, then each setting's focal length.
     _, K_all, dist_all, _ = run(everything, K0, np.zeros(5), 0)
     fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
-    for label, dets in detections.items():
-        rms, K, dist, sigma = run(dets, K_all, dist_all, fixed)
-        sigma = jackknife(dets, K_all, dist_all, fixed, sigma)
-        out[label] = Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
-                                float(rms), len(_usable(dets)), "calibrated", sigma)
-    return out
+    return {label: setting(dets, K_all, dist_all, fixed) for label, dets in detections.items()}
 
 
 def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:
