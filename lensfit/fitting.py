@@ -68,6 +68,8 @@ MAX_RELATIVE_SIGMA = 0.2
 MIN_DISTANCE_SPREAD = 0.02
 #: Below this every measured blur is pixel integration, diffraction and aberration.
 MIN_USEFUL_BLUR_PX = 1.0
+#: Images needed for the leave-one-image-out jackknife of the covariance (see fit).
+MIN_CLUSTERS = 6
 #: Condition number (column-equilibrated Jacobian) above which the fit is degenerate.
 MAX_CONDITION = 1e8
 LOSSES = ("linear", "huber", "cauchy")
@@ -243,6 +245,8 @@ class FitData:
     focal_length_px: np.ndarray  # per setting, NaN = unknown
     focal_length_sigma_px: np.ndarray
     dropped: int = 0
+    #: image index of each sample (errors shared by an image's edges: its pose, its noise)
+    group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
 
 def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -332,9 +336,12 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("focal_length_px", float(fpx[bad][0]), "> 0 px")
     if np.any(~np.isfinite(fsg) | (fsg < 0)):
         raise InputError("focal_length_sigma_px", float(fsg[~np.isfinite(fsg) | (fsg < 0)][0]), ">= 0 px")
+    images = [str(r.get("image") or f"#{i}") for i, r in enumerate(used)]
+    image_index = {name: i for i, name in enumerate(dict.fromkeys(images))}
     return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
                    np.array([float(r["coc_diameter_px"]) for r in used]),
-                   np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped)
+                   np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
+                   np.array([image_index[name] for name in images], int))
 
 
 # --------------------------------------------------------------------------- model
@@ -634,33 +641,34 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
 
     npad = _padded_size(n)
     fn = _solver_residual_fn(m)
-    weights = np.ones(n)
-    converged = True
+    rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
 
-    def make_args(weights):
-        return _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w)
-
-    with jax.enable_x64(True):
-        rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
+    def irls(theta, rows, weights):
+        """Levenberg-Marquardt inside iteratively reweighted least squares over the blur rows
+        ``rows`` (0/1 per sample); returns (theta, weights, converged)."""
+        theta, converged = theta.copy(), True
         for it in range(rounds):
-            sol, ok = _solver(m)[0](jnp.asarray(theta[free_idx]), make_args(weights))
+            args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w)
+            sol, ok = _solver(m)[0](jnp.asarray(theta[free_idx]), args)
             sol = np.asarray(sol)
             if not np.all(np.isfinite(sol)):
-                converged = False
-                break
+                return theta, weights, False
             change = np.max(np.abs(sol - theta[free_idx])) if it else np.inf
             theta[free_idx] = sol
             converged = bool(ok)
             if loss == "linear":
                 break
-            pred = _predict_all(theta, m, data)
-            u = (data.coc_px - pred) / data.sigma_px
-            new = _robust_weights(u / _robust_scale(u[row_on > 0]), loss)
+            u = (data.coc_px - _predict_all(theta, m, data)) / data.sigma_px
+            new = _robust_weights(u / _robust_scale(u[rows > 0]), loss)
             if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
                 break
             weights = new
+        return theta, weights, converged
+
+    with jax.enable_x64(True):
+        theta, weights, converged = irls(theta, row_on, np.ones(n))
         # Residuals and Jacobian with the final weights.
-        args = make_args(weights)
+        args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w)
         if free_idx.size:
             res, jac = (np.asarray(a) for a in _solver(m)[1](jnp.asarray(theta[free_idx]), args))
         else:
@@ -683,6 +691,27 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     names = _parameter_names(labels)
     fnames = [names[i] for i in free_idx]
     cov, cond, corr = _covariance(jac, scale2)
+    if free_idx.size and len(np.unique(data.group[used])) >= MIN_CLUSTERS:
+        # Leave-one-image-out jackknife: the edges of one image share its pose (distance errors
+        # of ~0.05 % move all of them together) and its noise pattern, so they are not
+        # independent samples and the model-based covariance understates the spread (seen:
+        # focus-distance intervals holding the truth in 67 % of ray-traced stacks instead of
+        # 95 %). Each image is dropped in turn (zero weight, same compiled solver) and the fit
+        # redone from the solution with the robust weights held; a parameter's variance is the
+        # larger of the two estimates.
+        groups = np.unique(data.group[used])
+        with jax.enable_x64(True):
+            refits = []
+            for g in groups:  # one LM solve each, robust weights held (cheap: no recompilation)
+                args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on * (data.group != g)
+                                    / data.sigma_px, fpx, fpx_w, floor_w)
+                refits.append(np.asarray(_solver(m)[0](jnp.asarray(theta[free_idx]), args)[0]))
+        refits = np.array(refits)
+        G = len(groups)
+        spread_cov = (G - 1) * np.cov(refits.T, bias=True).reshape(len(free_idx), len(free_idx))
+        if np.all(np.isfinite(spread_cov)):
+            sd = np.sqrt(np.maximum(np.diag(cov), np.diag(spread_cov)))
+            cov = corr * np.outer(sd, sd)
     full_cov = np.zeros((1 + 3 * m, 1 + 3 * m))
     full_cov[np.ix_(free_idx, free_idx)] = cov
 
