@@ -70,6 +70,7 @@ MIN_DISTANCE_SPREAD = 0.02
 MIN_USEFUL_BLUR_PX = 1.0
 #: Images needed for the leave-one-image-out jackknife of the covariance (see fit).
 MIN_CLUSTERS = 6
+MAX_CLUSTERS = 400  # one LM solve each
 #: Condition number (column-equilibrated Jacobian) above which the fit is degenerate.
 MAX_CONDITION = 1e8
 LOSSES = ("linear", "huber", "cauchy")
@@ -245,7 +246,8 @@ class FitData:
     focal_length_px: np.ndarray  # per setting, NaN = unknown
     focal_length_sigma_px: np.ndarray
     dropped: int = 0
-    #: image index of each sample (errors shared by an image's edges: its pose, its noise)
+    #: image index of each sample (errors shared by an image's edges: its pose, its noise);
+    #: -1 where the samples do not name their image
     group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
 
@@ -336,8 +338,8 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("focal_length_px", float(fpx[bad][0]), "> 0 px")
     if np.any(~np.isfinite(fsg) | (fsg < 0)):
         raise InputError("focal_length_sigma_px", float(fsg[~np.isfinite(fsg) | (fsg < 0)][0]), ">= 0 px")
-    images = [str(r.get("image") or f"#{i}") for i, r in enumerate(used)]
-    image_index = {name: i for i, name in enumerate(dict.fromkeys(images))}
+    images = [str(r.get("image") or "") for r in used]  # "" = not known: no jackknife over images
+    image_index = {name: (i if name else -1) for i, name in enumerate(dict.fromkeys(images))}
     return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
                    np.array([float(r["coc_diameter_px"]) for r in used]),
                    np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
@@ -691,7 +693,9 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     names = _parameter_names(labels)
     fnames = [names[i] for i in free_idx]
     cov, cond, corr = _covariance(jac, scale2)
-    if free_idx.size and len(np.unique(data.group[used])) >= MIN_CLUSTERS:
+    z = (1.0, _Z95)
+    if free_idx.size and np.all(data.group[used] >= 0) and MIN_CLUSTERS <= len(np.unique(data.group[used])) \
+            <= MAX_CLUSTERS:
         # Leave-one-image-out jackknife: the edges of one image share its pose (distance errors
         # of ~0.05 % move all of them together) and its noise pattern, so they are not
         # independent samples and the model-based covariance understates the spread (seen:
@@ -711,6 +715,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         spread_cov = (G - 1) * np.cov(refits.T, bias=True).reshape(len(free_idx), len(free_idx))
         if np.all(np.isfinite(spread_cov)):
             sd = np.sqrt(np.maximum(np.diag(cov), np.diag(spread_cov)))
+            if np.any(np.diag(spread_cov) > np.diag(cov)):
+                # A jackknife over G images has G - 1 degrees of freedom: Student-t intervals.
+                from scipy.stats import t as student
+
+                z = (float(student.ppf(0.8413447460685429, G - 1)), float(student.ppf(0.975, G - 1)))
             cov = corr * np.outer(sd, sd)
     full_cov = np.zeros((1 + 3 * m, 1 + 3 * m))
     full_cov[np.ix_(free_idx, free_idx)] = cov
@@ -742,7 +751,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     # ---- derived quantities
     settings: dict[str, dict[str, Estimate]] = {}
     reasons: list[str] = []
-    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons)
+    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons, z)
     code = "ok" if not reasons else "not_identifiable"
     return FitResult(settings, f_est, code, reasons, fnames, theta[free_idx], cov, corr, cond, n_used, n_out,
                      chi2_red, float(np.sqrt(np.mean(resid[used] ** 2))) if n_used else 0.0, loss, warnings, data,
@@ -817,15 +826,17 @@ def _null_direction(jac: np.ndarray) -> np.ndarray:
     return vt[-1]
 
 
-def _positive(value: float, sigma_log: float) -> Estimate:
+def _positive(value: float, sigma_log: float, z: tuple[float, float] = (1.0, _Z95)) -> Estimate:
     """A positive quantity with its log-space sigma: intervals ``value * exp(+-z sigma_log)``."""
-    z1 = math.exp(sigma_log)
-    z2 = math.exp(_Z95 * sigma_log)
+    z1 = math.exp(z[0] * sigma_log)
+    z2 = math.exp(z[1] * sigma_log)
     return Estimate(value, value * sigma_log, (value / z1, value * z1), (value / z2, value * z2))
 
 
-def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons) -> Estimate:
-    """Fill ``settings`` with every reported quantity; returns the shared focal length."""
+def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
+            z: tuple[float, float] = (1.0, _Z95)) -> Estimate:
+    """Fill ``settings`` with every reported quantity; returns the shared focal length. ``z``:
+    the multiples of sigma for the 68 % and 95 % intervals."""
     import jax
     import jax.numpy as jnp
 
@@ -849,7 +860,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     "the focus distance of the calibrated setting(s) is not located by the blur")
     elif all(k in blocked for k in range(m) if has_fpx[k]):
         f_reason = "the focal length needs the focus distance of a calibrated setting, which is not determined"
-    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(f_val, sd("log_f"))
+    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(f_val, sd("log_f"), z)
     if f_reason:
         reasons.append(f"focal_length_mm: {f_reason}")
 
@@ -875,8 +886,8 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     out[qn] = Estimate(None, reason=why)
             reasons.append(f"settings.{label}: {why}")
         else:
-            lo95, hi95 = inv_d - _Z95 * s_inv, inv_d + _Z95 * s_inv
-            lo68, hi68 = inv_d - s_inv, inv_d + s_inv
+            lo95, hi95 = inv_d - z[1] * s_inv, inv_d + z[1] * s_inv
+            lo68, hi68 = inv_d - z[0] * s_inv, inv_d + z[0] * s_inv
             out["inverse_focus_distance_per_m"] = Estimate(inv_d, s_inv, (lo68, hi68), (lo95, hi95))
 
             def dist(lo, hi):  # an inverse-distance interval as a distance interval (None = infinity)
@@ -897,9 +908,9 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                 out["focus_distance_from_sensor_mm"] = Estimate(None, None, None, None, note, True)
             fl = float(q["floor"][k])
             s_fl = sd("floor", k)
-            out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - s_fl, 0.0), abs(fl) + s_fl),
-                                            (max(abs(fl) - _Z95 * s_fl, 0.0), abs(fl) + _Z95 * s_fl))
-            out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k))
+            out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - z[0] * s_fl, 0.0), abs(fl) + z[0] * s_fl),
+                                            (max(abs(fl) - z[1] * s_fl, 0.0), abs(fl) + z[1] * s_fl))
+            out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k), z)
             lens_reason = None
             if f_reason:
                 lens_reason = f_reason
@@ -914,9 +925,9 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     out["focus_distance_from_sensor_mm"] = Estimate(None, reason=lens_reason)
                 reasons.append(f"settings.{label}.f_number: {lens_reason}")
             else:
-                out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k))
-                out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k))
-                out["sensor_distance_mm"] = _positive(s_val, sd("log_s", k))
+                out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k), z)
+                out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), z)
+                out["sensor_distance_mm"] = _positive(s_val, sd("log_s", k), z)
         out["focal_length_mm"] = f_est
         settings[label] = {qn: out[qn] for qn in QUANTITIES}
     return f_est
