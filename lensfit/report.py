@@ -96,9 +96,10 @@ def summarise(records: list[dict[str, Any]], suite: Suite) -> dict[str, Any]:
             qd["efficiency"] = (qd["crlb"] / qd["observed_scatter"]) if qd["crlb"] and qd["observed_scatter"] else None
         out.append(entry)
     for axis in ("seconds_render", "seconds_measure_fit"):
-        front = pareto([(c[axis], c["rms_relative_error"]) for c in out])
-        for c, on in zip(out, front):
-            c[f"pareto_{axis}"] = on
+        for scene in {c["scene"] for c in out}:  # times of different scenes do not compare
+            mine = [c for c in out if c["scene"] == scene]
+            for c, on in zip(mine, pareto([(c[axis], c["rms_relative_error"]) for c in mine])):
+                c[f"pareto_{axis}"] = on
     coverage = {}
     for q in QUANTITIES:
         n68 = [x["in68"] for x in rows if x["quantity"] == q and x["in68"] is not None]
@@ -175,9 +176,12 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
             ax.plot(t, e, "o", ms=7 if on else 5, color="C3" if on else "C0", alpha=0.9 if on else 0.5)
             ax.annotate(f"{c['render']}, {c['noise']}, {c['estimator']}, {c['solver']}", (t, e), fontsize=6,
                         xytext=(3, 3), textcoords="offset points")
-        front = sorted((t, e) for t, e, c in pts if c[f"pareto_{axis}"])
-        if front:
-            ax.step(*zip(*front), where="post", color="C3", lw=1.2, label="Pareto front")
+        for i, scene in enumerate(sorted({c["scene"] for _, _, c in pts})):
+            front = sorted((t, e) for t, e, c in pts if c[f"pareto_{axis}"] and c["scene"] == scene)
+            if front:
+                ax.step(*zip(*front), where="post", color="C3", lw=1.2, ls=("-", "--", ":", "-.")[i % 4],
+                        label=f"Pareto front: {scene}")
+        if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
         ax.set_xlabel(label)
         ax.set_ylabel("RMS relative error of f, N, focus (%)")
@@ -273,7 +277,7 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
                                                           "RMS error", "bias", "passed", "observed scatter",
                                                           "stated sigma", "CRLB", "CRLB/scatter", "in 68%",
                                                           "in 95%"], configs),
-        ("The price of accuracy (median seconds per stack; Pareto front marked)",
+        ("The price of accuracy (median seconds per stack; Pareto front per scene marked)",
          ["scene", "render", "noise", "estimator", "solver", "render s", "measure+fit s", "RMS error",
           "Pareto"], price),
         ("Calibration of the uncertainty (all cases)", ["quantity", "in 68% interval", "in 95% interval",
