@@ -180,7 +180,8 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
             if "full_well_e" in noise:
                 path = Path(tmp) / "noisy"
                 rng = np.random.default_rng([task["seed"], int(_key(noise["name"]), 16) % 2**32])
-                noisy_copy(stack, path, rng, float(noise["full_well_e"]), float(noise.get("read_noise_e", 0.0)))
+                noisy_copy(stack, path, rng, float(noise["full_well_e"]), float(noise.get("read_noise_e", 0.0)),
+                           float(noise.get("exposure", 1.0)))
             by_estimator: dict[str, Any] = {}
             for c in cases:
                 record = {"id": c["id"], "scene": scene_path.stem, "render": render_label(task["render"]),

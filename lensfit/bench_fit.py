@@ -26,8 +26,10 @@ from lensfit.stack import load_stack
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
 
 
-def noisy_copy(stack_dir: Path, out: Path, rng: np.random.Generator, full_well_e: float, read_noise_e: float) -> None:
-    """A copy of a stack of linear 16-bit PNGs with photon and read noise added."""
+def noisy_copy(stack_dir: Path, out: Path, rng: np.random.Generator, full_well_e: float, read_noise_e: float,
+               exposure: float = 1.0) -> None:
+    """A copy of a stack of linear 16-bit PNGs with photon and read noise added; ``exposure``
+    scales the rendered values first (a photographer exposes below clipping at high ISO)."""
     import imageio.v3 as iio
 
     stack = load_stack(stack_dir)
@@ -36,7 +38,7 @@ def noisy_copy(stack_dir: Path, out: Path, rng: np.random.Generator, full_well_e
         if (stack.path / name).exists():
             shutil.copy(stack.path / name, out / name)
     for i, entry in enumerate(stack.images):
-        linear = np.clip(stack.read(i), 0.0, 1.0)
+        linear = np.clip(stack.read(i), 0.0, 1.0) * exposure
         electrons = rng.poisson(linear * full_well_e) + rng.normal(0.0, read_noise_e, linear.shape)
         value = np.clip(electrons / full_well_e, 0.0, 1.0)
         dest = out / entry.file.relative_to(stack.path)
