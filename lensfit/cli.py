@@ -243,11 +243,74 @@ def _progress_bar(console, enabled: bool):
                     TimeElapsedColumn(), console=console, disable=not console.is_terminal and not enabled)
 
 
-def _fit_command(args: argparse.Namespace) -> int:
-    from pathlib import Path
+def _write_fit_outputs(args, source: Path, table, result, document) -> list[Path]:
+    """Write every output to a temporary sibling first, then rename: all appear, or none."""
+    from lensfit.fitting import write_results
 
+    pending = []
+    try:
+        if args.out:
+            pending.append((_partial(Path(args.out)), Path(args.out)))
+            write_results(pending[-1][0], document)
+        if args.samples:
+            pending.append((_partial(Path(args.samples)), Path(args.samples)))
+            table.write(pending[-1][0])
+        if args.plot:
+            from lensfit.plots import plot_fit
+
+            pending.append((_partial(Path(args.plot)), Path(args.plot)))
+            plot_fit(result, pending[-1][0], title=f"{source.name}: {result.code}")
+    except BaseException:
+        for tmp, _ in pending:
+            tmp.unlink(missing_ok=True)
+        raise
+    for tmp, final in pending:
+        tmp.replace(final)
+    return [final for _, final in pending]
+
+
+def _print_fit(result, document) -> None:
+    """Per setting a table of estimates (and truth, when known); diagnostics; reasons."""
     from rich.console import Console
     from rich.table import Table
+
+    show = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
+            "sensor_distance_mm", "aperture_diameter_mm", "blur_floor_px")
+    out = Console(width=None if sys.stdout.isatty() else 120)  # logs and pipes get whole rows
+    for label, qs in result.settings.items():
+        t = Table(title=f"setting {label!r}: {document['settings'][label]['samples']} edges", header_style="bold")
+        for col in ("quantity", "estimate ± 1σ", "95% interval"):
+            t.add_column(col, justify="right" if col != "quantity" else "left", no_wrap=True)
+        rows = {r["quantity"]: r for r in document.get("truth_comparison", []) if r["setting"] == label}
+        if rows:
+            t.add_column("truth", justify="right", no_wrap=True)
+            t.add_column("error", justify="right", no_wrap=True)
+        for qn in show:
+            e = qs[qn]
+            cells = [qn, e.text(), e.interval_text()]
+            if rows:
+                r = rows.get(qn)
+                cells += ([f"{r['truth']:.6g}" if r["truth"] is not None else "infinity",
+                           f"{100 * r['relative_error']:+.3f}%" if r["relative_error"] is not None else ""]
+                          if r else ["", ""])
+            t.add_row(*cells)
+        out.print(t)
+    d = document["diagnostics"]
+
+    def num(x, spec):
+        return "n/a" if x is None else format(x, spec)
+
+    print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {num(d['rms_residual_px'], '.3f')} px, "
+          f"reduced chi-square {num(d['chi2_reduced'], '.2f')}, condition number "
+          f"{num(d['condition_number'], '.3g')}, loss {d['loss']}")
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    for r in result.reasons:
+        print(f"not identifiable: {r}", file=sys.stderr)
+
+
+def _fit_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
 
     outputs = [(opt, Path(v)) for opt, v in (("--out", args.out), ("--plot", args.plot), ("--samples", args.samples))
                if v]
@@ -294,7 +357,7 @@ def _fit_command(args: argparse.Namespace) -> int:
     for w in table.warnings:
         print(f"warning: {w}", file=sys.stderr)
 
-    from lensfit.fitting import fit, results_document, write_results
+    from lensfit.fitting import fit, results_document
 
     fpx = None
     if args.focal_length_px is not None:
@@ -306,68 +369,13 @@ def _fit_command(args: argparse.Namespace) -> int:
                      blur_floor_px=args.blur_floor)
     document = results_document(result, ["lensfit", *args.argv], truth)
 
-    # Write every output to a temporary sibling first: all appear, or none.
-    pending = []
-    try:
-        if args.out:
-            tmp = _partial(Path(args.out))
-            write_results(tmp, document)
-            pending.append((tmp, Path(args.out)))
-        if args.samples:
-            tmp = _partial(Path(args.samples))
-            table.write(tmp)
-            pending.append((tmp, Path(args.samples)))
-        if args.plot:
-            from lensfit.plots import plot_fit
-
-            tmp = _partial(Path(args.plot))
-            plot_fit(result, tmp, title=f"{source.name}: {result.code}")
-            pending.append((tmp, Path(args.plot)))
-    except BaseException:
-        for tmp, _ in pending:
-            tmp.unlink(missing_ok=True)
-        raise
-    for tmp, final in pending:
-        tmp.replace(final)
-
+    written = _write_fit_outputs(args, source, table, result, document)
     if args.json:
         print(json.dumps(document, indent=1))
     else:
-        show = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
-                "sensor_distance_mm", "aperture_diameter_mm", "blur_floor_px")
-        out = Console(width=None if sys.stdout.isatty() else 120)  # logs and pipes get whole rows
-        for label, qs in result.settings.items():
-            t = Table(title=f"setting {label!r}: {document['settings'][label]['samples']} edges", header_style="bold")
-            for col in ("quantity", "estimate ± 1σ", "95% interval"):
-                t.add_column(col, justify="right" if col != "quantity" else "left", no_wrap=True)
-            rows = {r["quantity"]: r for r in document.get("truth_comparison", []) if r["setting"] == label}
-            if rows:
-                t.add_column("truth", justify="right", no_wrap=True)
-                t.add_column("error", justify="right", no_wrap=True)
-            for qn in show:
-                e = qs[qn]
-                cells = [qn, e.text(), e.interval_text()]
-                if rows:
-                    r = rows.get(qn)
-                    cells += ([f"{r['truth']:.6g}" if r["truth"] is not None else "infinity",
-                               f"{100 * r['relative_error']:+.3f}%" if r["relative_error"] is not None else ""]
-                              if r else ["", ""])
-                t.add_row(*cells)
-            out.print(t)
-        d = document["diagnostics"]
-        def num(x, spec):
-            return "n/a" if x is None else format(x, spec)
-
-        print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {num(d['rms_residual_px'], '.3f')} px, "
-              f"reduced chi-square {num(d['chi2_reduced'], '.2f')}, condition number "
-              f"{num(d['condition_number'], '.3g')}, loss {d['loss']}")
-        for w in result.warnings:
-            print(f"warning: {w}", file=sys.stderr)
-        for r in result.reasons:
-            print(f"not identifiable: {r}", file=sys.stderr)
-        written = ", ".join(str(final) for _, final in pending)
+        _print_fit(result, document)
         if written:
-            print(f"wrote {written}")
+            print(f"wrote {', '.join(str(p) for p in written)}")
     return EXIT_OK if result.ok else EXIT_NOT_IDENTIFIABLE
 
 
