@@ -463,7 +463,10 @@ def _vertex_profile(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarra
     """
     lo, hi = float(w.min()), float(w.max())
     span = max(hi - lo, 0.05 * hi)
-    grid = np.unique(np.concatenate([np.linspace(max(lo - span, -0.2 * hi), hi + span, 801), [0.0], w]))
+    # The samples' own inverse distances join the grid (as quantiles: memory stays
+    # O(1000 x n) for stacks of thousands of edges).
+    grid = np.unique(np.concatenate([np.linspace(max(lo - span, -0.2 * hi), hi + span, 801), [0.0],
+                                     np.quantile(w, np.linspace(0.0, 1.0, min(len(w), 200)))]))
     cc = np.maximum(c, 0.05)
     a2 = (grid[:, None] - w[None, :]) ** 2  # (G, n)
     wv = wt / (2 * cc * sig) ** 2
