@@ -439,7 +439,13 @@ def _bench_command(args: argparse.Namespace) -> int:
         task = bar.add_task(f"suite {suite.name}", total=n_cases)
         records = run_suite(suite, out, jobs=args.jobs, resume=args.resume, executor=args.executor,
                             progress=lambda done, total: bar.update(task, completed=done, total=total))
-    files = write_report(records, suite, provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor), out)
+    prov = provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor)
+    first = out / "cache" / "provenance.json"
+    if first.is_file():  # a resumed run: the cases came (partly) from the first run
+        prov = {**prov, "first_run": json.loads(first.read_text())}
+    else:
+        first.write_text(json.dumps(prov, indent=1))
+    files = write_report(records, suite, prov, out)
     failed = sum(1 for r in records if r.get("error"))
     print(f"{len(records)} cases ({failed} refused by the input checks); wrote "
           + ", ".join(str(f) for f in files.values()))

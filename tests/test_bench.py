@@ -107,6 +107,8 @@ def test_resume_keeps_finished_cases_and_refuses_a_used_folder(quick_report, cap
     assert "--resume" in capsys.readouterr().err
     assert main(["bench", "--suite", "quick", "--out", str(quick_report), "--resume"]) == 0
     assert {p: p.stat().st_mtime_ns for p in cases} == before  # nothing recomputed
+    prov = json.loads((quick_report / "results.json").read_text())["provenance"]
+    assert "--resume" in prov["command"] and "--resume" not in prov["first_run"]["command"]
 
 
 def test_unknown_suite_names_the_available_ones(tmp_path, capsys):
