@@ -165,7 +165,7 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
         result, _ = timed_render()
         result, seconds = timed_render()
         write_stack(result, stack)
-        (meta_path).write_text(json.dumps({"seconds": seconds,
+        meta_path.write_text(json.dumps({"seconds": seconds,
                                            "megapixels": sum(im.size for im in result.images.values()) / 1e6}))
     render_meta = json.loads(meta_path.read_text())
     truth = json.loads((stack / "truth.json").read_text())

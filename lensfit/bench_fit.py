@@ -19,11 +19,10 @@ from typing import Any, Callable
 
 import numpy as np
 
+from lensfit.bench import QUANTITIES
 from lensfit.fitting import fit
 from lensfit.measure import measure
 from lensfit.stack import load_stack
-
-QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
 
 
 def noisy_copy(stack_dir: Path, out: Path, rng: np.random.Generator, full_well_e: float, read_noise_e: float,
