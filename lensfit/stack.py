@@ -12,6 +12,8 @@ float images.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +37,8 @@ class ImageEntry:
     encoding: str
     setting: str
     distance_mm: float | None = None
+    black_level: float | None = None  # raw integer levels (sensor DN in a PNG/TIFF)
+    white_level: float | None = None
 
 
 @dataclass
@@ -70,7 +74,7 @@ class Stack:
     def read(self, index: int) -> np.ndarray:
         """Image ``index`` as linear float64 intensity (H, W), full scale 1."""
         entry = self.images[index]
-        return read_image(entry.file, entry.encoding)
+        return read_image(entry.file, entry.encoding, black_level=entry.black_level, white_level=entry.white_level)
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
@@ -88,8 +92,12 @@ def _to_grey(img: np.ndarray) -> np.ndarray:
     raise ValueError(f"unsupported image shape {img.shape}")
 
 
-def read_raster(path: Path) -> np.ndarray:
-    """PNG/TIFF -> float64 in full-scale units (integers / max of their type; floats as stored)."""
+def read_raster(path: Path, black_level: float | None = None, white_level: float | None = None) -> np.ndarray:
+    """PNG/TIFF -> float64 in full-scale units (integers / max of their type; floats as stored).
+
+    With ``black_level``/``white_level`` (raw sensor values stored in an integer file, e.g.
+    12-bit DN in a 16-bit PNG) integers map to ``(value - black) / (white - black)`` instead.
+    """
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
             import tifffile
@@ -105,8 +113,12 @@ def read_raster(path: Path) -> np.ndarray:
         raise SpecError(path, "", f"cannot be decoded ({type(exc).__name__}: {exc}); is it truncated?") from None
     img = np.asarray(img)
     if img.dtype.kind in "ui":
-        scale = float(np.iinfo(img.dtype).max)
-        out = img.astype(np.float64) / scale
+        if black_level is not None or white_level is not None:
+            black = float(black_level or 0.0)
+            white = float(white_level if white_level is not None else np.iinfo(img.dtype).max)
+            out = (img.astype(np.float64) - black) / (white - black)
+        else:
+            out = img.astype(np.float64) / float(np.iinfo(img.dtype).max)
     elif img.dtype.kind == "f":
         out = img.astype(np.float64)
         if np.isnan(out).any():
@@ -138,15 +150,20 @@ def read_raw(path: Path) -> np.ndarray:
     return _to_grey(rgb.astype(np.float64) / 65535.0)
 
 
-def read_image(path: str | Path, encoding: str = "linear") -> np.ndarray:
-    """Read one image as linear float64 grey intensity (H, W), full scale 1."""
+def read_image(path: str | Path, encoding: str = "linear", *, black_level: float | None = None,
+               white_level: float | None = None) -> np.ndarray:
+    """Read one image as linear float64 grey intensity (H, W), full scale 1.
+
+    ``black_level``/``white_level``: raw integer levels of a PNG/TIFF (see ``read_raster``);
+    RAW and DNG files carry their own.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in RAW_SUFFIXES:
         return read_raw(path)
     if suffix not in RASTER_SUFFIXES:
         raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, DNG or a camera RAW file")
-    img = read_raster(path)
+    img = read_raster(path, black_level, white_level)
     return srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
 
 
@@ -199,6 +216,9 @@ def load_stack(path: str | Path) -> Stack:
         file = folder / entry["file"]
         if not file.is_file():
             raise SpecError(manifest_path, f"image[{i}].file", f"got {entry['file']!r}: no such file in {folder}")
+        if entry.get("white_level", math.inf) <= entry.get("black_level", 0):
+            raise SpecError(manifest_path, f"image[{i}].white_level", f"got {entry['white_level']}: must exceed "
+                            f"black_level ({entry.get('black_level', 0)})")
         size = _image_size(file)
         if shape is None:
             shape = size
@@ -206,7 +226,8 @@ def load_stack(path: str | Path) -> Stack:
             raise SpecError(file, "", f"is {size[1]} x {size[0]} px but {images[0].file.name} is "
                             f"{shape[1]} x {shape[0]}; every image of a stack must have the same size")
         images.append(ImageEntry(index=i, file=file, encoding=entry.get("encoding", "linear"),
-                                 setting=entry.get("setting", "a"), distance_mm=entry.get("distance_mm")))
+                                 setting=entry.get("setting", "a"), distance_mm=entry.get("distance_mm"),
+                                 black_level=entry.get("black_level"), white_level=entry.get("white_level")))
     cam = data["camera"]
     if "pixel_pitch_mm" in cam:
         pitch = float(cam["pixel_pitch_mm"])

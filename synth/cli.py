@@ -64,16 +64,27 @@ def _plan_command(args: argparse.Namespace) -> int:
     r = scene.render
     table = Table(title=f"{scene.name}: {len(plans)} shot(s), {scene.width_px} x {scene.height_px} px, "
                         f"effects: {', '.join(r.effects)}")
-    for col in ("shot", "setting", "method", "stages", "work", "est. time"):
+    for col in ("shot", "setting", "method", "work", "est. time"):
         table.add_column(col)
     reasons: dict[str, list[str]] = {}
+    pipelines: dict[tuple, list] = {}
     for p in plans:
-        table.add_row(p.shot.name, p.shot.setting, p.method + ("" if p.exact else " (NOT exact)"),
-                      " -> ".join(p.stages), p.work, f"{p.estimated_s:.1f} s")
+        table.add_row(p.shot.name, p.shot.setting, p.method + ("" if p.exact else " (NOT exact)"), p.work,
+                      f"{p.estimated_s:.2f} s")
         reasons.setdefault(p.reason, []).append(p.shot.name)
-    Console().print(table)
+        pipelines.setdefault(p.stages, []).append(p)
+    console = Console()
+    console.print(table)
     for reason, names in reasons.items():
         print(f"{', '.join(names)}: {reason}")
+    for stages, group in pipelines.items():
+        st = Table(title=f"stages of {', '.join(p.shot.name for p in group[:4])}{' ...' if len(group) > 4 else ''}")
+        st.add_column("#", justify="right")
+        st.add_column("stage")
+        st.add_column("est. time", justify="right")
+        for i, (name, secs) in enumerate(zip(stages, group[0].stage_seconds), 1):
+            st.add_row(str(i), name, f"{secs:.2f} s")
+        console.print(st)
     print(f"estimated total: {sum(p.estimated_s for p in plans):.1f} s (after compilation)")
     return EXIT_OK
 

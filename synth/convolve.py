@@ -67,15 +67,21 @@ def footprint_px(obj: PlacedObject, shot: Shot) -> tuple[float, float, float, fl
     return (cx + k * (ox - w / 2), cy + k * (oy - h / 2), cx + k * (ox + w / 2), cy + k * (oy + h / 2))
 
 
-def blurred_footprint_px(obj: PlacedObject, shot: Shot) -> tuple[float, float, float, float]:
+def blurred_footprint_px(obj: PlacedObject, shot: Shot, extent: float = 1.0) -> tuple[float, float, float, float]:
+    """``footprint_px`` grown by the blur's reach (``extent`` x the CoC radius) and a pixel."""
     u0, v0, u1, v1 = footprint_px(obj, shot)
-    r = 0.5 * float(shot.camera.coc_diameter_px(obj.pose.t_cam_target[2])) + 1.0
+    r = 0.5 * extent * float(shot.camera.coc_diameter_px(obj.pose.t_cam_target[2])) + 1.0
     return (u0 - r, v0 - r, u1 + r, v1 + r)
 
 
-def render_convolve(shot: Shot, background: float, supersampling: int) -> np.ndarray:
-    """Render one shot of fronto-parallel objects; returns linear radiance, float32 (H, W)."""
-    cam = shot.camera
+def render_convolve(shot: Shot, background: float, supersampling: int, *, camera=None,
+                    aperture=None) -> np.ndarray:
+    """Render one shot of fronto-parallel objects; returns linear radiance, float32 (H, W).
+
+    ``camera`` replaces the shot's camera (one colour channel's, under chromatic aberration);
+    ``aperture`` (``synth.effects.aperture.Aperture``) replaces the disk PSF by its shape.
+    """
+    cam = camera if camera is not None else shot.camera
     W, H = cam.width_px, cam.height_px
     S = int(supersampling)
     cx, cy = cam.principal_point_px
@@ -83,7 +89,12 @@ def render_convolve(shot: Shot, background: float, supersampling: int) -> np.nda
     for obj in sorted(shot.objects, key=lambda o: -o.pose.t_cam_target[2]):
         z = float(obj.pose.t_cam_target[2])
         coc = float(cam.coc_diameter_px(z))
-        kernel = disk_kernel(coc * S)
+        if aperture is None or aperture.shape == "circle":
+            kernel = disk_kernel(coc * S)
+        else:
+            from synth.effects.aperture import kernel as aperture_kernel
+
+            kernel = aperture_kernel(aperture, coc * S)
         reach = kernel.shape[0] // 2  # in sub-pixels
         reach_px = int(math.ceil(reach / S)) + 1
         u0, v0, u1, v1 = footprint_px(obj, shot)

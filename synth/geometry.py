@@ -124,3 +124,49 @@ class ThinLensCamera:
         """CoC diameter in pixels of points at depth z (mm): ``A s |1/D_s - 1/z| / p``."""
         c = optics.coc_diameter(self.focal_length_mm, self.f_number, self.focus_distance_mm, depth_mm)
         return np.asarray(c) / self.pixel_pitch_mm
+
+
+@dataclass(frozen=True)
+class ChannelCamera(ThinLensCamera):
+    """The camera as one colour channel sees it under longitudinal chromatic aberration.
+
+    The sensor stays where the reference lens put it (``sensor_distance_mm`` of the reference
+    camera) and the aperture stop keeps its diameter; the channel's focal length differs, so
+    the object distance it focuses on moves: ``1/D_c = 1/f_c - 1/s``. That may be beyond
+    infinity (``1/D_c < 0``: every object is blurred), which ``ThinLensCamera`` cannot express;
+    here everything is written with the inverse focus distance.
+    """
+
+    channel_sensor_distance_mm: float = 0.0
+    channel_aperture_diameter_mm: float = 0.0
+    channel_inverse_focus_per_mm: float = 0.0
+
+    @classmethod
+    def for_channel(cls, reference: ThinLensCamera, focal_length_mm: float) -> "ChannelCamera":
+        s = reference.sensor_distance_mm
+        A = reference.aperture_diameter_mm
+        inv = 1.0 / focal_length_mm - 1.0 / s
+        return cls(focal_length_mm=focal_length_mm, f_number=focal_length_mm / A,
+                   focus_distance_mm=(1.0 / inv) if inv != 0 else np.inf,
+                   pixel_pitch_mm=reference.pixel_pitch_mm, width_px=reference.width_px,
+                   height_px=reference.height_px, channel_sensor_distance_mm=s,
+                   channel_aperture_diameter_mm=A, channel_inverse_focus_per_mm=inv)
+
+    @property
+    def sensor_distance_mm(self) -> float:  # type: ignore[override]
+        return self.channel_sensor_distance_mm
+
+    @property
+    def aperture_diameter_mm(self) -> float:  # type: ignore[override]
+        return self.channel_aperture_diameter_mm
+
+    @property
+    def inverse_focus_distance(self) -> float:
+        return self.channel_inverse_focus_per_mm
+
+    def coc_diameter_px(self, depth_mm) -> np.ndarray:
+        z = np.asarray(depth_mm, dtype=np.float64)
+        with np.errstate(divide="ignore"):
+            inv_z = np.where(np.isinf(z), 0.0, 1.0 / z)
+        return (self.channel_aperture_diameter_mm * self.channel_sensor_distance_mm
+                * np.abs(self.channel_inverse_focus_per_mm - inv_z) / self.pixel_pitch_mm)

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from synth import textures
+from synth.effects.aperture import sample as aperture_sample
 from synth.scene import Shot
 
 TILE_SAMPLES = 1 << 20  # lens samples per compiled call: measured fastest on 2 cores (synth bench)
@@ -116,9 +117,15 @@ def _permute(i, key, mask: int):
     return (i + key) & m
 
 
-@partial(jax.jit, static_argnames=("structure", "width", "rows", "spp"))
-def _render_rows(row0, cam, planes, rasters, background, seed, *, structure, width, rows, spp):
-    """Mean radiance of ``rows`` image rows from ``row0``: array (rows, width)."""
+@partial(jax.jit, static_argnames=("structure", "width", "rows", "spp", "aperture", "front_stop"))
+def _render_rows(row0, cam, planes, rasters, background, seed, *, structure, width, rows, spp,
+                 aperture=("circle",), front_stop=None):
+    """Mean radiance of ``rows`` image rows from ``row0``: array (rows, width).
+
+    ``aperture`` is ``synth.effects.aperture.Aperture.static``; ``front_stop`` is None or
+    (distance_mm, radius_mm) of the stop that clips the pupil off axis (optical vignetting,
+    ``synth.effects.vignetting``): rays it blocks carry no light.
+    """
     n_pix = rows * width
     pix = jnp.arange(n_pix, dtype=jnp.uint32)
     sample = jnp.arange(spp, dtype=jnp.uint32)
@@ -151,12 +158,16 @@ def _render_rows(row0, cam, planes, rasters, background, seed, *, structure, wid
         lx_u, ly_u = u3, u4
     pixel_x = px_i[:, None] + jx - 0.5
     pixel_y = py_i[:, None] + jy - 0.5
-    dxu, dyu = concentric_disk(lx_u, ly_u)
+    dxu, dyu = aperture_sample(aperture, lx_u, ly_u, concentric_disk)
     radius = 0.5 * cam[4]
     lens_x, lens_y = radius * dxu, radius * dyu
     dx, dy = thin_lens_ray(pixel_x, pixel_y, lens_x, lens_y, cam)
 
     value = jnp.full(dx.shape, background, jnp.float32)
+    if front_stop is not None:
+        L, rad = front_stop
+        bx, by = lens_x + L * dx, lens_y + L * dy
+        passed = bx * bx + by * by <= rad * rad
     nearest = jnp.full(dx.shape, jnp.inf, jnp.float32)
     for k, static in enumerate(structure):
         c, ex, ey, nrm = planes[k, 0:3], planes[k, 3:6], planes[k, 6:9], planes[k, 9:12]
@@ -171,6 +182,8 @@ def _render_rows(row0, cam, planes, rasters, background, seed, *, structure, wid
         hit = (jnp.abs(denom) > 1e-12) & (z > 0) & (z < nearest) & textures.inside(static, u, v)
         value = jnp.where(hit, textures.evaluate(static, rasters[k], u, v), value)
         nearest = jnp.where(hit, z, nearest)
+    if front_stop is not None:
+        value = jnp.where(passed, value, 0.0)
     return value.mean(axis=1).reshape(rows, width)
 
 
@@ -187,28 +200,31 @@ def scene_arrays(shot: Shot):
     return tuple(structure), tuple(rasters), planes_arr
 
 
-def camera_array(shot: Shot):
-    cam = shot.camera
+def camera_array(cam):
     cx, cy = cam.principal_point_px
     return jnp.asarray([cx, cy, cam.pixel_pitch_mm / cam.sensor_distance_mm, cam.inverse_focus_distance,
                         cam.aperture_diameter_mm], jnp.float32)
 
 
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
-                    progress: Callable[[int], None] | None = None) -> np.ndarray:
+                    progress: Callable[[int], None] | None = None, *, camera=None,
+                    aperture: tuple = ("circle",), front_stop: tuple[float, float] | None = None) -> np.ndarray:
     """Render one shot by ray tracing; returns linear radiance, float32 (height, width).
 
-    ``progress(n)`` is called with the number of rows finished after each tile.
+    ``progress(n)`` is called with the number of rows finished after each tile. ``camera``
+    replaces the shot's camera (one colour channel's, under chromatic aberration);
+    ``aperture`` and ``front_stop`` as for ``_render_rows``.
     """
-    cam = shot.camera
+    cam = camera if camera is not None else shot.camera
     W, H = cam.width_px, cam.height_px
     rows = max(1, min(H, TILE_SAMPLES // max(1, W * spp)))
     structure, rasters, planes = scene_arrays(shot)
-    cam_arr = camera_array(shot)
+    cam_arr = camera_array(cam)
     out = np.empty((H, W), np.float32)
     for r0 in range(0, H, rows):
         block = _render_rows(jnp.int32(r0), cam_arr, planes, rasters, jnp.float32(background), jnp.uint32(seed),
-                             structure=structure, width=W, rows=rows, spp=spp)
+                             structure=structure, width=W, rows=rows, spp=spp, aperture=aperture,
+                             front_stop=front_stop)
         take = min(rows, H - r0)
         out[r0:r0 + take] = np.asarray(block)[:take]
         if progress is not None:

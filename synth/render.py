@@ -20,6 +20,7 @@ from lensfit import __version__
 from lensfit.errors import InputError
 from synth.convolve import blurred_footprint_px, render_convolve
 from synth.raytrace import render_raytrace
+from synth.effects import Effects
 from synth.scene import Scene, Shot, load_scene
 from synth import textures
 
@@ -32,6 +33,12 @@ CONVOLVE_SUBPIXELS_PER_S = 25e6
 
 @dataclass(frozen=True)
 class ShotPlan:
+    """What rendering one shot involves: its method, its stages in order and their costs.
+
+    ``stages`` names each stage (with its key parameter); ``stage_seconds`` estimates each on
+    2 cores after compilation; ``estimated_s`` is their sum.
+    """
+
     shot: Shot
     method: str
     exact: bool
@@ -39,6 +46,7 @@ class ShotPlan:
     stages: tuple[str, ...]
     estimated_s: float
     work: str
+    stage_seconds: tuple[float, ...] = ()
 
 
 def _overlap(a, b) -> bool:
@@ -66,7 +74,7 @@ def convolve_is_exact(shot: Shot) -> tuple[bool, str]:
             if _overlap(boxes[i][1], boxes[j][1]):
                 return False, (f"blurred images of {boxes[i][0]} and {boxes[j][0]} overlap: partial occlusion "
                                "needs ray tracing")
-    return True, "all targets fronto-parallel, no overlapping blur: convolution with the exact disk PSF is exact"
+    return True, "all targets fronto-parallel, no overlapping blur: convolution with the exact PSF is exact"
 
 
 def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[float, str]:
@@ -83,10 +91,15 @@ def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[fl
     return sub / CONVOLVE_SUBPIXELS_PER_S + 0.05, f"{sub / 1e6:.1f} M sub-pixels convolved"
 
 
-def choose_method(shot: Shot, requested: str) -> tuple[str, bool, str]:
+def choose_method(shot: Shot, requested: str, effects: Effects | None = None) -> tuple[str, bool, str]:
     """(method, exact, reason) for one shot. ``auto`` picks the cheapest exact method."""
     if requested not in METHODS:
         raise InputError("method", requested, "one of " + ", ".join(METHODS))
+    only_raytrace = effects.needs_raytrace if effects is not None else None
+    if only_raytrace:
+        if requested == "convolve":
+            raise InputError("method", requested, "raytrace or auto", f"{only_raytrace} is simulated only by ray tracing")
+        return "raytrace", True, f"{requested}: {only_raytrace} needs ray tracing"
     exact, why = convolve_is_exact(shot)
     if requested == "raytrace":
         return "raytrace", True, "requested; ray tracing is exact for every planar scene"
@@ -97,15 +110,57 @@ def choose_method(shot: Shot, requested: str) -> tuple[str, bool, str]:
     return "raytrace", True, "auto: " + why
 
 
+def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[tuple[str, float]]:
+    """(stage, estimated seconds) in pipeline order; only the effects the scene calls for."""
+    from synth.effects import diffraction, exposure, noise
+
+    fx, cam = scene.effects, shot.camera
+    W, H, C = cam.width_px, cam.height_px, fx.channels
+    pixels = W * H
+    out = [(f"defocus ({method}{', x3 channels' if C == 3 else ''})", geometric_s * C)]
+    if "aperture" in fx.names:
+        a = fx.aperture
+        detail = {"polygon": f"{a.blades} blades, {a.rotation_deg:g} deg", "anamorphic": f"squeeze {a.squeeze:g}",
+                  "circle": "circle"}[a.shape]
+        out.append((f"aperture ({detail}, in the {method} stage)", 0.0))
+    if fx.diffraction is not None:
+        waves = "/".join(f"{w:g}" for w in fx.diffraction.wavelength_nm)
+        out.append((f"diffraction (Airy, {waves} nm)", diffraction.seconds(W, H, C)))
+    if fx.vignetting is not None:
+        v = fx.vignetting
+        parts = (["cos^4"] if v.natural else []) + (["front stop in the ray tracer"] if v.optical else [])
+        out.append((f"vignetting ({', '.join(parts) or 'none'})", 1e-8 * pixels * C if v.natural else 0.0))
+    if fx.distortion is not None or (fx.chromatic_aberration is not None and fx.chromatic_aberration.lateral):
+        name = "distortion" + (" + lateral CA" if fx.chromatic_aberration is not None and
+                               fx.chromatic_aberration.lateral else "")
+        out.append((f"{name} (cubic resampling)", 1.5e-7 * pixels * C + (4e-7 * pixels if fx.distortion else 0.0)))
+    if fx.chromatic_aberration is not None and fx.chromatic_aberration.longitudinal:
+        out.append(("chromatic_aberration (longitudinal: per-channel focus, in the defocus stage)", 0.0))
+    if fx.exposure is not None:
+        e = fx.exposure.for_shot(shot.shutter_s, shot.iso)
+        iso = e.iso if e.iso is not None else fx.sensor.base_iso
+        out.append((f"exposure ({e.shutter_s:g} s, ISO {iso:g}, {fx.sensor.name})", exposure.seconds(W, H)))
+    if fx.mosaic is not None:
+        out.append((f"mosaic ({fx.mosaic.pattern})", 1e-8 * pixels))
+    if fx.noise is not None:
+        out.append(("noise (shot + read)", noise.seconds(W, H)))
+    if fx.exposure is not None:
+        out.append((f"readout ({fx.sensor.bit_depth}-bit DN)", 1e-8 * pixels))
+    else:
+        out.append(("quantise (16-bit)" if scene.render.format != "float-tiff" else "store (float32)", 1e-8 * pixels * C))
+    return out
+
+
 def plan(scene: Scene) -> list[ShotPlan]:
     """The stages each shot will run, its method and an estimated cost."""
     out = []
     r = scene.render
     for shot in scene.shots:
-        method, exact, reason = choose_method(shot, r.method)
-        stages = (f"defocus ({method})",) + tuple(e for e in r.effects if e != "defocus") + ("quantise",)
+        method, exact, reason = choose_method(shot, r.method, scene.effects)
         seconds, work = _estimate(shot, method, r.samples_per_pixel, r.supersampling)
-        out.append(ShotPlan(shot, method, exact, reason, stages, seconds, work))
+        stages = _stages(scene, shot, method, seconds)
+        out.append(ShotPlan(shot, method, exact, reason, tuple(n for n, _ in stages), sum(t for _, t in stages), work,
+                            tuple(t for _, t in stages)))
     return out
 
 
@@ -186,7 +241,10 @@ class RenderResult:
     maps : dict of file name -> {"depth_mm": float32 (H, W), "coc_diameter_px": float32 (H, W)}
     truth : the truth.json object
     manifest : the stack.toml object (only what a photographer would know)
-    image_format : "png", "tiff" or "float-tiff" (how ``synth.stack.write_stack`` stores images)
+    image_format : "png", "tiff", "float-tiff" or "dng" (how ``synth.stack.write_stack`` stores images)
+    raw : dict of file name -> uint16 (H, W) sensor values (DN), for scenes with ``exposure`` or
+        ``mosaic``: what the files hold (``images`` keeps the linear radiance before the sensor)
+    levels : dict of file name -> {"black_level", "white_level"} of the raw values
     """
 
     images: dict[str, np.ndarray] = field(default_factory=dict)
@@ -194,6 +252,9 @@ class RenderResult:
     truth: dict[str, Any] = field(default_factory=dict)
     manifest: dict[str, Any] = field(default_factory=dict)
     image_format: str = "png"
+    raw: dict[str, np.ndarray] = field(default_factory=dict)
+    levels: dict[str, dict[str, int]] = field(default_factory=dict)
+    exif: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def _shot_seed(seed: int, k: int) -> int:
@@ -201,7 +262,87 @@ def _shot_seed(seed: int, k: int) -> int:
 
 
 def image_extension(fmt: str) -> str:
-    return ".png" if fmt == "png" else ".tiff"
+    return {"png": ".png", "dng": ".dng"}.get(fmt, ".tiff")
+
+
+def working_f_number(camera) -> float:
+    """Image-side f-number s/A (N at infinity focus; 2N at 1:1)."""
+    return camera.sensor_distance_mm / camera.aperture_diameter_mm
+
+
+def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None]):
+    """One shot through its stages: (linear radiance float32 (H, W) or (H, W, 3), raw DN uint16
+    or None, per-image truth entries). Only the stages the scene calls for run."""
+    r, fx, shot = scene.render, scene.effects, sp.shot
+    cam = shot.camera
+    extra: dict[str, Any] = {}
+    ca = fx.chromatic_aberration
+    cameras = ca.channel_cameras(cam) if ca is not None and ca.longitudinal else [cam] * fx.channels
+    stop = fx.vignetting.front_stop() if fx.vignetting is not None else None
+    kwargs_rt = {}
+    if fx.aperture.shape != "circle":
+        kwargs_rt["aperture"] = fx.aperture.static
+    if stop is not None:
+        kwargs_rt["front_stop"] = stop
+    planes: list[np.ndarray] = []
+    distinct = len({id(c) for c in cameras})
+    for c, ccam in enumerate(cameras):
+        same = next((j for j in range(c) if cameras[j] is ccam), None)
+        if same is not None:  # a channel the lens treats like an earlier one: no second render
+            planes.append(planes[same])
+            continue
+        rows = (lambda n, _d=distinct: tick(n / _d)) if distinct > 1 else tick
+        cam_kw = {} if ccam is cam else {"camera": ccam}
+        if sp.method == "raytrace":
+            img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, _shot_seed(r.seed, k), rows,
+                                  **cam_kw, **kwargs_rt)
+        else:
+            img = render_convolve(shot, scene.background_value, r.supersampling, **cam_kw,
+                                  **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}))
+            rows(cam.height_px)
+        planes.append(img)
+    image = planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
+    if fx.diffraction is not None:
+        from synth.effects import diffraction
+
+        Nw = working_f_number(cam)
+        image = diffraction.apply(image, fx.diffraction, Nw, cam.pixel_pitch_mm).astype(np.float32)
+        extra["diffraction"] = fx.diffraction.truth(Nw, cam.pixel_pitch_mm)
+    if fx.vignetting is not None and fx.vignetting.natural:
+        from synth.effects import vignetting
+
+        image = vignetting.apply_natural(image, cam)
+    lateral = ca is not None and ca.lateral
+    if fx.distortion is not None or lateral:
+        from synth.effects import distortion
+
+        image = distortion.warp(image, cam, fx.distortion, ca.magnification if lateral else None)
+        if fx.distortion is not None:
+            extra["distortion"] = fx.distortion.truth(cam.focal_length_px, cam.principal_point_px)
+    if ca is not None:
+        extra["chromatic_aberration"] = ca.truth(cam)
+    raw = None
+    if fx.exposure is not None:
+        from synth.effects import exposure, noise
+
+        e = fx.exposure.for_shot(shot.shutter_s, shot.iso)
+        iso = e.iso if e.iso is not None else fx.sensor.base_iso
+        Nw = working_f_number(cam)
+        signal = exposure.mean_electrons(image, e, fx.sensor, Nw, fx.aperture.area_fraction)
+        if fx.mosaic is not None:
+            from synth.effects import mosaic
+
+            signal = mosaic.apply(signal, fx.mosaic)
+        read = None
+        if fx.noise is not None:
+            signal, read = noise.draw(signal, fx.noise, fx.sensor.read_noise_e, noise.generator(r.seed, k))
+        raw = exposure.readout(signal, fx.sensor, iso, read)
+        extra["exposure"] = exposure.truth(e, fx.sensor, Nw, fx.aperture.area_fraction)
+    elif fx.mosaic is not None:
+        from synth.effects import mosaic
+
+        raw = np.round(np.clip(mosaic.apply(image, fx.mosaic), 0.0, 1.0) * 65535.0).astype(np.uint16)
+    return image, raw, extra
 
 
 def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_pixel: int | None = None,
@@ -228,8 +369,12 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         raise InputError("supersampling", supersampling, "between 1 and 16")
     if seed is not None and seed < 0:
         raise InputError("seed", seed, ">= 0")
-    if image_format is not None and image_format not in ("png", "tiff", "float-tiff"):
-        raise InputError("image_format", image_format, "one of png, tiff, float-tiff")
+    if image_format is not None and image_format not in ("png", "tiff", "float-tiff", "dng"):
+        raise InputError("image_format", image_format, "one of png, tiff, float-tiff, dng")
+    if image_format is not None and (image_format == "dng") != (scene.effects.mosaic is not None):
+        raise InputError("image_format", image_format, "dng exactly when the scene has the mosaic effect")
+    if image_format == "float-tiff" and scene.effects.exposure is not None:
+        raise InputError("image_format", image_format, "png or tiff", "the exposure effect produces integer DN")
     scene = scene.with_render(method=method, samples_per_pixel=samples_per_pixel, seed=seed,
                               supersampling=supersampling, format=image_format)
     r = scene.render
@@ -246,13 +391,17 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             if progress is not None:
                 progress(_name, done[0], _h)
 
-        if sp.method == "raytrace":
-            img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, _shot_seed(r.seed, k), tick)
-        else:
-            img = render_convolve(shot, scene.background_value, r.supersampling)
-            tick(cam.height_px)
+        img, raw, extra = render_shot(scene, sp, k, tick)
         methods_used.add(sp.method)
         result.images[name] = img
+        if raw is not None:
+            result.raw[name] = raw
+            sensor = scene.effects.sensor
+            result.levels[name] = ({"black_level": sensor.black_level_dn, "white_level": sensor.white_level_dn}
+                                   if sensor is not None else {"black_level": 0, "white_level": 65535})
+            result.exif[name] = {"focal_length_mm": cam.focal_length_mm, "f_number": cam.f_number,
+                                 **({"exposure_time_s": extra["exposure"]["shutter_s"], "iso": extra["exposure"]["iso"]}
+                                    if "exposure" in extra else {})}
         depth = chief_ray_depth(shot)
         coc = np.asarray(cam.coc_diameter_px(depth))
         map_file = f"truth/{shot.name}_maps.npz"
@@ -273,6 +422,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             "supersampling": r.supersampling if sp.method == "convolve" else None,
             "seed": _shot_seed(r.seed, k) if sp.method == "raytrace" else None,
             "stages": list(sp.stages),
+            **extra,
             "maps": map_file,
             "targets": [_target_truth(o, shot) for o in shot.objects],
         })
@@ -289,6 +439,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         "settings": settings,
         "images": images_truth,
         "effects": list(r.effects),
+        "effect_parameters": scene.effects.truth(),
         "method": methods_used.pop() if len(methods_used) == 1 else "mixed",
         "method_requested": r.method,
         "samples_per_pixel": r.samples_per_pixel,
@@ -299,6 +450,9 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         "version": __version__,
     }
     result.manifest = stack_manifest(scene, [i["file"] for i in images_truth], [i["setting"] for i in images_truth])
+    if r.format != "dng":
+        for entry in result.manifest["image"]:
+            entry.update(result.levels.get(entry["file"], {}))
     return result
 
 

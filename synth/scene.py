@@ -17,6 +17,7 @@ import numpy as np
 
 from lensfit.errors import InputError, SpecError
 from lensfit.specs import load_toml, validate
+from synth.effects import Effects, parse as parse_effects
 from synth.geometry import Pose, ThinLensCamera
 
 DEFAULTS = {
@@ -58,6 +59,8 @@ class Shot:
     setting: str
     camera: ThinLensCamera
     objects: tuple[PlacedObject, ...]
+    shutter_s: float | None = None  # exposure overrides (the exposure effect)
+    iso: float | None = None
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,7 @@ class Scene:
     background_value: float = 0.2
     targets: tuple[TargetSpec, ...] = ()
     shots: tuple[Shot, ...] = ()
+    effects: Effects = Effects()
 
     def with_render(self, **changes) -> "Scene":
         """A copy with render settings replaced (e.g. method, samples_per_pixel, seed)."""
@@ -205,15 +209,24 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
     f = float(lens["focal_length_mm"])
     aperture = lens.get("aperture", "circle")
     aperture = {"shape": aperture} if isinstance(aperture, str) else dict(aperture)
-    if aperture["shape"] != "circle":
-        raise SpecError(path, "lens.aperture", f"got {aperture['shape']!r}: only 'circle' is rendered so far "
-                        "(polygon and anamorphic apertures come with the aperture effect)")
     render = data.get("render", {})
+    names = tuple(render.get("effects", DEFAULTS["effects"]))
+    effects = parse_effects(data, path, names, aperture)
+    fmt = render.get("format", "dng" if effects.mosaic is not None else DEFAULTS["format"])
+    if effects.mosaic is not None and fmt != "dng":
+        raise SpecError(path, "render.format", f"got {fmt!r}: the mosaic effect writes DNG; remove render.format "
+                        "or set it to \"dng\"")
+    if fmt == "dng" and effects.mosaic is None:
+        raise SpecError(path, "render.format", "got 'dng': DNG holds a colour-filter-array frame; add 'mosaic' to "
+                        "render.effects")
+    if fmt == "float-tiff" and effects.exposure is not None:
+        raise SpecError(path, "render.format", "got 'float-tiff': the exposure effect produces integer sensor values "
+                        "(DN); use png or tiff")
     settings = RenderSettings(
-        effects=tuple(render.get("effects", DEFAULTS["effects"])), method=render.get("method", DEFAULTS["method"]),
+        effects=names, method=render.get("method", DEFAULTS["method"]),
         samples_per_pixel=int(render.get("samples_per_pixel", DEFAULTS["samples_per_pixel"])),
         supersampling=int(render.get("supersampling", DEFAULTS["supersampling"])),
-        seed=int(render.get("seed", DEFAULTS["seed"])), format=render.get("format", DEFAULTS["format"]))
+        seed=int(render.get("seed", DEFAULTS["seed"])), format=fmt)
 
     targets = [_target(i, o, path, f) for i, o in enumerate(data["object"])]
     ids = [t.id for t in targets]
@@ -266,7 +279,11 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
             placed.append(PlacedObject(t, pose))
         camera = ThinLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
                                 width_px=int(cam["width_px"]), height_px=int(cam["height_px"]))
-        shots.append(Shot(name=sh.get("name", f"shot_{k:03d}"), setting=label, camera=camera, objects=tuple(placed)))
+        if ("shutter_s" in sh or "iso" in sh) and effects.exposure is None:
+            raise SpecError(path, f"{where}.{'shutter_s' if 'shutter_s' in sh else 'iso'}",
+                            "is an exposure setting, but 'exposure' is not in render.effects; add it or remove this")
+        shots.append(Shot(name=sh.get("name", f"shot_{k:03d}"), setting=label, camera=camera, objects=tuple(placed),
+                          shutter_s=sh.get("shutter_s"), iso=sh.get("iso")))
     names = [s.name for s in shots]
     if len(set(names)) != len(names):
         raise SpecError(path, "shot", "shot names must be unique")
@@ -274,4 +291,4 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
                  width_px=int(cam["width_px"]), height_px=int(cam["height_px"]), focal_length_mm=f,
                  aperture=aperture, render=settings,
                  background_value=float(data.get("background", {}).get("value", DEFAULTS["background"])),
-                 targets=tuple(targets), shots=tuple(shots))
+                 targets=tuple(targets), shots=tuple(shots), effects=effects)

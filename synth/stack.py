@@ -4,7 +4,8 @@ Layout of DIR::
 
     stack.toml              what a photographer knows (read by lensfit)
     truth.json              the ground truth (never read by the fit)
-    shot_000.png ...        16-bit linear PNG (or 16-bit TIFF, or float32 TIFF)
+    shot_000.png ...        16-bit linear PNG (or 16-bit TIFF, or float32 TIFF; raw sensor DN with
+                            black/white levels under the exposure effect; DNG under mosaic)
     truth/shot_000_maps.npz per-pixel depth_mm and coc_diameter_px (float32; depth inf = background)
 
 Everything is written into a temporary sibling folder first and renamed into place at the
@@ -31,16 +32,19 @@ def quantise_16bit(image: np.ndarray) -> np.ndarray:
 
 
 def _write_image(path: Path, image: np.ndarray, image_format: str) -> None:
+    """Float radiance is quantised to 16 bits (or kept as float32); uint16 (raw DN) is written as is.
+    (H, W, 3) images are RGB."""
+    data = image if image.dtype == np.uint16 else (
+        image.astype(np.float32) if image_format == "float-tiff" else quantise_16bit(image))
     if image_format == "png":
         import cv2
 
-        if not cv2.imwrite(str(path), quantise_16bit(image)):
+        if not cv2.imwrite(str(path), data[..., ::-1] if data.ndim == 3 else data):  # OpenCV writes BGR
             raise OSError(f"could not write {path}")
     else:
         import tifffile
 
-        data = image.astype(np.float32) if image_format == "float-tiff" else quantise_16bit(image)
-        tifffile.imwrite(path, data, photometric="minisblack")
+        tifffile.imwrite(path, data, photometric="rgb" if data.ndim == 3 else "minisblack")
 
 
 def manifest_toml(manifest: dict) -> str:
@@ -76,13 +80,25 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
     tmp.chmod(0o755)
     try:
         for name, image in result.images.items():
-            _write_image(tmp / name, image, image_format)
+            if image_format == "dng":
+                from synth.effects.mosaic import write_dng
+
+                exif = result.exif[name]
+                write_dng(tmp / name, result.raw[name], result.truth["effect_parameters"]["mosaic"]["pattern"],
+                          result.levels[name]["black_level"], result.levels[name]["white_level"],
+                          focal_length_mm=exif["focal_length_mm"], f_number=exif["f_number"],
+                          exposure_time_s=exif.get("exposure_time_s"), iso=exif.get("iso"))
+            else:
+                _write_image(tmp / name, result.raw.get(name, image), image_format)
         (tmp / "truth").mkdir()
         for name, maps in result.maps.items():
             np.savez_compressed(tmp / name, **maps)
         truth = dict(result.truth)
         truth["image_format"] = {"png": "16-bit linear PNG", "tiff": "16-bit linear TIFF",
-                                 "float-tiff": "float32 linear TIFF"}[image_format]
+                                 "float-tiff": "float32 linear TIFF", "dng": "DNG (Bayer CFA, raw DN)"}[image_format]
+        if result.raw:
+            truth["image_format"] += ("; sensor DN with the black and white levels in stack.toml"
+                                      if image_format != "dng" else "")
         (tmp / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
         (tmp / "stack.toml").write_text(manifest_toml(result.manifest))
         if out.exists():
