@@ -70,9 +70,9 @@ def _image_raster(p: dict) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _texture_cached(target: TargetSpec) -> Texture:
-    p, kind = target.params, target.target
-    w, h = target.size_mm
+def _texture_cached(kind: str, size_mm: tuple[float, float], frozen_params: tuple) -> Texture:
+    p = dict(frozen_params)
+    w, h = size_mm
     dummy = np.zeros((1, 1), np.float32)
     if kind == "charuco":
         pw, ph = p["squares"][0] * p["square_mm"], p["squares"][1] * p["square_mm"]
@@ -92,8 +92,13 @@ def _texture_cached(target: TargetSpec) -> Texture:
 
 
 def texture(target: TargetSpec) -> Texture:
-    """The texture of a target (cached: a ChArUco raster is generated once per process)."""
-    return _texture_cached(target)
+    """The texture of a target (cached: a ChArUco raster is generated once per process).
+
+    The cache key is everything that sets the appearance (kind, size and every parameter), not
+    the TargetSpec's identity: two targets with one id but different values are different.
+    """
+    params = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in target.params.items()))
+    return _texture_cached(target.target, tuple(target.size_mm), params)
 
 
 def inside(static: tuple, x, y):

@@ -16,6 +16,11 @@ shape              parameters                                             size
                                                                           A / squeeze
 =================  =====================================================  ===========
 
+Orientation: the lens-plane axes are the stored image's (x right, y down), and a point behind
+the plane of focus spreads into the aperture as drawn; in front of it the rays have not yet
+crossed at the sensor, and the stored (re-inverted) image shows the shape turned by 180
+degrees. ``rotation_deg`` therefore describes background bokeh.
+
 So ``f_number`` always names the vertical extent (for the polygon, the circumscribed circle);
 a regular polygon's area is ``n/(2 pi) sin(2 pi/n)`` of its circle's, an ellipse's ``1/squeeze``,
 and exposure scales with that area (truth.json records ``area_fraction``). The anamorphic
