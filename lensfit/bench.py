@@ -1,10 +1,12 @@
 """Benchmark suites: estimated versus true lens parameters, and what accuracy costs in time.
 
 A suite (``data_specs/bench/NAME.toml``, schema ``bench.schema.json``) is a grid:
-scenes x render settings x noise levels x estimators x solver settings x seeds. The work is
-split into tasks, one per (scene, render setting, seed): a task renders its stack once (cached
-on disk), then for every noise level adds seeded photon + read noise, and for every estimator
-and solver setting measures and fits. Each finished case is written as one JSON file, so an
+scenes x render settings x effects x noise levels x estimators x solver settings x seeds. The
+work is split into tasks, one per (scene, render setting, effects, seed): a task renders its
+stack once with those synth effects (diffraction, sensor exposure and noise, Bayer mosaic to
+DNG, ...; cached on disk), then for every noise level adds seeded photon + read noise to the
+rendered values (a quick sensor model; the ``noise`` effect simulates the sensor properly),
+and for every estimator and solver setting measures and fits. Each finished case is written as one JSON file, so an
 interrupted run resumes where it stopped. Times are warm: a stack is rendered twice and the
 second run timed, and each process measures once untimed before its first timed case, so that
 JIT compilation (seconds, once per process) does not pose as the price of a setting. Tasks run in a local process pool (default) or on a
@@ -48,22 +50,26 @@ class Suite:
     estimators: tuple[str, ...]
     solvers: tuple[dict[str, Any], ...]
     tolerances: dict[str, float]
+    effects: tuple[dict[str, Any], ...] = ({"name": "scene"},)
 
     def tasks(self) -> list[dict[str, Any]]:
-        """One task per (scene, render, seed); each lists its cases."""
+        """One task per (scene, render, effects, seed); each lists its cases."""
         out = []
         for scene in self.scenes:
             for render in self.renders:
-                for seed in self.seeds:
-                    cases = []
-                    for noise in self.noises:
-                        for est in self.estimators:
-                            for solver in self.solvers:
-                                cases.append({"noise": noise, "estimator": est, "solver": solver})
-                    task = {"scene": str(scene), "render": render, "seed": seed, "cases": cases}
-                    for c in cases:
-                        c["id"] = case_id(task, c)
-                    out.append(task)
+                for fx in self.effects:
+                    for seed in self.seeds:
+                        cases = []
+                        for noise in self.noises:
+                            if "full_well_e" in noise and simulates_sensor(fx):
+                                continue  # the effects already made the sensor's noise: not twice
+                            for est in self.estimators:
+                                for solver in self.solvers:
+                                    cases.append({"noise": noise, "estimator": est, "solver": solver})
+                        task = {"scene": str(scene), "render": render, "effects": fx, "seed": seed, "cases": cases}
+                        for c in cases:
+                            c["id"] = case_id(task, c)
+                        out.append(task)
         return out
 
 
@@ -94,12 +100,44 @@ def load_suite(name_or_path: str | Path) -> Suite:
         else:
             raise SpecError(path, f"scene[{i}].file", f"{entry['file']!r} not found beside the suite or in "
                             "data_specs/scenes/")
-    names = [n["name"] for n in data["noise"]]
-    if len(set(names)) != len(names):
-        raise SpecError(path, "noise", "noise names must be unique")
+    for axis in ("noise", "effects"):
+        names = [n["name"] for n in data.get(axis, [])]
+        if len(set(names)) != len(names):
+            raise SpecError(path, axis, f"{axis} names must be unique")
+    effects = tuple(data.get("effects", [{"name": "scene"}]))
+    for i, fx in enumerate(effects):  # every scene must accept every effect set: check now, not hours in
+        for scene in scenes:
+            try:
+                scene_with_effects(scene, fx)
+            except SpecError as exc:
+                raise SpecError(path, f"effects[{i}]", f"{fx['name']!r} does not fit {scene.name}: {exc}") from None
     return Suite(data["name"], data.get("description", ""), path, tuple(data["seeds"]), tuple(scenes),
                  tuple(data["render"]), tuple(data["noise"]), tuple(data["estimators"]), tuple(data["solver"]),
-                 {**DEFAULT_TOLERANCES, **data.get("tolerances", {})})
+                 {**DEFAULT_TOLERANCES, **data.get("tolerances", {})}, effects)
+
+
+def simulates_sensor(fx: dict[str, Any]) -> bool:
+    """Whether an effect set renders sensor values itself (then no noise level is added on top)."""
+    return bool({"exposure", "mosaic"} & set(fx.get("effects", [])))
+
+
+def scene_with_effects(scene_path: Path, fx: dict[str, Any]):
+    """The scene at ``scene_path`` rendered with the effect set ``fx`` (its tables replace the scene's)."""
+    from synth.effects import TABLES
+    from synth.scene import scene_from_dict
+
+    data = load_toml(scene_path)
+    if "effects" in fx:
+        for table in TABLES:
+            data.pop(table, None)
+        data.setdefault("render", {})["effects"] = list(fx["effects"])
+        data["render"].pop("format", None)
+    for key, value in fx.items():
+        if key == "aperture":
+            data["lens"]["aperture"] = value
+        elif key not in ("name", "effects"):
+            data[key] = value
+    return scene_from_dict(data, scene_path)
 
 
 def render_label(render: dict[str, Any]) -> str:
@@ -119,9 +157,18 @@ def _key(*parts: Any) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def _render_parts(task: dict[str, Any]) -> tuple:
+    fx = task.get("effects", {"name": "scene"})
+    parts = (Path(task["scene"]).read_text(), task["render"], task["seed"])
+    return parts if fx == {"name": "scene"} else parts + (fx,)  # runs without effects keep their ids
+
+
+def _render_key(task: dict[str, Any]) -> str:
+    return _key(*_render_parts(task))
+
+
 def case_id(task: dict[str, Any], case: dict[str, Any]) -> str:
-    return _key(Path(task["scene"]).read_text(), task["render"], task["seed"], case["noise"], case["estimator"],
-                case["solver"])
+    return _key(*_render_parts(task), case["noise"], case["estimator"], case["solver"])
 
 
 # --------------------------------------------------------------------------- one task
@@ -138,7 +185,6 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
     from lensfit.jaxcache import enable_compilation_cache
     from lensfit.measure import measure
     from synth.render import render
-    from synth.scene import load_scene
     from synth.stack import write_stack
 
     enable_compilation_cache()
@@ -149,14 +195,15 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
     if not todo:
         return []
     scene_path = Path(task["scene"])
-    stack = cache_dir / "stacks" / _key(scene_path.read_text(), task["render"], task["seed"])
+    stack = cache_dir / "stacks" / _render_key(task)
+    fx = task.get("effects", {"name": "scene"})
     meta_path = stack / "bench_render.json"
     if not meta_path.is_file():
         if stack.exists():
             shutil.rmtree(stack)  # an interrupted render: start it again
         def timed_render():
             t0 = time.perf_counter()
-            out = render(load_scene(scene_path), method=task["render"]["method"],
+            out = render(scene_with_effects(scene_path, fx), method=task["render"]["method"],
                          samples_per_pixel=task["render"].get("samples_per_pixel"), seed=task["seed"],
                          supersampling=task["render"].get("supersampling"))
             return out, time.perf_counter() - t0
@@ -185,7 +232,8 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
             by_estimator: dict[str, Any] = {}
             for c in cases:
                 record = {"id": c["id"], "scene": scene_path.stem, "render": render_label(task["render"]),
-                          "render_settings": task["render"], "seed": task["seed"], "noise": noise["name"],
+                          "render_settings": task["render"], "effects": fx["name"], "effect_settings": fx,
+                          "seed": task["seed"], "noise": noise["name"],
                           "estimator": c["estimator"], "solver": solver_label(c["solver"]),
                           "seconds_render": render_meta["seconds"], "megapixels": render_meta["megapixels"]}
                 try:

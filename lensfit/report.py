@@ -21,7 +21,7 @@ import numpy as np
 
 from lensfit.bench import QUANTITIES, Suite
 
-CONFIG_KEYS = ("scene", "render", "noise", "estimator", "solver")
+CONFIG_KEYS = ("scene", "render", "effects", "noise", "estimator", "solver")
 
 
 def _rows(records: list[dict[str, Any]], tolerances: dict[str, float]) -> list[dict[str, Any]]:
@@ -51,6 +51,8 @@ def _rows(records: list[dict[str, Any]], tolerances: dict[str, float]) -> list[d
 
 def summarise(records: list[dict[str, Any]], suite: Suite) -> dict[str, Any]:
     """Per-configuration figures (over seeds and settings) and the Pareto fronts."""
+    for r in records:
+        r.setdefault("effects", "scene")  # case files from before the effects axis
     rows = _rows(records, suite.tolerances)
     configs: dict[tuple, dict[str, Any]] = {}
     for r in records:
@@ -174,7 +176,7 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
         for t, e, c in pts:
             on = c[f"pareto_{axis}"]
             ax.plot(t, e, "o", ms=7 if on else 5, color="C3" if on else "C0", alpha=0.9 if on else 0.5)
-            ax.annotate(f"{c['render']}, {c['noise']}, {c['estimator']}, {c['solver']}", (t, e), fontsize=6,
+            ax.annotate(f"{c['render']}, {c['effects']}, {c['noise']}, {c['estimator']}, {c['solver']}", (t, e), fontsize=6,
                         xytext=(3, 3), textcoords="offset points")
         for i, scene in enumerate(sorted({c["scene"] for _, _, c in pts})):
             front = sorted((t, e) for t, e, c in pts if c[f"pareto_{axis}"] and c["scene"] == scene)
@@ -249,7 +251,7 @@ def _num(x: float | None, spec: str = ".3g") -> str:
 
 
 def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str], list[list[str]]]]:
-    cases = [[r["scene"], r["render"], r["noise"], r["estimator"], r["solver"], str(r["seed"]), r["setting"],
+    cases = [[r["scene"], r["render"], r["effects"], r["noise"], r["estimator"], r["solver"], str(r["seed"]), r["setting"],
               r["quantity"], _num(r["truth"], ".6g"), "refused" if r["refused"] else _num(r["value"], ".6g"),
               _num(r["sigma"]), _pct(r["relative_error"]),
               "-" if r["passed"] is None else ("pass" if r["passed"] else "FAIL")] for r in summary["rows"]]
@@ -257,12 +259,12 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
     for c in summary["configurations"]:
         for q in QUANTITIES:
             d = c["quantities"][q]
-            configs.append([c["scene"], c["render"], c["noise"], c["estimator"], c["solver"], q,
+            configs.append([c["scene"], c["render"], c["effects"], c["noise"], c["estimator"], c["solver"], q,
                             _pct(d["rms_relative_error"]), _pct(d["bias"]), f"{d['passed']}/{d['total']}",
                             _pct(d["observed_scatter"], 4).lstrip("+"), _pct(d["stated_sigma"], 4).lstrip("+"),
                             _pct(d["crlb"], 4).lstrip("+"), _num(d["efficiency"], ".2f"),
                             _pct(d["coverage68"], 0).lstrip("+"), _pct(d["coverage95"], 0).lstrip("+")])
-    price = [[c["scene"], c["render"], c["noise"], c["estimator"], c["solver"], _num(c["seconds_render"]),
+    price = [[c["scene"], c["render"], c["effects"], c["noise"], c["estimator"], c["solver"], _num(c["seconds_render"]),
               _num(c["seconds_measure_fit"]), _pct(c["rms_relative_error"]).lstrip("+"),
               ("render " if c["pareto_seconds_render"] else "") + ("fit" if c["pareto_seconds_measure_fit"] else "")]
              for c in summary["configurations"]]
@@ -270,15 +272,15 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
            for q, v in summary["coverage"].items()]
     tol = ", ".join(f"{q} {100 * v:g}%" for q, v in suite.tolerances.items())
     return [
-        ("Estimated versus true, per case", ["scene", "render", "noise", "estimator", "solver", "seed", "setting",
+        ("Estimated versus true, per case", ["scene", "render", "effects", "noise", "estimator", "solver", "seed", "setting",
                                               "quantity", "truth", "estimate", "sigma", "error", f"within ({tol})"],
          cases),
-        ("Per configuration (over seeds and settings)", ["scene", "render", "noise", "estimator", "solver", "quantity",
+        ("Per configuration (over seeds and settings)", ["scene", "render", "effects", "noise", "estimator", "solver", "quantity",
                                                           "RMS error", "bias", "passed", "observed scatter",
                                                           "stated sigma", "CRLB", "CRLB/scatter", "in 68%",
                                                           "in 95%"], configs),
         ("The price of accuracy (median seconds per stack; Pareto front per scene marked)",
-         ["scene", "render", "noise", "estimator", "solver", "render s", "measure+fit s", "RMS error",
+         ["scene", "render", "effects", "noise", "estimator", "solver", "render s", "measure+fit s", "RMS error",
           "Pareto"], price),
         ("Calibration of the uncertainty (all cases)", ["quantity", "in 68% interval", "in 95% interval",
                                                          "intervals"], cov),
@@ -314,7 +316,7 @@ def write_report(records: list[dict[str, Any]], suite: Suite, prov: dict[str, An
         md += ["| " + " | ".join(row) + " |" for row in body]
         md.append("")
     if refused:
-        md += ["## Refusals and errors", ""] + [f"- {r['id']} ({r['scene']}, {r['render']}, {r['noise']}, seed "
+        md += ["## Refusals and errors", ""] + [f"- {r['id']} ({r['scene']}, {r['render']}, {r['effects']}, {r['noise']}, seed "
                                                f"{r['seed']}): {r.get('error') or '; '.join(r['reasons'])}"
                                                for r in refused] + [""]
     md += ["## Provenance", ""] + [f"- {line}" for line in prov_lines] + [""]

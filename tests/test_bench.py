@@ -46,8 +46,16 @@ class _Images(HTMLParser):
 def test_quick_report_is_complete(quick_report):
     suite = load_suite("quick")
     doc = json.loads((quick_report / "results.json").read_text())
-    n_cases = len(suite.seeds) * len(suite.renders) * len(suite.noises) * len(suite.estimators) * len(suite.solvers)
+    # An effects set that simulates the sensor gets no added noise level on top.
+    sensor_sets = [fx for fx in suite.effects if {"exposure", "mosaic"} & set(fx.get("effects", []))]
+    assert sensor_sets, "the quick suite renders one camera-raw (DNG) variant"
+    plain_noises = [n for n in suite.noises if "full_well_e" not in n]
+    per_grid = len(suite.seeds) * len(suite.renders) * len(suite.estimators) * len(suite.solvers)
+    n_cases = per_grid * ((len(suite.effects) - len(sensor_sets)) * len(suite.noises)
+                          + len(sensor_sets) * len(plain_noises))
     assert len(doc["cases"]) == n_cases
+    raw_cases = [c for c in doc["cases"] if c["effects"] == sensor_sets[0]["name"]]
+    assert raw_cases and all(c["noise"] == "none" for c in raw_cases)
     for case in doc["cases"]:
         assert case["seconds_render"] > 0 and case["seconds_measure"] > 0 and case["seconds_fit"] > 0
         for q in ("focal_length_mm", "f_number", "focus_distance_mm"):
@@ -74,8 +82,8 @@ def test_quick_report_numbers_agree_with_the_cases(quick_report):
     doc = json.loads((quick_report / "results.json").read_text())
     tol = doc["suite"]["tolerances"]
     for conf in doc["configurations"]:
-        mine = [c for c in doc["cases"] if all(c[k] == conf[k] for k in ("scene", "render", "noise", "estimator",
-                                                                          "solver"))]
+        mine = [c for c in doc["cases"] if all(c[k] == conf[k] for k in ("scene", "render", "effects", "noise",
+                                                                          "estimator", "solver"))]
         assert conf["cases"] == len(mine)
         for q, d in conf["quantities"].items():
             entries = [c["settings"]["a"][q] for c in mine]
@@ -121,7 +129,7 @@ def test_dask_executor_on_a_local_cluster(tmp_path):
     """One case through Dask distributed: a LocalCluster started by the run, one worker process."""
     pytest.importorskip("distributed")
     suite = Path(load_suite("quick").path).read_text()
-    small = (suite.replace("seeds = [0, 1]", "seeds = [3]")
+    small = (suite.split("\n# Effects sets")[0].replace("seeds = [0, 1]", "seeds = [3]")
              .replace('[[render]]\nmethod = "raytrace"\nsamples_per_pixel = 64\n', "")
              .replace('[[noise]]\nname = "iso1600"\nfull_well_e = 2000.0\nread_noise_e = 3.0\n', ""))
     (tmp_path / "bench_calibration.toml").write_text(
