@@ -33,7 +33,7 @@ def _render_command(args: argparse.Namespace) -> int:
     check_out_dir(args.out, args.force)  # refuse before spending time on the render
     enable_compilation_cache()
     scene = scene.with_render(method=args.method, samples_per_pixel=args.spp, seed=args.seed,
-                              supersampling=args.supersampling, format=args.format)
+                              supersampling=args.supersampling)
     total_rows = sum(s.camera.height_px for s in scene.shots)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                   TimeElapsedColumn(), TimeRemainingColumn(), console=console,
@@ -45,7 +45,7 @@ def _render_command(args: argparse.Namespace) -> int:
             finished[name] = done
             bar.update(task, completed=sum(finished.values()), description=f"rendering {name}")
 
-        result = render(scene, progress=progress)
+        result = render(scene, image_format=args.format, progress=progress)
     out = write_stack(result, args.out, force=args.force)
     methods = ", ".join(sorted({i["method"] for i in result.truth["images"]}))
     print(f"wrote {len(result.images)} image(s), stack.toml and truth.json to {out} (method: {methods})")
@@ -147,7 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, metavar="DIR", help="output stack folder (new or empty)")
     r.add_argument("--seed", type=int, metavar="N", help="random seed (default: the scene's render.seed)")
     r.add_argument("--supersampling", type=int, metavar="S", help="convolve: sub-pixels per axis (default 4)")
-    r.add_argument("--format", choices=["png", "tiff", "float-tiff"], help="image files (default png, 16-bit)")
+    r.add_argument("--format", choices=["png", "tiff", "float-tiff", "dng"],
+                   help="image files (default png, 16-bit; dng with the mosaic effect, which requires it)")
     r.add_argument("--force", action="store_true", help="replace an existing non-empty DIR")
     r.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     r.set_defaults(func=_render_command, prog="synth render")
