@@ -49,6 +49,12 @@ def _render_command(args: argparse.Namespace) -> int:
     out = write_stack(result, args.out, force=args.force)
     methods = ", ".join(sorted({i["method"] for i in result.truth["images"]}))
     print(f"wrote {len(result.images)} image(s), stack.toml and truth.json to {out} (method: {methods})")
+    totals: dict[str, float] = {}
+    for seconds in result.stage_seconds.values():
+        for stage, t in seconds.items():
+            totals[stage] = totals.get(stage, 0.0) + t
+    print("seconds per stage (all shots, compilation included): "
+          + ", ".join(f"{stage} {t:.2f}" for stage, t in totals.items()))
     return EXIT_OK
 
 

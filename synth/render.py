@@ -10,6 +10,7 @@ nothing and changes nothing.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -131,7 +132,7 @@ def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[t
     if fx.vignetting is not None:
         v = fx.vignetting
         parts = (["cos^4"] if v.natural else []) + (["front stop in the ray tracer"] if v.optical else [])
-        out.append((f"vignetting ({', '.join(parts) or 'none'})", 1e-8 * pixels * C if v.natural else 0.0))
+        out.append((f"vignetting ({', '.join(parts) or 'none'})", 5e-9 * pixels * C if v.natural else 0.0))
     if fx.distortion is not None or (fx.chromatic_aberration is not None and fx.chromatic_aberration.lateral):
         name = "distortion" + (" + lateral CA" if fx.chromatic_aberration is not None and
                                fx.chromatic_aberration.lateral else "")
@@ -147,7 +148,7 @@ def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[t
     if fx.noise is not None:
         out.append(("noise (shot + read)", noise.seconds(W, H)))
     if fx.exposure is not None:
-        out.append((f"readout ({fx.sensor.bit_depth}-bit DN)", 1e-8 * pixels))
+        out.append((f"readout ({fx.sensor.bit_depth}-bit DN)", 5e-9 * pixels))
     else:
         out.append(("quantise (16-bit)" if scene.render.format != "float-tiff" else "store (float32)", 1e-8 * pixels * C))
     return out
@@ -247,6 +248,9 @@ class RenderResult:
     raw : dict of file name -> uint16 (H, W) sensor values (DN), for scenes with ``exposure`` or
         ``mosaic``: what the files hold (``images`` keeps the linear radiance before the sensor)
     levels : dict of file name -> {"black_level", "white_level"} of the raw values
+    exif : dict of file name -> focal length, f-number, exposure time and ISO (for DNG files)
+    stage_seconds : dict of file name -> {stage: wall seconds} as measured in this render
+        (kept out of truth.json, which stays reproducible)
     """
 
     images: dict[str, np.ndarray] = field(default_factory=dict)
@@ -257,6 +261,7 @@ class RenderResult:
     raw: dict[str, np.ndarray] = field(default_factory=dict)
     levels: dict[str, dict[str, int]] = field(default_factory=dict)
     exif: dict[str, dict[str, float]] = field(default_factory=dict)
+    stage_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def _shot_seed(seed: int, k: int) -> int:
@@ -274,8 +279,16 @@ def working_f_number(camera) -> float:
 
 def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None]):
     """One shot through its stages: (linear radiance float32 (H, W) or (H, W, 3), raw DN uint16
-    or None, per-image truth entries). Only the stages the scene calls for run."""
+    or None, per-image truth entries, seconds per stage). Only the stages the scene calls for run."""
     r, fx, shot = scene.render, scene.effects, sp.shot
+    seconds: dict[str, float] = {}
+    last = [time.perf_counter()]
+
+    def lap(stage: str) -> None:
+        now = time.perf_counter()
+        seconds[stage] = seconds.get(stage, 0.0) + now - last[0]
+        last[0] = now
+
     cam = shot.camera
     extra: dict[str, Any] = {}
     ca = fx.chromatic_aberration
@@ -304,16 +317,19 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
             rows(cam.height_px)
         planes.append(img)
     image = planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
+    lap("defocus")
     if fx.diffraction is not None:
         from synth.effects import diffraction
 
         Nw = working_f_number(cam)
         image = diffraction.apply(image, fx.diffraction, Nw, cam.pixel_pitch_mm).astype(np.float32)
         extra["diffraction"] = fx.diffraction.truth(Nw, cam.pixel_pitch_mm)
+        lap("diffraction")
     if fx.vignetting is not None and fx.vignetting.natural:
         from synth.effects import vignetting
 
         image = vignetting.apply_natural(image, cam)
+        lap("vignetting")
     lateral = ca is not None and ca.lateral
     if fx.distortion is not None or lateral:
         from synth.effects import distortion
@@ -321,6 +337,7 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
         image = distortion.warp(image, cam, fx.distortion, ca.magnification if lateral else None)
         if fx.distortion is not None:
             extra["distortion"] = fx.distortion.truth(cam.focal_length_px, cam.principal_point_px)
+        lap("distortion")
     if ca is not None:
         extra["chromatic_aberration"] = ca.truth(cam)
     raw = None
@@ -331,20 +348,25 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
         iso = e.iso if e.iso is not None else fx.sensor.base_iso
         Nw = working_f_number(cam)
         signal = exposure.mean_electrons(image, e, fx.sensor, Nw, fx.aperture.area_fraction)
+        lap("exposure")
         if fx.mosaic is not None:
             from synth.effects import mosaic
 
             signal = mosaic.apply(signal, fx.mosaic)
+            lap("mosaic")
         read = None
         if fx.noise is not None:
             signal, read = noise.draw(signal, fx.noise, fx.sensor.read_noise_e, noise.generator(r.seed, k))
+            lap("noise")
         raw = exposure.readout(signal, fx.sensor, iso, read)
         extra["exposure"] = exposure.truth(e, fx.sensor, Nw, fx.aperture.area_fraction)
+        lap("readout")
     elif fx.mosaic is not None:
         from synth.effects import mosaic
 
         raw = np.round(np.clip(mosaic.apply(image, fx.mosaic), 0.0, 1.0) * 65535.0).astype(np.uint16)
-    return image, raw, extra
+        lap("mosaic")
+    return image, raw, extra, seconds
 
 
 def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_pixel: int | None = None,
@@ -396,7 +418,8 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             if progress is not None:
                 progress(_name, done[0], _h)
 
-        img, raw, extra = render_shot(scene, sp, k, tick)
+        img, raw, extra, seconds = render_shot(scene, sp, k, tick)
+        result.stage_seconds[name] = seconds
         methods_used.add(sp.method)
         result.images[name] = img
         if raw is not None:

@@ -512,6 +512,10 @@ def test_plan_lists_only_the_stages_called_for():
                    exposure={"shutter_s": 0.01}, sensor={"preset": "smartphone-12mp"}))[0]
     assert [s.split(" ")[0] for s in p.stages] == ["defocus", "diffraction", "exposure", "noise", "readout"]
     assert len(p.stage_seconds) == len(p.stages) and p.estimated_s == pytest.approx(sum(p.stage_seconds))
+    # the render times the same stages (and no others)
+    res = render(scene([big], effects=("defocus", "noise", "exposure", "diffraction"), w=32, h=32,
+                       exposure={"shutter_s": 0.01}, sensor={"preset": "smartphone-12mp"}))
+    assert list(next(iter(res.stage_seconds.values()))) == ["defocus", "diffraction", "exposure", "noise", "readout"]
 
 
 def test_truth_records_every_effect_and_its_parameters():

@@ -102,5 +102,5 @@ def apply(image: np.ndarray, params: Diffraction, working_f_number: float, pixel
 
 
 def seconds(width_px: int, height_px: int, channels: int) -> float:
-    """Rough cost on 2 cores (FFT convolution of the frame)."""
-    return 2.5e-8 * width_px * height_px * channels * 4 + 0.02
+    """Rough cost on 2 cores (FFT convolution of the frame; measured ~0.09 s for 1 MP x 3 channels)."""
+    return 3e-8 * width_px * height_px * channels + 0.005

@@ -86,20 +86,13 @@ class Distortion:
         return x, y
 
 
-def source_maps(width_px: int, height_px: int, focal_length_px: float, principal_point_px,
-                distortion: Distortion | None, magnification: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """For each output pixel, where to sample the undistorted render (float64 pixel coordinates).
-
-    ``magnification`` scales the channel's image about the principal point (lateral CA): the
-    output at distance r samples the render at r / magnification, after undistortion.
-    """
+def undistorted_normalised(width_px: int, height_px: int, focal_length_px: float, principal_point_px,
+                           distortion: Distortion | None) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised pinhole coordinates (x, y) seen at each output pixel centre."""
     cx, cy = principal_point_px
     u, v = np.meshgrid(np.arange(width_px, dtype=np.float64), np.arange(height_px, dtype=np.float64))
-    xd, yd = (u - cx) / focal_length_px, (v - cy) / focal_length_px
-    if distortion is not None:
-        xd, yd = distortion.undistort(xd, yd)
-    xd, yd = xd / magnification, yd / magnification
-    return cx + focal_length_px * xd, cy + focal_length_px * yd
+    x, y = (u - cx) / focal_length_px, (v - cy) / focal_length_px
+    return distortion.undistort(x, y) if distortion is not None else (x, y)
 
 
 def warp(image: np.ndarray, camera, distortion: Distortion | None,
@@ -109,13 +102,12 @@ def warp(image: np.ndarray, camera, distortion: Distortion | None,
 
     channels = image[..., None] if image.ndim == 2 else image
     out = np.empty_like(channels, dtype=np.float32)
-    maps = {}
+    x, y = undistorted_normalised(camera.width_px, camera.height_px, camera.focal_length_px,
+                                  camera.principal_point_px, distortion)  # once for every channel
+    cx, cy = camera.principal_point_px
     for c in range(channels.shape[-1]):
         m = 1.0 if magnifications is None else magnifications[c]
-        if m not in maps:
-            maps[m] = source_maps(camera.width_px, camera.height_px, camera.focal_length_px,
-                                  camera.principal_point_px, distortion, m)
-        mx, my = maps[m]
+        mx, my = cx + camera.focal_length_px * x / m, cy + camera.focal_length_px * y / m
         src = channels[..., c].astype(np.float64)
         # a magnified channel spreads the same light over m^2 the area
         out[..., c] = np.clip(map_coordinates(src, [my, mx], order=3, mode="nearest"), src.min(), src.max()) / m**2
