@@ -367,7 +367,7 @@ def _fit_command(args: argparse.Namespace) -> int:
     with console.status("fitting"):
         result = fit(table, pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
                      blur_floor_px=args.blur_floor)
-    document = results_document(result, ["lensfit", *args.argv], truth)
+    document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
 
     written = _write_fit_outputs(args, source, table, result, document)
     if args.json:

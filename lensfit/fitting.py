@@ -1014,8 +1014,10 @@ def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
 
 
 def results_document(result: FitResult, command: Iterable[str] | None = None,
-                     truth: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The results JSON with provenance (and, when given, the truth and relative errors)."""
+                     truth: dict[str, Any] | None = None, intrinsics: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The results JSON with provenance (and, when given, the truth and relative errors, and the
+    geometric calibration per setting: ``intrinsics`` maps a label to
+    ``lensfit.calibration.Intrinsics``)."""
     import datetime
     import platform
 
@@ -1025,6 +1027,13 @@ def results_document(result: FitResult, command: Iterable[str] | None = None,
     doc["provenance"] = {"version": __version__, "command": " ".join(command) if command else None,
                          "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                          "python": platform.python_version(), "machine": platform.machine()}
+    if intrinsics:
+        doc["calibration"] = {
+            label: {"focal_length_px": v.focal_length_px, "focal_length_sigma_px": v.focal_length_sigma_px,
+                    "principal_point_px": list(v.principal_point_px),
+                    "distortion_opencv": [float(x) for x in v.distortion], "rms_px": v.rms_px, "views": v.views,
+                    "source": v.source}
+            for label, v in intrinsics.items()}
     if truth is not None:
         doc["truth_comparison"] = compare_with_truth(result, truth)
     return doc

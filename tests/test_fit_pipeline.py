@@ -62,6 +62,10 @@ def test_fit_cli_writes_results_plot_and_compares_with_truth(calibration_stack, 
     rows = {r["quantity"]: r for r in doc["truth_comparison"]}
     assert rows["f_number"]["truth"] == truth["settings"]["a"]["f_number"]
     assert abs(rows["focus_distance_mm"]["relative_error"]) < 0.005
+    # the geometric calibration the fit used is reported beside it
+    cal = doc["calibration"]["a"]
+    assert cal["focal_length_px"] == pytest.approx(truth["settings"]["a"]["focal_length_px"], rel=0.005)
+    assert cal["source"] == "calibrated" and len(cal["distortion_opencv"]) == 5
     img = iio.imread(plot)
     assert img.ndim == 3 and img.shape[0] > 300 and img.std() > 10  # a picture, not a blank
     # Outputs are not overwritten without --force, and stay as they were.
