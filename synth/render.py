@@ -170,14 +170,23 @@ def plan(scene: Scene) -> list[ShotPlan]:
 # --------------------------------------------------------------------------- ground truth
 
 
-def chief_ray_depth(shot: Shot) -> np.ndarray:
-    """Depth (mm, float64) of the first surface along each pixel centre's chief ray; inf = background."""
+def chief_ray_depth(shot: Shot, distortion=None) -> np.ndarray:
+    """Depth (mm, float64) of the first surface along each pixel centre's chief ray; inf = background.
+
+    With ``distortion`` (``synth.effects.distortion.Distortion``) the chief ray is the one whose
+    image the distortion moved to the pixel centre, so the map matches the distorted image.
+    """
     cam = shot.camera
     W, H = cam.width_px, cam.height_px
-    cx, cy = cam.principal_point_px
-    u = (np.arange(W) - cx) / cam.focal_length_px
-    v = (np.arange(H) - cy) / cam.focal_length_px
-    dx, dy = np.meshgrid(u, v)
+    if distortion is not None:
+        from synth.effects.distortion import undistorted_normalised
+
+        dx, dy = undistorted_normalised(W, H, cam.focal_length_px, cam.principal_point_px, distortion)
+    else:
+        cx, cy = cam.principal_point_px
+        u = (np.arange(W) - cx) / cam.focal_length_px
+        v = (np.arange(H) - cy) / cam.focal_length_px
+        dx, dy = np.meshgrid(u, v)
     depth = np.full((H, W), np.inf)
     for obj in shot.objects:
         R, t = obj.pose.R_cam_target, obj.pose.t_cam_target
@@ -197,7 +206,17 @@ def _finite_or_none(x: float):
     return None if not math.isfinite(x) else float(x)
 
 
-def _target_truth(obj, shot: Shot) -> dict[str, Any]:
+def _distorted_px(px: np.ndarray, cam, distortion) -> np.ndarray:
+    """Pinhole pixel positions (..., 2) -> where the distortion shows them."""
+    cx, cy = cam.principal_point_px
+    f = cam.focal_length_px
+    xd, yd = distortion.distort((px[..., 0] - cx) / f, (px[..., 1] - cy) / f)
+    return np.stack([cx + f * xd, cy + f * yd], axis=-1)
+
+
+def _target_truth(obj, shot: Shot, distortion=None) -> dict[str, Any]:
+    """A target's truth entry. ``*_px`` are pinhole (undistorted) positions; with ``distortion``
+    each also has a ``*_px_distorted`` twin: where the image shows it."""
     cam = shot.camera
     pose = obj.pose
     w, h = obj.target.size_mm
@@ -210,9 +229,13 @@ def _target_truth(obj, shot: Shot) -> dict[str, Any]:
         px = cam.project(X)
         inside = bool(np.all((px[[0, 2], 0] >= 0) & (px[[0, 2], 0] <= cam.width_px - 1)
                              & (px[[0, 2], 1] >= 0) & (px[[0, 2], 1] <= cam.height_px - 1)))
+        twin = {}
+        if distortion is not None:
+            dpx = _distorted_px(px, cam, distortion)
+            twin = {"start_px_distorted": dpx[0].tolist(), "end_px_distorted": dpx[2].tolist()}
         edges.append({
             "id": e["id"], "start_mm": [float(v) for v in e["start_mm"]], "end_mm": [float(v) for v in e["end_mm"]],
-            "start_px": px[0].tolist(), "end_px": px[2].tolist(),
+            "start_px": px[0].tolist(), "end_px": px[2].tolist(), **twin,
             "distance_mm": X[:, 2].tolist(),
             "coc_diameter_px": np.asarray(cam.coc_diameter_px(X[:, 2])).tolist(),
             "in_image": inside,
@@ -225,6 +248,8 @@ def _target_truth(obj, shot: Shot) -> dict[str, Any]:
         "coc_diameter_px": float(cam.coc_diameter_px(pose.t_cam_target[2])),
         "pose": {"R_cam_target": pose.R_cam_target.tolist(), "t_cam_target_mm": pose.t_cam_target.tolist()},
         "corners_px": cam.project(corners).tolist(),
+        **({"corners_px_distorted": _distorted_px(cam.project(corners), cam, distortion).tolist()}
+           if distortion is not None else {}),
         "corners_distance_mm": corners[:, 2].tolist(),
         "edges_sample_points": ["start", "middle", "end"],
         "edges": edges,
@@ -430,7 +455,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             result.exif[name] = {"focal_length_mm": cam.focal_length_mm, "f_number": cam.f_number,
                                  **({"exposure_time_s": extra["exposure"]["shutter_s"], "iso": extra["exposure"]["iso"]}
                                     if "exposure" in extra else {})}
-        depth = chief_ray_depth(shot)
+        depth = chief_ray_depth(shot, scene.effects.distortion)
         coc = np.asarray(cam.coc_diameter_px(depth))
         map_file = f"truth/{shot.name}_maps.npz"
         result.maps[map_file] = {"depth_mm": depth.astype(np.float32), "coc_diameter_px": coc.astype(np.float32)}
@@ -452,7 +477,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             "stages": list(sp.stages),
             **extra,
             "maps": map_file,
-            "targets": [_target_truth(o, shot) for o in shot.objects],
+            "targets": [_target_truth(o, shot, scene.effects.distortion) for o in shot.objects],
         })
     cx, cy = scene.shots[0].camera.principal_point_px
     result.truth = {

@@ -313,6 +313,16 @@ def test_distorted_checkerboard_corners_match_opencv_projection(coeffs):
     pinhole, _ = cv2.projectPoints(pts, np.zeros(3), np.array([0, 0, z], np.float64), K, np.zeros(5))
     assert np.max(np.linalg.norm(pinhole.reshape(-1, 2) - projected, axis=1)) > 3.0
     assert res.truth["effect_parameters"]["distortion"]["opencv_dist_coeffs"] == dist.tolist()
+    # truth: corners where the image shows them, and the depth map of the distorted image
+    outer = np.array([[-375.0, -300.0, 0.0], [375.0, -300.0, 0.0], [375.0, 300.0, 0.0], [-375.0, 300.0, 0.0]])
+    corners, _ = cv2.projectPoints(outer, np.zeros(3), np.array([0, 0, z], np.float64), K, dist)
+    target = res.truth["images"][0]["targets"][0]
+    assert np.allclose(target["corners_px_distorted"], corners.reshape(-1, 2), atol=1e-6)
+    depth = res.maps[res.truth["images"][0]["maps"]]["depth_mm"]
+    row = h // 2
+    left_edge = cv2.projectPoints(np.array([[-375.0, (row - (h - 1) / 2) * pitch * z / s, 0.0]]), np.zeros(3),
+                                  np.array([0, 0, z], np.float64), K, dist)[0].reshape(2)[0]
+    assert int(np.argmax(np.isfinite(depth[row]))) == math.ceil(left_edge)
 
 
 # --------------------------------------------------------------------------- chromatic aberration
