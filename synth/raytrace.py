@@ -118,13 +118,16 @@ def _permute(i, key, mask: int):
 
 
 @partial(jax.jit, static_argnames=("structure", "width", "rows", "spp", "aperture", "front_stop"))
-def _render_rows(row0, cam, planes, rasters, background, seed, *, structure, width, rows, spp,
+def _render_rows(row0, cam, planes, rasters, background, seed, warp=None, *, structure, width, rows, spp,
                  aperture=("circle",), front_stop=None):
     """Mean radiance of ``rows`` image rows from ``row0``: array (rows, width).
 
     ``aperture`` is ``synth.effects.aperture.Aperture.static``; ``front_stop`` is None or
     (distance_mm, radius_mm) of the stop that clips the pupil off axis (optical vignetting,
-    ``synth.effects.vignetting``): rays it blocks carry no light.
+    ``synth.effects.vignetting``): rays it blocks carry no light. ``warp`` is None or, per pixel
+    of these rows, (u, v, du/dx, du/dy, dv/dx, dv/dy): the pinhole position whose image a lens
+    distortion moves to the pixel centre and the local derivatives, so that each sample of the
+    distorted pixel traces its own undistorted ray (exact distortion, ``synth.effects.distortion``).
     """
     n_pix = rows * width
     pix = jnp.arange(n_pix, dtype=jnp.uint32)
@@ -156,8 +159,13 @@ def _render_rows(row0, cam, planes, rasters, background, seed, *, structure, wid
         jx = (sample.astype(jnp.float32)[None, :] + u1) / spp
         jy = u2
         lx_u, ly_u = u3, u4
-    pixel_x = px_i[:, None] + jx - 0.5
-    pixel_y = py_i[:, None] + jy - 0.5
+    if warp is None:
+        pixel_x = px_i[:, None] + jx - 0.5
+        pixel_y = py_i[:, None] + jy - 0.5
+    else:  # the sample's offset in the distorted pixel, carried to the pinhole image
+        ox, oy = jx - 0.5, jy - 0.5
+        pixel_x = warp[:, 0:1] + warp[:, 2:3] * ox + warp[:, 3:4] * oy
+        pixel_y = warp[:, 1:2] + warp[:, 4:5] * ox + warp[:, 5:6] * oy
     dxu, dyu = aperture_sample(aperture, lx_u, ly_u, concentric_disk)
     radius = 0.5 * cam[4]
     lens_x, lens_y = radius * dxu, radius * dyu
@@ -208,12 +216,13 @@ def camera_array(cam):
 
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
                     progress: Callable[[int], None] | None = None, *, camera=None,
-                    aperture: tuple = ("circle",), front_stop: tuple[float, float] | None = None) -> np.ndarray:
+                    aperture: tuple = ("circle",), front_stop: tuple[float, float] | None = None,
+                    warp: np.ndarray | None = None) -> np.ndarray:
     """Render one shot by ray tracing; returns linear radiance, float32 (height, width).
 
     ``progress(n)`` is called with the number of rows finished after each tile. ``camera``
     replaces the shot's camera (one colour channel's, under chromatic aberration);
-    ``aperture`` and ``front_stop`` as for ``_render_rows``.
+    ``aperture``, ``front_stop`` and ``warp`` (here (height, width, 6)) as for ``_render_rows``.
     """
     cam = camera if camera is not None else shot.camera
     W, H = cam.width_px, cam.height_px
@@ -221,8 +230,13 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
     structure, rasters, planes = scene_arrays(shot)
     cam_arr = camera_array(cam)
     out = np.empty((H, W), np.float32)
+    if warp is not None:  # padded to whole tiles, flattened per pixel
+        pad = (-H) % rows
+        warp_rows = np.concatenate([warp, np.repeat(warp[-1:], pad, axis=0)]).astype(np.float32).reshape(-1, W, 6)
     for r0 in range(0, H, rows):
+        tile_warp = None if warp is None else jnp.asarray(warp_rows[r0:r0 + rows].reshape(-1, 6))
         block = _render_rows(jnp.int32(r0), cam_arr, planes, rasters, jnp.float32(background), jnp.uint32(seed),
+                             tile_warp,
                              structure=structure, width=W, rows=rows, spp=spp, aperture=aperture,
                              front_stop=front_stop)
         take = min(rows, H - r0)

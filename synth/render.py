@@ -133,10 +133,14 @@ def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[t
         v = fx.vignetting
         parts = (["cos^4"] if v.natural else []) + (["front stop in the ray tracer"] if v.optical else [])
         out.append((f"vignetting ({', '.join(parts) or 'none'})", 5e-9 * pixels * C if v.natural else 0.0))
-    if fx.distortion is not None or (fx.chromatic_aberration is not None and fx.chromatic_aberration.lateral):
-        name = "distortion" + (" + lateral CA" if fx.chromatic_aberration is not None and
-                               fx.chromatic_aberration.lateral else "")
-        out.append((f"{name} (cubic resampling)", 1.5e-7 * pixels * C + (4e-7 * pixels if fx.distortion else 0.0)))
+    lateral = fx.chromatic_aberration is not None and fx.chromatic_aberration.lateral
+    if fx.distortion is not None and method == "raytrace":
+        out.append(("distortion (exact, in the ray tracer)", 4e-7 * pixels))
+    if lateral or (fx.distortion is not None and method != "raytrace"):
+        name = "lateral CA" if method == "raytrace" or fx.distortion is None else (
+            "distortion" + (" + lateral CA" if lateral else ""))
+        out.append((f"{name} (cubic resampling)", 1.5e-7 * pixels * C
+                    + (4e-7 * pixels if fx.distortion is not None and method != "raytrace" else 0.0)))
     if fx.chromatic_aberration is not None and fx.chromatic_aberration.longitudinal:
         out.append(("chromatic_aberration (longitudinal: per-channel focus, in the defocus stage)", 0.0))
     if fx.exposure is not None:
@@ -324,6 +328,11 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
         kwargs_rt["aperture"] = fx.aperture.static
     if stop is not None:
         kwargs_rt["front_stop"] = stop
+    exact_distortion = fx.distortion is not None and sp.method == "raytrace"
+    if exact_distortion:
+        from synth.effects.distortion import pixel_warp
+
+        kwargs_rt["warp"] = pixel_warp(cam, fx.distortion)
     planes: list[np.ndarray] = []
     distinct = len({id(c) for c in cameras})
     for c, ccam in enumerate(cameras):
@@ -356,13 +365,16 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
         image = vignetting.apply_natural(image, cam)
         lap("vignetting")
     lateral = ca is not None and ca.lateral
-    if fx.distortion is not None or lateral:
+    if (fx.distortion is not None and not exact_distortion) or lateral:
         from synth.effects import distortion
 
-        image = distortion.warp(image, cam, fx.distortion, ca.magnification if lateral else None)
-        if fx.distortion is not None:
-            extra["distortion"] = fx.distortion.truth(cam.focal_length_px, cam.principal_point_px)
+        image = distortion.warp(image, cam, None if exact_distortion else fx.distortion,
+                                ca.magnification if lateral else None)
         lap("distortion")
+    if fx.distortion is not None:
+        extra["distortion"] = {**fx.distortion.truth(cam.focal_length_px, cam.principal_point_px),
+                               "applied": ("in the ray tracer (each sample's own undistorted ray)" if exact_distortion
+                                           else "cubic resampling of the rendered image")}
     if ca is not None:
         extra["chromatic_aberration"] = ca.truth(cam)
     raw = None

@@ -282,15 +282,18 @@ def test_optical_vignetting_refuses_convolve():
 # --------------------------------------------------------------------------- distortion
 
 
-@pytest.mark.parametrize("coeffs", [{"k1": -0.25, "k2": 0.05}, {"k1": 0.15, "p1": 0.004, "p2": -0.003}])
-def test_distorted_checkerboard_corners_match_opencv_projection(coeffs):
+@pytest.mark.parametrize("method, coeffs", [("convolve", {"k1": -0.25, "k2": 0.05}),
+                                            ("convolve", {"k1": 0.15, "p1": 0.004, "p2": -0.003}),
+                                            ("raytrace", {"k1": -0.25, "k2": 0.05, "p1": 0.003})])
+def test_distorted_checkerboard_corners_match_opencv_projection(method, coeffs):
+    """convolve resamples its render; the ray tracer traces each sample's undistorted ray."""
     import cv2
 
     # wide angle (52 x 40 degrees), corners blurred over ~4 px
     f, D, pitch, w, h, z = 16.0, 1e6, 0.05, 320, 240, 1000.0
     board = {"target": "checkerboard", "squares": [10, 8], "square_mm": 75.0, "distance_mm": z}
     sc = scene([board], effects=("defocus", "distortion"), f=f, N=1.4, D=D, w=w, h=h, pitch=pitch, background=0.5,
-               method="convolve", distortion=coeffs)
+               method=method, spp=1024, distortion=coeffs)
     res = render(sc)
     img = the_image(res)
     found, corners = cv2.findChessboardCornersSB(np.round(img * 255).astype(np.uint8), (9, 7),

@@ -9,7 +9,10 @@ An undistorted (pinhole) image point at normalised coordinates ``(x, y) = ((u - 
     y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
 
 (Brown 1966, "Decentering distortion of lenses"; Conrady 1919). ``f_px = s / p`` is the
-calibrated focal length in pixels. The rendered (undistorted) image is resampled at
+calibrated focal length in pixels. The ray tracer distorts exactly: every sample of a pixel
+traces the ray of its own undistorted position (``pixel_warp``: the pixel centre's
+undistorted position and the local inverse Jacobian). For ``convolve`` the rendered
+(undistorted) image is resampled at
 the undistorted position of every output pixel (found by Newton iteration of the model, to
 1e-9 px) by cubic B-spline interpolation (``scipy.ndimage.map_coordinates``, exact source
 positions; OpenCV's ``remap`` rounds them to 1/32 px), clipped to the source's range: so the sensor image is warped after
@@ -93,6 +96,25 @@ def undistorted_normalised(width_px: int, height_px: int, focal_length_px: float
     u, v = np.meshgrid(np.arange(width_px, dtype=np.float64), np.arange(height_px, dtype=np.float64))
     x, y = (u - cx) / focal_length_px, (v - cy) / focal_length_px
     return distortion.undistort(x, y) if distortion is not None else (x, y)
+
+
+def pixel_warp(camera, distortion: Distortion) -> np.ndarray:
+    """Per pixel (H, W, 6): the pinhole position (u, v) whose image the distortion moves to the
+    pixel centre, and its derivatives (du/dx, du/dy, dv/dx, dv/dy) with respect to the position
+    in the distorted pixel (the inverse of the distortion's Jacobian), for the ray tracer."""
+    x, y = undistorted_normalised(camera.width_px, camera.height_px, camera.focal_length_px,
+                                  camera.principal_point_px, distortion)
+    h = 1e-6
+    fx0, fy0 = distortion.distort(x - h, y)
+    fx1, fy1 = distortion.distort(x + h, y)
+    gx0, gy0 = distortion.distort(x, y - h)
+    gx1, gy1 = distortion.distort(x, y + h)
+    a, c = (fx1 - fx0) / (2 * h), (fy1 - fy0) / (2 * h)  # d(x_d, y_d) / d x
+    b, d = (gx1 - gx0) / (2 * h), (gy1 - gy0) / (2 * h)  # d(x_d, y_d) / d y
+    det = a * d - b * c
+    cx, cy = camera.principal_point_px
+    f = camera.focal_length_px
+    return np.stack([cx + f * x, cy + f * y, d / det, -b / det, -c / det, a / det], axis=-1)
 
 
 def warp(image: np.ndarray, camera, distortion: Distortion | None,
