@@ -293,6 +293,11 @@ class RenderResult:
     stage_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
+def quantise_16bit(image: np.ndarray) -> np.ndarray:
+    """Linear radiance -> uint16: round(65535 * clip(v, 0, 1))."""
+    return np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
 def _shot_seed(seed: int, k: int) -> int:
     return (seed * 1_000_003 + k * 7_919) % (1 << 32)
 
@@ -401,7 +406,7 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
     elif fx.mosaic is not None:
         from synth.effects import mosaic
 
-        raw = np.round(np.clip(mosaic.apply(image, fx.mosaic), 0.0, 1.0) * 65535.0).astype(np.uint16)
+        raw = quantise_16bit(mosaic.apply(image, fx.mosaic))
         lap("mosaic")
     return image, raw, extra, seconds
 

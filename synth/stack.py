@@ -23,12 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lensfit.errors import InputError
-from synth.render import RenderResult
-
-
-def quantise_16bit(image: np.ndarray) -> np.ndarray:
-    """Linear radiance -> uint16: round(65535 * clip(v, 0, 1))."""
-    return np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
+from synth.render import RenderResult, quantise_16bit
 
 
 def _write_image(path: Path, image: np.ndarray, image_format: str) -> None:

@@ -80,9 +80,7 @@ class Effects:
         if self.vignetting is not None:
             out["vignetting"] = self.vignetting.truth()
         if self.distortion is not None:
-            d = self.distortion
-            out["distortion"] = {"model": "Brown-Conrady, OpenCV convention", "k1": d.k1, "k2": d.k2, "k3": d.k3,
-                                 "p1": d.p1, "p2": d.p2, "opencv_dist_coeffs": d.opencv.tolist()}
+            out["distortion"] = self.distortion.truth()
         if self.chromatic_aberration is not None:
             ca = self.chromatic_aberration
             out["chromatic_aberration"] = {"focal_shift_mm": list(ca.focal_shift_mm),

@@ -35,6 +35,7 @@ parameter                   unit    meaning
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,11 +56,14 @@ class Distortion:
         """(k1, k2, p1, p2, k3): OpenCV's ``distCoeffs`` order."""
         return np.array([self.k1, self.k2, self.p1, self.p2, self.k3])
 
-    def truth(self, focal_length_px: float, principal_point_px) -> dict:
-        return {"model": "Brown-Conrady, OpenCV convention, normalised by focal_length_px",
-                "k1": self.k1, "k2": self.k2, "k3": self.k3, "p1": self.p1, "p2": self.p2,
-                "opencv_dist_coeffs": self.opencv.tolist(), "focal_length_px": focal_length_px,
-                "principal_point_px": list(principal_point_px)}
+    def truth(self, focal_length_px: float | None = None, principal_point_px=None) -> dict:
+        """Coefficients (and, for an image, the focal length in px and principal point they use)."""
+        out = {"model": "Brown-Conrady, OpenCV convention, normalised by focal_length_px",
+               "k1": self.k1, "k2": self.k2, "k3": self.k3, "p1": self.p1, "p2": self.p2,
+               "opencv_dist_coeffs": self.opencv.tolist()}
+        if focal_length_px is not None:
+            out.update(focal_length_px=focal_length_px, principal_point_px=list(principal_point_px))
+        return out
 
     def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised undistorted -> distorted coordinates."""
@@ -89,13 +93,18 @@ class Distortion:
         return x, y
 
 
+@functools.lru_cache(maxsize=4)
 def undistorted_normalised(width_px: int, height_px: int, focal_length_px: float, principal_point_px,
                            distortion: Distortion | None) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised pinhole coordinates (x, y) seen at each output pixel centre."""
+    """Normalised pinhole coordinates (x, y) seen at each output pixel centre (cached: every shot
+    of a stack shares them; the arrays are read-only)."""
     cx, cy = principal_point_px
     u, v = np.meshgrid(np.arange(width_px, dtype=np.float64), np.arange(height_px, dtype=np.float64))
     x, y = (u - cx) / focal_length_px, (v - cy) / focal_length_px
-    return distortion.undistort(x, y) if distortion is not None else (x, y)
+    x, y = distortion.undistort(x, y) if distortion is not None else (x, y)
+    x.flags.writeable = False
+    y.flags.writeable = False
+    return x, y
 
 
 def pixel_warp(camera, distortion: Distortion) -> np.ndarray:
