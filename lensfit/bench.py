@@ -5,8 +5,9 @@ scenes x render settings x effects x noise levels x estimators x solver settings
 work is split into tasks, one per (scene, render setting, effects, seed): a task renders its
 stack once with those synth effects (diffraction, sensor exposure and noise, Bayer mosaic to
 DNG, ...; cached on disk), then for every noise level adds seeded photon + read noise to the
-rendered values (a quick sensor model; the ``noise`` effect simulates the sensor properly),
-and for every estimator and solver setting measures and fits. Each finished case is written as one JSON file, so an
+rendered values (a quick sensor model; the ``noise`` effect simulates the sensor properly;
+effect sets that simulate the sensor get none on top), and for every estimator and solver
+setting measures and fits. Each finished case is written as one JSON file, so an
 interrupted run resumes where it stopped. Times are warm: a stack is rendered twice and the
 second run timed, and each process measures once untimed before its first timed case, so that
 JIT compilation (seconds, once per process) does not pose as the price of a setting. Tasks run in a local process pool (default) or on a
