@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from lensfit import __version__
@@ -16,7 +17,7 @@ EXIT_OK = 0
 EXIT_USAGE = 2
 
 _OPTIONS = {"method": "--method", "samples_per_pixel": "--spp", "seed": "--seed", "out": "--out",
-            "image_format": "--format", "supersampling": "--supersampling"}
+            "image_format": "--format", "supersampling": "--supersampling", "preview": "--preview"}
 
 
 def _render_command(args: argparse.Namespace) -> int:
@@ -31,6 +32,12 @@ def _render_command(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     scene = load_scene(args.scene)
     check_out_dir(args.out, args.force)  # refuse before spending time on the render
+    if args.preview is not None:
+        preview = Path(args.preview)
+        if preview.suffix.lower() != ".png":
+            raise InputError("preview", args.preview, "a .png file name")
+        if preview.exists() and not args.force:
+            raise InputError("preview", args.preview, "a new file", "it exists; pass --force to replace it")
     enable_compilation_cache()
     scene = scene.with_render(method=args.method, samples_per_pixel=args.spp, seed=args.seed,
                               supersampling=args.supersampling)
@@ -55,6 +62,12 @@ def _render_command(args: argparse.Namespace) -> int:
             totals[stage] = totals.get(stage, 0.0) + t
     print("seconds per stage (all shots, compilation included): "
           + ", ".join(f"{stage} {t:.2f}" for stage, t in totals.items()))
+    if args.preview is not None:
+        from synth.preview import write_preview
+
+        Path(args.preview).parent.mkdir(parents=True, exist_ok=True)
+        write_preview(args.preview, result.images)
+        print(f"wrote the contact sheet {args.preview}")
     return EXIT_OK
 
 
@@ -155,7 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--supersampling", type=int, metavar="S", help="convolve: sub-pixels per axis (default 4)")
     r.add_argument("--format", choices=["png", "tiff", "float-tiff", "dng"],
                    help="image files (default png, 16-bit; dng with the mosaic effect, which requires it)")
-    r.add_argument("--force", action="store_true", help="replace an existing non-empty DIR")
+    r.add_argument("--preview", metavar="PNG", help="also write a contact sheet of the shots (sRGB, to look at)")
+    r.add_argument("--force", action="store_true", help="replace an existing non-empty DIR (and --preview file)")
     r.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     r.set_defaults(func=_render_command, prog="synth render")
 

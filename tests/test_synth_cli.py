@@ -193,3 +193,26 @@ def test_help_does_not_import_jax():
             "except SystemExit:\n    pass\nassert 'jax' not in sys.modules\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_preview_contact_sheet_is_the_render_in_srgb(tmp_path, capsys):
+    """Every shot in the sheet, encoded with the sRGB curve: decoding it (lensfit's decoder)
+    gives back the linear render on one exposure scale; an existing sheet needs --force."""
+    from lensfit.stack import srgb_to_linear
+
+    scene = write(tmp_path, SMALL)
+    out, sheet_path = tmp_path / "stack", tmp_path / "sheet.png"
+    code, stdout, err = run(capsys, "render", scene, "--out", out, "--preview", sheet_path)
+    assert code == 0, err
+    sheet = cv2.imread(str(sheet_path), cv2.IMREAD_UNCHANGED)[..., ::-1].astype(np.float64)
+    assert sheet.shape == (64 + 2 * 4, 2 * 96 + 3 * 4, 3)  # 2 shots side by side, 4 px gaps
+    truth = json.loads((out / "truth.json").read_text())
+    linear = [cv2.imread(str(out / i["file"]), cv2.IMREAD_UNCHANGED) / 65535.0 for i in truth["images"]]
+    white = np.percentile(np.concatenate([im.ravel() for im in linear]), 99.5)
+    for k, im in enumerate(linear):
+        tile = sheet[4:4 + 64, 4 + k * 100:4 + k * 100 + 96, 1]
+        below_label = (slice(20, None), slice(None))  # the shot name is written top left
+        decoded = srgb_to_linear(tile / 255.0) * white
+        assert np.allclose(decoded[below_label], np.clip(im, 0, white)[below_label], atol=0.01)
+    code, _, err = run(capsys, "render", scene, "--out", tmp_path / "other", "--preview", sheet_path)
+    assert code == 2 and "--preview" in err and "--force" in err

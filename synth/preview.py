@@ -1,0 +1,68 @@
+"""A contact sheet of a render: every shot, small, in sRGB, for people to look at.
+
+Stack files hold linear values (they look dark and flat in an image viewer) or raw DNG; the
+sheet shows the rendered radiance before any sensor effect, downscaled by averaging in linear
+light, with one exposure for all shots (the 99.5th percentile of all pixels maps to white, so
+shots stay comparable), encoded with the sRGB transfer curve (IEC 61966-2-1), and labelled
+with the shot name.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def linear_to_srgb(v: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encoding of linear values in [0, 1]."""
+    v = np.clip(v, 0.0, 1.0)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
+
+
+def _downscale(img: np.ndarray, k: int) -> np.ndarray:
+    h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
+    img = img[:h, :w]
+    return img.reshape(h // k, k, w // k, k, *img.shape[2:]).mean(axis=(1, 3))
+
+
+def contact_sheet(images: dict[str, np.ndarray], *, max_tile_px: int = 400, gap_px: int = 4) -> np.ndarray:
+    """RGB uint8 sheet of the images (name -> linear (H, W) or (H, W, 3)), in a near-square grid."""
+    import cv2
+
+    names = list(images)
+    first = images[names[0]]
+    k = max(1, math.ceil(max(first.shape[:2]) / max_tile_px))
+    tiles = []
+    for name in names:
+        img = np.asarray(images[name], np.float64)
+        img = img if img.ndim == 3 else np.repeat(img[..., None], 3, axis=-1)
+        tiles.append(_downscale(img, k))
+    white = float(np.percentile(np.concatenate([t.ravel() for t in tiles]), 99.5)) or 1.0
+    th, tw = tiles[0].shape[:2]
+    cols = math.ceil(math.sqrt(len(tiles)))
+    rows = math.ceil(len(tiles) / cols)
+    sheet = np.zeros((rows * th + (rows + 1) * gap_px, cols * tw + (cols + 1) * gap_px, 3), np.uint8)
+    for i, (name, tile) in enumerate(zip(names, tiles)):
+        r, c = divmod(i, cols)
+        y, x = gap_px + r * (th + gap_px), gap_px + c * (tw + gap_px)
+        enc = np.round(255 * linear_to_srgb(tile / white)).astype(np.uint8)
+        label = name.rsplit(".", 1)[0]
+        cv2.putText(enc, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(enc, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        sheet[y:y + th, x:x + tw] = enc
+    return sheet
+
+
+def write_preview(path, images: dict[str, np.ndarray], **kwargs) -> None:
+    """Write the contact sheet as PNG (a temporary sibling, then renamed)."""
+    from pathlib import Path
+
+    import cv2
+
+    path = Path(path)
+    sheet = contact_sheet(images, **kwargs)
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    if not cv2.imwrite(str(tmp), sheet[..., ::-1]):
+        raise OSError(f"could not write {path}")
+    tmp.replace(path)
