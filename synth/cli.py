@@ -63,10 +63,10 @@ def _render_command(args: argparse.Namespace) -> int:
     print("seconds per stage (all shots, compilation included): "
           + ", ".join(f"{stage} {t:.2f}" for stage, t in totals.items()))
     if args.preview is not None:
-        from synth.preview import write_preview
+        from synth.preview import recorded, write_preview
 
         Path(args.preview).parent.mkdir(parents=True, exist_ok=True)
-        write_preview(args.preview, result.images)
+        write_preview(args.preview, recorded(result))
         print(f"wrote the contact sheet {args.preview}")
     return EXIT_OK
 

@@ -1,8 +1,9 @@
 """A contact sheet of a render: every shot, small, in sRGB, for people to look at.
 
 Stack files hold linear values (they look dark and flat in an image viewer) or raw DNG; the
-sheet shows the rendered radiance before any sensor effect, downscaled by averaging in linear
-light, with one exposure for all shots (the 99.5th percentile of all pixels maps to white, so
+sheet shows what each file records (``recorded``: the rendered radiance, or the sensor's DN
+linearised with its black and white levels, a Bayer mosaic shown by 2 x 2 super-pixels),
+downscaled by averaging in linear light, with one exposure for all shots (the 99.5th percentile of all pixels maps to white, so
 shots stay comparable), encoded with the sRGB transfer curve (IEC 61966-2-1), and labelled
 with the shot name.
 """
@@ -52,6 +53,37 @@ def contact_sheet(images: dict[str, np.ndarray], *, max_tile_px: int = 400, gap_
         cv2.putText(enc, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
         sheet[y:y + th, x:x + tw] = enc
     return sheet
+
+
+def recorded(result) -> dict[str, np.ndarray]:
+    """Per image of a ``synth.render.RenderResult``, the linear values its file records."""
+    out = {}
+    for name, img in result.images.items():
+        raw = result.raw.get(name)
+        if raw is None:
+            out[name] = img
+            continue
+        lv = result.levels[name]
+        lin = (raw.astype(np.float64) - lv["black_level"]) / (lv["white_level"] - lv["black_level"])
+        mosaic = result.truth.get("effect_parameters", {}).get("mosaic")
+        if mosaic is not None:
+            lin = _superpixels(lin, mosaic["pattern"])
+        out[name] = lin
+    return out
+
+
+def _superpixels(cfa: np.ndarray, pattern: str) -> np.ndarray:
+    """A Bayer frame as RGB, each 2 x 2 cell one colour (its R, mean G, B), at full size."""
+    h, w = (cfa.shape[0] // 2) * 2, (cfa.shape[1] // 2) * 2
+    cells = cfa[:h, :w].reshape(h // 2, 2, w // 2, 2)
+    sites = {(0, 0): pattern[0], (0, 1): pattern[1], (1, 0): pattern[2], (1, 1): pattern[3]}
+    rgb = np.zeros((h // 2, w // 2, 3))
+    count = np.zeros(3)
+    for (i, j), colour in sites.items():
+        c = "RGB".index(colour)
+        rgb[..., c] += cells[:, i, :, j]
+        count[c] += 1
+    return np.repeat(np.repeat(rgb / count, 2, axis=0), 2, axis=1)
 
 
 def write_preview(path, images: dict[str, np.ndarray], **kwargs) -> None:

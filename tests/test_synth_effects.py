@@ -576,3 +576,27 @@ def test_inconsistent_effect_specs_are_refused_naming_the_field(change, field):
     with pytest.raises(SpecError) as err:
         scene_from_dict(data, "scene.toml")
     assert f"{field}:" in str(err.value) or f"{field} " in str(err.value)
+
+
+def test_preview_shows_what_the_files_record():
+    """Sensor DN linearised with the levels is the radiance times the exposure's scale; a Bayer
+    frame of a grey scene shows equal colour channels."""
+    from synth.preview import recorded
+
+    board = {"target": "checkerboard", "squares": [4, 4], "square_mm": 50.0, "distance_mm": 1200.0}
+    for effects in (("defocus", "exposure"), ("defocus", "exposure", "mosaic")):
+        res = render(scene([board], effects=effects, w=64, h=48, method="convolve", background=0.3,
+                           exposure={"shutter_s": 0.01, "iso": 200}, sensor={"preset": "full-frame-24mp"}))
+        name = next(iter(res.images))
+        e = res.truth["images"][0]["exposure"]
+        scale = e["electrons_per_unit"] * e["gain_dn_per_e"] / (e["white_level_dn"] - e["black_level_dn"])
+        shown = recorded(res)[name]
+        expected = res.images[name].astype(np.float64) * scale
+        if shown.ndim == 3:  # 2 x 2 super-pixels: compare cell means, every channel
+            cells = expected[:48, :64].reshape(24, 2, 32, 2).mean(axis=(1, 3))
+            for c in range(3):
+                got = shown[::2, ::2, c]
+                assert np.abs(got - cells).max() < 0.05  # edges inside a cell differ by the cell's spread
+                assert np.median(np.abs(got - cells)) < 1e-3
+        else:
+            assert np.abs(shown - expected).max() < 1.0 / (e["white_level_dn"] - e["black_level_dn"])
