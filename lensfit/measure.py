@@ -278,8 +278,16 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     # Images are read again where needed rather than held: a stack of RAW files would not fit.
     detections: dict[int, list[Detection]] = {}
     for i in range(n):
+        entry = stack.images[i]
+        candidates = [t for t in targets if entry.targets is None or t.id in entry.targets]
+        squares = [t.id for t in candidates if t.kind == "slanted-edge"]
+        if len(squares) > 1:
+            # Each would claim the same dark square with its own printed size: wrong distances.
+            raise SpecError(stack.manifest_path, f"image[{i}].targets",
+                            f"{entry.file.name} may show slanted-edge targets {', '.join(squares)}, which look alike; "
+                            "list the one it shows (targets = [\"ID\"]); one slanted-edge square per image")
         img = stack.read(i)
-        found = [d for d in (t.detect(img) for t in targets) if d is not None]
+        found = [d for d in (t.detect(img) for t in candidates) if d is not None]
         for d in found:
             _check_saturation(stack, i, img, d)
         detections[i] = found

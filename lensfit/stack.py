@@ -39,6 +39,7 @@ class ImageEntry:
     distance_mm: float | None = None
     black_level: float | None = None  # raw integer levels (sensor DN in a PNG/TIFF)
     white_level: float | None = None
+    targets: tuple[str, ...] | None = None  # ids of the targets it shows (None: any)
 
 
 @dataclass
@@ -219,6 +220,10 @@ def load_stack(path: str | Path) -> Stack:
         if entry.get("white_level", math.inf) <= entry.get("black_level", 0):
             raise SpecError(manifest_path, f"image[{i}].white_level", f"got {entry['white_level']}: must exceed "
                             f"black_level ({entry.get('black_level', 0)})")
+        for j, tid in enumerate(entry.get("targets", [])):
+            if tid not in ids:
+                raise SpecError(manifest_path, f"image[{i}].targets[{j}]", f"got {tid!r}: no [[target]] has this id; "
+                                f"valid: {', '.join(ids)}")
         size = _image_size(file)
         if shape is None:
             shape = size
@@ -227,7 +232,8 @@ def load_stack(path: str | Path) -> Stack:
                             f"{shape[1]} x {shape[0]}; every image of a stack must have the same size")
         images.append(ImageEntry(index=i, file=file, encoding=entry.get("encoding", "linear"),
                                  setting=entry.get("setting", "a"), distance_mm=entry.get("distance_mm"),
-                                 black_level=entry.get("black_level"), white_level=entry.get("white_level")))
+                                 black_level=entry.get("black_level"), white_level=entry.get("white_level"),
+                                 targets=tuple(entry["targets"]) if "targets" in entry else None))
     cam = data["camera"]
     if "pixel_pitch_mm" in cam:
         pitch = float(cam["pixel_pitch_mm"])

@@ -450,7 +450,8 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     result = RenderResult(image_format=r.format)
     images_truth, settings = [], {}
     methods_used = set()
-    for k, sp in enumerate(plan(scene)):
+    plans = plan(scene)
+    for k, sp in enumerate(plans):
         shot, cam = sp.shot, sp.shot.camera
         name = shot.name + image_extension(r.format)
         done = [0]
@@ -519,15 +520,18 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         "conventions": "data_specs/CONVENTIONS.md",
         "version": __version__,
     }
-    result.manifest = stack_manifest(scene, [i["file"] for i in images_truth], [i["setting"] for i in images_truth])
+    result.manifest = stack_manifest(scene, [i["file"] for i in images_truth], [i["setting"] for i in images_truth],
+                                     [[o.target.id for o in sp.shot.objects] for sp in plans])
     if r.format != "dng":
         for entry in result.manifest["image"]:
             entry.update(result.levels.get(entry["file"], {}))
     return result
 
 
-def stack_manifest(scene: Scene, files: list[str], settings: list[str]) -> dict[str, Any]:
-    """stack.toml: the camera's pixel pitch, the targets' printed geometry, images and labels."""
+def stack_manifest(scene: Scene, files: list[str], settings: list[str],
+                   shown: list[list[str]] | None = None) -> dict[str, Any]:
+    """stack.toml: the camera's pixel pitch, the targets' printed geometry, images and labels,
+    and (``shown``) which measurement targets each image shows, as a photographer would note."""
     targets = []
     for t in scene.targets:
         if t.target not in ("charuco", "checkerboard", "slanted-edge"):
@@ -543,8 +547,10 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str]) -> dict[
         if t.target == "slanted-edge":
             entry.update(edge_mm=p["edge_mm"])
         targets.append(entry)
-    return {
-        "camera": {"pixel_pitch_mm": scene.pixel_pitch_mm},
-        "target": targets,
-        "image": [{"file": f, "encoding": "linear", "setting": s} for f, s in zip(files, settings)],
-    }
+    images = [{"file": f, "encoding": "linear", "setting": s} for f, s in zip(files, settings)]
+    listed = {t["id"] for t in targets}
+    for entry, ids in zip(images, shown or []):
+        ids = [i for i in ids if i in listed]
+        if ids and len(listed) > 1:  # with one target there is nothing to say
+            entry["targets"] = ids
+    return {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}

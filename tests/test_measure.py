@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -297,4 +298,41 @@ def test_slanted_edge_stack_with_known_intrinsics(tmp_path):
     bad = manifest.read_text().replace('setting = "a"\nfocal_length_px', 'setting = "b"\nfocal_length_px')
     manifest.write_text(bad)
     with pytest.raises(SpecError, match=r"intrinsics\[0\]\.setting"):
+        load_stack(out)
+
+
+def test_slanted_edge_squares_of_different_sizes_are_told_apart_by_the_image_entry(tmp_path):
+    """Three squares printed at different sizes, one per image, look alike: the manifest says
+    which one each image shows (synth writes it), and the distances follow; without it, a
+    clear refusal naming the field instead of three distances for one square."""
+    from lensfit.measure import measure
+
+    sizes = {"s10": (10.0, 900.0), "s17": (17.0, 1500.0), "s28": (28.0, 2400.0)}  # edge_mm, distance_mm: ~100 px each
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": 0.006, "width_px": 400, "height_px": 300},
+        "lens": {"focal_length_mm": 50.0, "f_number": 8.0, "focus_distance_mm": 1500.0},
+        "background": {"value": 0.2},
+        "object": [{"id": k, "target": "slanted-edge", "distance_mm": d, "size_mm": [2.2 * e, 2.2 * e], "edge_mm": e}
+                   for k, (e, d) in sizes.items()],
+        "shot": [{"objects": [k]} for k in sizes],
+    })
+    out = tmp_path / "squares"
+    result = render(scene)
+    write_stack(result, out)
+    manifest = out / "stack.toml"
+    f_px = result.truth["settings"]["a"]["focal_length_px"]
+    manifest.write_text(manifest.read_text() + f'\n[[intrinsics]]\nsetting = "a"\nfocal_length_px = {f_px}\n')
+    assert [im.targets for im in load_stack(out).images] == [(k,) for k in sizes]
+    table = measure(out)
+    for k, (_, d) in sizes.items():
+        mine = [s for s in table.valid() if s.target == k]
+        assert len(mine) == 4
+        for s in mine:
+            assert s.distance_mm == pytest.approx(d, rel=2e-3)
+    text = manifest.read_text()
+    manifest.write_text(re.sub(r'targets = \[\n(    "\w+",\n)+\]\n', "", text))
+    with pytest.raises(SpecError, match=r"image\[0\]\.targets.*look alike"):
+        measure(out)
+    manifest.write_text(text.replace('targets = [\n    "s10",\n]', 'targets = [\n    "s45",\n]', 1))
+    with pytest.raises(SpecError, match=r"image\[0\]\.targets\[0\].*s45"):
         load_stack(out)
