@@ -420,7 +420,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     ----------
     scene : Scene or path to a scene TOML file.
     method, samples_per_pixel, seed, supersampling, image_format : optional overrides of ``[render]``
-        (``image_format`` overrides ``render.format``: png, tiff or float-tiff).
+        (``image_format`` overrides ``render.format``: png, tiff, float-tiff or dng).
     progress : callable(shot_name, done_rows, total_rows), optional; called as rows finish.
 
     Returns
@@ -437,13 +437,9 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         raise InputError("seed", seed, ">= 0")
     if image_format is not None and image_format not in ("png", "tiff", "float-tiff", "dng"):
         raise InputError("image_format", image_format, "one of png, tiff, float-tiff, dng")
-    if image_format == "dng" and scene.effects.mosaic is None:
-        raise InputError("image_format", image_format, "png, tiff or float-tiff",
-                         "DNG holds a Bayer mosaic: add 'mosaic' to the scene's render.effects")
-    if image_format not in (None, "dng") and scene.effects.mosaic is not None:
-        raise InputError("image_format", image_format, "dng (or no format)", "the scene's mosaic effect writes DNG")
-    if image_format == "float-tiff" and scene.effects.exposure is not None:
-        raise InputError("image_format", image_format, "png or tiff", "the exposure effect produces integer DN")
+    problem = scene.effects.format_problem(image_format) if image_format is not None else None
+    if problem is not None:
+        raise InputError("image_format", image_format, *problem)
     scene = scene.with_render(method=method, samples_per_pixel=samples_per_pixel, seed=seed,
                               supersampling=supersampling, format=image_format)
     r = scene.render

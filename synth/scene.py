@@ -213,15 +213,9 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
     names = tuple(render.get("effects", DEFAULTS["effects"]))
     effects = parse_effects(data, path, names, aperture)
     fmt = render.get("format", "dng" if effects.mosaic is not None else DEFAULTS["format"])
-    if effects.mosaic is not None and fmt != "dng":
-        raise SpecError(path, "render.format", f"got {fmt!r}: the mosaic effect writes DNG; remove render.format "
-                        "or set it to \"dng\"")
-    if fmt == "dng" and effects.mosaic is None:
-        raise SpecError(path, "render.format", "got 'dng': DNG holds a colour-filter-array frame; add 'mosaic' to "
-                        "render.effects")
-    if fmt == "float-tiff" and effects.exposure is not None:
-        raise SpecError(path, "render.format", "got 'float-tiff': the exposure effect produces integer sensor values "
-                        "(DN); use png or tiff")
+    problem = effects.format_problem(fmt)
+    if problem is not None:
+        raise SpecError(path, "render.format", f"got {fmt!r}: must be {problem[0]}; {problem[1]}")
     settings = RenderSettings(
         effects=names, method=render.get("method", DEFAULTS["method"]),
         samples_per_pixel=int(render.get("samples_per_pixel", DEFAULTS["samples_per_pixel"])),

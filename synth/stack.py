@@ -91,9 +91,8 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
         truth = dict(result.truth)
         truth["image_format"] = {"png": "16-bit linear PNG", "tiff": "16-bit linear TIFF",
                                  "float-tiff": "float32 linear TIFF", "dng": "DNG (Bayer CFA, raw DN)"}[image_format]
-        if result.raw:
-            truth["image_format"] += ("; sensor DN with the black and white levels in stack.toml"
-                                      if image_format != "dng" else "")
+        if result.raw and image_format != "dng":
+            truth["image_format"] += "; sensor DN with the black and white levels in stack.toml"
         (tmp / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
         (tmp / "stack.toml").write_text(manifest_toml(result.manifest))
         if out.exists():

@@ -71,6 +71,16 @@ class Effects:
             return "optical vignetting (the front stop clips each pixel's pupil differently)"
         return None
 
+    def format_problem(self, fmt: str) -> tuple[str, str] | None:
+        """(what the image format must be, why) when ``fmt`` cannot hold these effects' output."""
+        if self.mosaic is not None and fmt != "dng":
+            return "dng", "the mosaic effect writes DNG"
+        if fmt == "dng" and self.mosaic is None:
+            return "png, tiff or float-tiff", "DNG holds a Bayer mosaic: add 'mosaic' to render.effects"
+        if fmt == "float-tiff" and self.exposure is not None:
+            return "png or tiff", "the exposure effect produces integer sensor values (DN)"
+        return None
+
     def truth(self) -> dict[str, Any]:
         """Parameters of every effect called for (per-shot quantities are in each image's entry)."""
         out: dict[str, Any] = {"aperture": self.aperture.truth()}
