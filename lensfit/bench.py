@@ -33,6 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.errors import InputError, SpecError
+from lensfit.outputs import write_text
 from lensfit.specs import load_toml, specs_dir, validate
 
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
@@ -252,9 +253,7 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
                     record.update(_compare(res, truth, cramer_rao))
                 except (InputError, SpecError) as exc:  # a refusal of the input is a result too
                     record.update({"error": str(exc), "seconds_measure": None, "seconds_fit": None, "settings": {}})
-                tmp_file = cases_dir / f".{c['id']}.partial.json"
-                tmp_file.write_text(json.dumps(record, indent=1, allow_nan=False))
-                tmp_file.replace(cases_dir / f"{c['id']}.json")
+                write_text(cases_dir / f"{c['id']}.json", json.dumps(record, indent=1, allow_nan=False))
                 done.append(record)
     return done
 

@@ -44,11 +44,6 @@ class CliError(Exception):
         self.code = code
 
 
-def _partial(path) -> "Path":
-    """A temporary sibling with the same suffix (writers choose the format by suffix)."""
-    return path.with_name(f".{path.stem}.partial{path.suffix}")
-
-
 def _fail_input(exc, options: dict[str, str]) -> CliError:
     """Turn a library InputError into a CLI error naming the option."""
     return CliError(exc.describe(options))
@@ -158,39 +153,44 @@ def _dof_command(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- measure
 
 
-def _measure_command(args: argparse.Namespace) -> int:
-    from pathlib import Path
+def _max_pixels(args: argparse.Namespace) -> int:
+    mp = args.max_megapixels
+    if not (math.isfinite(mp) and mp > 0):
+        raise CliError(f"--max-megapixels must be a positive number, got {mp:g}")
+    return int(mp * 1e6)
 
+
+def _measure_with_progress(stack, args: argparse.Namespace):
+    """``lensfit.measure.measure`` with a progress bar on stderr."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from lensfit.estimators import ESTIMATORS
     from lensfit.jaxcache import enable_compilation_cache
     from lensfit.measure import measure
+
+    enable_compilation_cache()
+    console = Console(stderr=True)
+    with _progress_bar(console, args.progress) as bar:
+        task = bar.add_task("measuring", total=None)
+        return measure(stack, args.estimator,
+                       progress=lambda stage, done, total: bar.update(task, description=stage, completed=done,
+                                                                      total=total))
+
+
+def _measure_command(args: argparse.Namespace) -> int:
+    from lensfit.estimators import ESTIMATORS
     from lensfit.stack import load_stack
 
     if args.estimator not in ESTIMATORS:
         raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
+    from lensfit.outputs import claimed, write_all
+
     out = Path(args.out)
     if out.suffix.lower() not in (".csv", ".json"):
         raise CliError(f"--out must end in .csv or .json, got {args.out!r}")
-    if out.exists() and not args.force:
-        raise CliError(f"--out {args.out} already exists; pass --force to replace it")
-    stack = load_stack(args.stack)
-    enable_compilation_cache()
-    console = Console(stderr=True)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeElapsedColumn(), console=console,
-                  disable=not console.is_terminal and not args.progress) as bar:
-        task = bar.add_task("measuring", total=None)
-
-        def progress(stage, done, total):
-            bar.update(task, description=stage, completed=done, total=total)
-
-        table = measure(stack, args.estimator, progress=progress)
-    tmp = _partial(out)
-    table.write(tmp)
-    tmp.replace(out)
+    with claimed([("--out", out)], force=args.force):
+        stack = load_stack(args.stack, max_pixels=_max_pixels(args), allow_outside=args.allow_outside_stack)
+        table = _measure_with_progress(stack, args)
+        write_all([(out, table.write)], force=args.force)
     valid = table.valid()
     for w in table.warnings:
         print(f"warning: {w}", file=sys.stderr)
@@ -244,29 +244,20 @@ def _progress_bar(console, enabled: bool):
 
 
 def _write_fit_outputs(args, source: Path, table, result, document) -> list[Path]:
-    """Write every output to a temporary sibling first, then rename: all appear, or none."""
+    """Every output to a temporary sibling first, then renamed: all appear, or none."""
     from lensfit.fitting import write_results
+    from lensfit.outputs import write_all
 
-    pending = []
-    try:
-        if args.out:
-            pending.append((_partial(Path(args.out)), Path(args.out)))
-            write_results(pending[-1][0], document)
-        if args.samples:
-            pending.append((_partial(Path(args.samples)), Path(args.samples)))
-            table.write(pending[-1][0])
-        if args.plot:
-            from lensfit.plots import plot_fit
+    files = []
+    if args.out:
+        files.append((Path(args.out), lambda tmp: write_results(tmp, document)))
+    if args.samples:
+        files.append((Path(args.samples), table.write))
+    if args.plot:
+        from lensfit.plots import plot_fit
 
-            pending.append((_partial(Path(args.plot)), Path(args.plot)))
-            plot_fit(result, pending[-1][0], title=f"{source.name}: {result.code}")
-    except BaseException:
-        for tmp, _ in pending:
-            tmp.unlink(missing_ok=True)
-        raise
-    for tmp, final in pending:
-        tmp.replace(final)
-    return [final for _, final in pending]
+        files.append((Path(args.plot), lambda tmp: plot_fit(result, tmp, title=f"{source.name}: {result.code}")))
+    return write_all(files, force=args.force)
 
 
 def _print_fit(result, document) -> None:
@@ -309,61 +300,64 @@ def _print_fit(result, document) -> None:
         print(f"not identifiable: {r}", file=sys.stderr)
 
 
-def _fit_command(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
+def _fit_outputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
     outputs = [(opt, Path(v)) for opt, v in (("--out", args.out), ("--plot", args.plot), ("--samples", args.samples))
                if v]
     for opt, path in outputs:
-        if path.exists() and not args.force:
-            raise CliError(f"{opt} {path} already exists; pass --force to replace it")
-        if not path.parent.is_dir():
-            raise CliError(f"{opt} {path}: folder {path.parent} does not exist; create it or choose another path")
+        if path.is_dir():
+            raise CliError(f"{opt} {path} is a folder; give a file name, e.g. {path / 'results.json'}")
     if args.plot and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
         raise CliError(f"--plot must end in .png, .svg or .pdf, got {args.plot!r}")
     if args.samples and Path(args.samples).suffix.lower() not in (".csv", ".json"):
         raise CliError(f"--samples must end in .csv or .json, got {args.samples!r}")
+    if args.out and Path(args.out).suffix.lower() != ".json":
+        raise CliError(f"--out must end in .json, got {args.out!r}")
+    resolved = [p.resolve() for _, p in outputs]
+    if len(set(resolved)) < len(resolved):
+        raise CliError("--out, --plot and --samples must be different files")
+    if Path(args.stack).exists() and Path(args.stack).resolve() in resolved:
+        raise CliError(f"an output would replace the input {args.stack}; choose another output name")
+    return outputs
 
+
+def _fit_command(args: argparse.Namespace) -> int:
     from lensfit.estimators import ESTIMATORS
+    from lensfit.outputs import claimed
 
     if args.estimator not in ESTIMATORS:
         raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
-    source = Path(args.stack)
-    console = Console(stderr=True)
-    truth = None
-    from lensfit.jaxcache import enable_compilation_cache
-
-    enable_compilation_cache()
-    if source.is_file() and source.suffix.lower() in (".csv", ".json"):
-        from lensfit.measure import SampleTable
-
-        table = SampleTable.read(source)
-    else:
-        from lensfit.measure import measure
-        from lensfit.stack import load_stack
-
-        stack = load_stack(source)
-        with _progress_bar(console, args.progress) as bar:
-            task = bar.add_task("measuring", total=None)
-            table = measure(stack, args.estimator,
-                            progress=lambda stage, done, total: bar.update(task, description=stage, completed=done,
-                                                                           total=total))
-        truth_path = stack.path / "truth.json"
-        if truth_path.is_file():
-            try:
-                truth = json.loads(truth_path.read_text())
-            except (OSError, json.JSONDecodeError) as exc:
-                print(f"warning: {truth_path} unreadable ({exc}); no comparison with the truth", file=sys.stderr)
-    for w in table.warnings:
-        print(f"warning: {w}", file=sys.stderr)
-
-    from lensfit.fitting import fit, results_document
-
     fpx = None
     if args.focal_length_px is not None:
         if not (args.focal_length_px > 0 and math.isfinite(args.focal_length_px)):
             raise InputError("focal_length_px", args.focal_length_px, "> 0 px and finite")
         fpx = args.focal_length_px
+    with claimed(_fit_outputs(args), force=args.force):
+        return _fit_claimed(args, fpx)
+
+
+def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
+    from rich.console import Console
+
+    source = Path(args.stack)
+    console = Console(stderr=True)
+    truth = None
+    if source.is_file() and source.suffix.lower() in (".csv", ".json"):
+        from lensfit.jaxcache import enable_compilation_cache
+        from lensfit.measure import SampleTable
+
+        enable_compilation_cache()
+        table = SampleTable.read(source)
+    else:
+        from lensfit.stack import load_stack
+
+        stack = load_stack(source, max_pixels=_max_pixels(args), allow_outside=args.allow_outside_stack)
+        table = _measure_with_progress(stack, args)
+        truth = _read_truth(stack)
+    for w in table.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+
+    from lensfit.fitting import fit, results_document
+
     with console.status("fitting"):
         result = fit(table, pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
                      blur_floor_px=args.blur_floor)
@@ -377,6 +371,21 @@ def _fit_command(args: argparse.Namespace) -> int:
         if written:
             print(f"wrote {', '.join(str(p) for p in written)}")
     return EXIT_OK if result.ok else EXIT_NOT_IDENTIFIABLE
+
+
+def _read_truth(stack) -> dict | None:
+    """truth.json of a rendered stack (inside the stack folder only), for the comparison table."""
+    truth_path = stack.path / "truth.json"
+    if not truth_path.is_file():
+        return None
+    if not truth_path.resolve().is_relative_to(stack.path.resolve()):
+        print(f"warning: {truth_path} points outside the stack folder; not read", file=sys.stderr)
+        return None
+    try:
+        return json.loads(truth_path.read_text())
+    except (OSError, ValueError) as exc:
+        print(f"warning: {truth_path} unreadable ({exc}); no comparison with the truth", file=sys.stderr)
+        return None
 
 
 def _bench_fit_command(args: argparse.Namespace) -> int:
@@ -433,19 +442,22 @@ def _bench_command(args: argparse.Namespace) -> int:
         raise CliError(f"--out {out} is a file; give a folder")
     if out.exists() and any(out.iterdir()) and not args.resume:
         raise CliError(f"--out {out} is not empty; pass --resume to continue the run there, or choose another folder")
+    from lensfit.outputs import OutputLock
+
     console = Console(stderr=True)
     n_cases = sum(len(t["cases"]) for t in suite.tasks())
-    with _progress_bar(console, args.progress) as bar:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with OutputLock([("--out", out)]), _progress_bar(console, args.progress) as bar:
         task = bar.add_task(f"suite {suite.name}", total=n_cases)
         records = run_suite(suite, out, jobs=args.jobs, resume=args.resume, executor=args.executor,
                             progress=lambda done, total: bar.update(task, completed=done, total=total))
-    prov = provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor)
-    first = out / "cache" / "provenance.json"
-    if first.is_file():  # a resumed run: the cases came (partly) from the first run
-        prov = {**prov, "first_run": json.loads(first.read_text())}
-    else:
-        first.write_text(json.dumps(prov, indent=1))
-    files = write_report(records, suite, prov, out)
+        prov = provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor)
+        first = out / "cache" / "provenance.json"
+        if first.is_file():  # a resumed run: the cases came (partly) from the first run
+            prov = {**prov, "first_run": json.loads(first.read_text())}
+        else:
+            first.write_text(json.dumps(prov, indent=1))
+        files = write_report(records, suite, prov, out)
     failed = sum(1 for r in records if r.get("error"))
     print(f"{len(records)} cases ({failed} refused by the input checks); wrote "
           + ", ".join(str(f) for f in files.values()))
@@ -460,6 +472,17 @@ def _number(text: str) -> float:
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def _input_options(p: argparse.ArgumentParser) -> None:
+    """Options on reading a stack: the pixel budget and reading outside the stack folder."""
+    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
+
+    p.add_argument("--max-megapixels", type=_number, default=DEFAULT_MAX_MEGAPIXELS, metavar="MP",
+                   help=f"refuse images larger than this, checked from the file header before decoding "
+                        f"(default {DEFAULT_MAX_MEGAPIXELS:g})")
+    p.add_argument("--allow-outside-stack", action="store_true",
+                   help="read image files that stack.toml names outside the stack folder (refused by default)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -498,7 +521,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", required=True, metavar="FILE", help="samples file: .csv or .json")
     m.add_argument("--estimator", default="edge", metavar="NAME",
                    help="blur estimator: edge (fast) or target (analysis by synthesis)")
-    m.add_argument("--force", action="store_true", help="replace an existing --out file")
+    m.add_argument("--force", action="store_true", help="replace an existing --out file that lensfit wrote")
+    _input_options(m)
     m.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     m.set_defaults(func=_measure_command, prog="lensfit measure")
 
@@ -506,7 +530,7 @@ def build_parser() -> argparse.ArgumentParser:
         "fit", help="measure a stack and fit focal length, f-number and focus distance",
         description="Measure blur on every target edge of STACK (a folder with stack.toml; or a samples "
                     ".json/.csv from 'lensfit measure') and fit the circle-of-confusion model: the shared "
-                    "focal length and, per setting, f-number and focus distance, with 1-sigma and 95%% "
+                    "focal length and, per setting, f-number and focus distance, with 1-sigma and 95% "
                     "intervals. Exit status 0: every parameter determined; 3: the fit ran but some parameter "
                     "is not identifiable (the results say which and why); 2: bad input.")
     ft.add_argument("stack", help="stack folder (or its stack.toml), or a samples .json/.csv")
@@ -523,7 +547,8 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--focal-length-px", type=_number, metavar="PX",
                     help="calibrated focal length in px (for a samples CSV, which has no intrinsics)")
     ft.add_argument("--json", action="store_true", help="print the results JSON instead of tables")
-    ft.add_argument("--force", action="store_true", help="replace existing output files")
+    ft.add_argument("--force", action="store_true", help="replace existing output files that lensfit wrote")
+    _input_options(ft)
     ft.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     ft.set_defaults(func=_fit_command, prog="lensfit fit")
 
@@ -563,21 +588,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from lensfit.outputs import run_guarded
+
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     args.argv = argv
-    try:
-        return args.func(args)
-    except CliError as exc:
-        print(f"{args.prog}: error: {exc}", file=sys.stderr)
-        return exc.code
-    except InputError as exc:  # input errors the command did not map itself
-        print(f"{args.prog}: error: {exc.describe(_FIT_OPTIONS)}", file=sys.stderr)
-        return EXIT_USAGE
-    except SpecError as exc:
-        print(f"{args.prog}: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+
+    def known(exc: Exception):
+        if isinstance(exc, CliError):
+            return str(exc), exc.code
+        if isinstance(exc, InputError):  # input errors the command did not map itself
+            return exc.describe(_FIT_OPTIONS), EXIT_USAGE
+        return None
+
+    return run_guarded(args.prog, lambda: args.func(args), known)
 
 
 if __name__ == "__main__":

@@ -60,3 +60,20 @@ class SpecError(ValueError):
         self.problem = problem
         where = f"{self.path}: {field}" if field else self.path
         super().__init__(f"{where}: {problem}")
+
+
+class OutputError(ValueError):
+    """An output path cannot or may not be written (exists and is not ours, is locked by another
+    run, its folder is missing). The message names the option and the path."""
+
+
+class Interrupted(BaseException):
+    """The process was asked to stop (SIGTERM, SIGHUP); raised by the CLIs' signal handler so
+    that every writer's cleanup runs. ``exit_code`` is 128 + the signal number."""
+
+    def __init__(self, signum: int):
+        import signal
+
+        self.signum = signum
+        self.exit_code = 128 + signum
+        super().__init__(f"stopped by {signal.Signals(signum).name}")

@@ -90,6 +90,13 @@ _CAUCHY_C = 2.385
 _EPS_PX = 1e-4  # keeps sqrt differentiable exactly at the focus plane with a zero floor
 _Z95 = 1.959963984540054
 
+#: The ranges of physically meaningful inputs; anything outside is refused naming the field.
+PIXEL_PITCH_RANGE_MM = (1e-4, 1.0)
+DISTANCE_RANGE_MM = (0.1, 1e9)
+MAX_BLUR_PX = 1e6
+MIN_SIGMA_PX = 1e-6
+MAX_FOCAL_LENGTH_PX = 1e7
+
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
               "sensor_distance_mm", "aperture_diameter_mm", "blur_slope_mm2", "blur_floor_px",
               "inverse_focus_distance_per_m")
@@ -304,6 +311,9 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     pitch = pixel_pitch_mm if pixel_pitch_mm is not None else ctx.get("pixel_pitch_mm")
     if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
         raise InputError("pixel_pitch_mm", pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
+    if not PIXEL_PITCH_RANGE_MM[0] <= pitch <= PIXEL_PITCH_RANGE_MM[1]:
+        raise InputError("pixel_pitch_mm", pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
+                         "mm (0.1 micrometre to 1 mm)", "pixel pitches are given in mm, e.g. 0.0059 for 5.9 um")
     used, dropped = [], 0
     for i, r in enumerate(rows):
         c, sg = r.get("coc_diameter_px"), r.get("sigma_px")
@@ -313,9 +323,18 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                 raise InputError(f"samples[{i}].{name}", None, "present")
         if not (isinstance(d, (int, float)) and math.isfinite(d) and d > 0):
             raise InputError(f"samples[{i}].distance_mm", d, "> 0 mm and finite")
+        if not DISTANCE_RANGE_MM[0] <= d <= DISTANCE_RANGE_MM[1]:
+            raise InputError(f"samples[{i}].distance_mm", d, f"between {DISTANCE_RANGE_MM[0]:g} and "
+                             f"{DISTANCE_RANGE_MM[1]:g} mm", "distances are in mm from the lens")
         if c is None or sg is None or not (math.isfinite(c) and math.isfinite(sg) and sg > 0 and c >= 0):
             dropped += 1  # the estimator could not measure this edge
             continue
+        if c > MAX_BLUR_PX:
+            raise InputError(f"samples[{i}].coc_diameter_px", c, f"at most {MAX_BLUR_PX:g} px",
+                             "no image is that large; blur diameters are in px")
+        if not MIN_SIGMA_PX <= sg <= MAX_BLUR_PX:
+            raise InputError(f"samples[{i}].sigma_px", sg, f"between {MIN_SIGMA_PX:g} and {MAX_BLUR_PX:g} px",
+                             "a blur measurement is never that exact (or that vague)")
         used.append(r)
     if not used:
         raise InputError("samples", f"{len(rows)} rows", "at least one sample with a measured coc_diameter_px and "
@@ -333,11 +352,12 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                        labels, "focal_length_px", math.nan)
     fsg = _per_setting(focal_length_sigma_px if focal_length_sigma_px is not None
                        else ctx.get("focal_length_sigma_px"), labels, "focal_length_sigma_px", 0.0)
-    bad = ~(np.isnan(fpx) | (fpx > 0))
+    bad = ~(np.isnan(fpx) | ((fpx >= 1.0) & (fpx <= MAX_FOCAL_LENGTH_PX)))
     if bad.any():
-        raise InputError("focal_length_px", float(fpx[bad][0]), "> 0 px")
-    if np.any(~np.isfinite(fsg) | (fsg < 0)):
-        raise InputError("focal_length_sigma_px", float(fsg[~np.isfinite(fsg) | (fsg < 0)][0]), ">= 0 px")
+        raise InputError("focal_length_px", float(fpx[bad][0]), f"between 1 and {MAX_FOCAL_LENGTH_PX:g} px")
+    bad = ~np.isfinite(fsg) | (fsg < 0) | (fsg > MAX_FOCAL_LENGTH_PX)
+    if bad.any():
+        raise InputError("focal_length_sigma_px", float(fsg[bad][0]), f"between 0 and {MAX_FOCAL_LENGTH_PX:g} px")
     images = [str(r.get("image") or "") for r in used]  # "" = not known: no jackknife over images
     image_index = {name: (i if name else -1) for i, name in enumerate(dict.fromkeys(images))}
     return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
@@ -590,6 +610,38 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
     data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
                    focal_length_sigma_px=focal_length_sigma_px)
+    try:
+        with np.errstate(all="ignore"):  # overflow on the way is caught below, not printed
+            result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls)
+    except InputError:
+        raise
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+        return _refused(data, loss, f"the fit failed numerically ({type(exc).__name__}: {exc}); the samples span "
+                        "magnitudes no lens produces: check their units (mm, px) and the pixel pitch")
+    try:
+        json.dumps(result.to_json_dict(), allow_nan=False)
+    except ValueError:
+        return _refused(data, loss, "the fit produced non-finite numbers; the samples span magnitudes no lens "
+                        "produces: check their units (mm, px) and the pixel pitch")
+    return result
+
+
+def _refused(data: FitData, loss: str, reason: str) -> FitResult:
+    """A result that states ``reason`` for every quantity (value None; never NaN)."""
+    n, m = len(data.coc_px), len(data.labels)
+    none = Estimate(None, reason=reason)
+    return FitResult({label: {q: none for q in QUANTITIES} for label in data.labels}, none, "not_identifiable",
+                     [reason], [], np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)), math.inf, n, 0, math.nan,
+                     math.nan, loss, [], data, np.zeros(n), np.ones(n), np.zeros(1 + 3 * m))
+
+
+def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigma_px: float,
+         max_irls: int) -> FitResult:
+    """The body of :func:`fit` on validated data (it may raise on data of absurd magnitude;
+    :func:`fit` turns that into a refusal)."""
+    import jax
+    import jax.numpy as jnp
+
     labels, m, p = data.labels, len(data.labels), data.pixel_pitch_mm
     n = len(data.coc_px)
     warnings: list[str] = []
@@ -992,6 +1044,13 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
 def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
     """Rows of a samples CSV written by ``lensfit measure`` (numbers parsed, blanks None)."""
     path = Path(path)
+    try:
+        return _read_samples_csv(path)
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise SpecError(path, "", f"not a readable CSV ({exc}); write samples with lensfit measure") from None
+
+
+def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
     numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px")
     rows = []
     with path.open(newline="") as fh:
@@ -1024,7 +1083,8 @@ def results_document(result: FitResult, command: Iterable[str] | None = None,
     from lensfit import __version__
 
     doc = result.to_json_dict()
-    doc["provenance"] = {"version": __version__, "command": " ".join(command) if command else None,
+    doc["provenance"] = {"program": "lensfit", "version": __version__,
+                         "command": " ".join(command) if command else None,
                          "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                          "python": platform.python_version(), "machine": platform.machine()}
     if intrinsics:
@@ -1066,11 +1126,9 @@ def compare_with_truth(result: FitResult, truth: dict[str, Any]) -> list[dict[st
 
 def write_results(path: str | Path, document: dict[str, Any]) -> None:
     """Write atomically (a temporary sibling, then rename); finite numbers or null only."""
-    path = Path(path)
-    text = json.dumps(document, indent=1, allow_nan=False)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    from lensfit.outputs import write_text
+
+    write_text(path, json.dumps(document, indent=1, allow_nan=False))
 
 
 __all__ = ["fit", "cramer_rao", "FitResult", "Estimate", "FitData", "prepare", "inverse_distance_moments", "results_document",

@@ -19,8 +19,10 @@ from typing import Any, Callable
 
 import numpy as np
 
+from lensfit import __version__
 from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, project
 from lensfit.errors import SpecError
+from lensfit.outputs import SAMPLES_CSV_COLUMNS
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.stack import Stack, load_stack
 from lensfit.targets import Detection, Target
@@ -60,8 +62,7 @@ class SampleTable:
     image_shape: tuple[int, int] = (0, 0)
     warnings: list[str] = field(default_factory=list)
 
-    COLUMNS = ("image", "setting", "target", "edge", "distance_mm", "coc_diameter_px", "sigma_px", "estimator",
-               "flags", "distance_start_mm", "distance_end_mm", "start_px", "end_px", "distance_source")
+    COLUMNS = SAMPLES_CSV_COLUMNS
 
     def __len__(self) -> int:
         return len(self.samples)
@@ -89,6 +90,7 @@ class SampleTable:
             "intrinsics": {k: {**asdict(v), "principal_point_px": list(v.principal_point_px),
                                "distortion": list(v.distortion)} for k, v in self.intrinsics.items()},
             "warnings": self.warnings,
+            "provenance": {"program": "lensfit", "version": __version__},
         }
 
     @classmethod
@@ -110,13 +112,24 @@ class SampleTable:
                 raise SpecError(path, "", f"not valid JSON ({exc})") from None
             if not isinstance(doc, dict) or not isinstance(doc.get("samples"), list):
                 raise SpecError(path, "samples", "missing: a samples JSON written by lensfit measure has a list here")
-        table = cls(pixel_pitch_mm=float(doc.get("pixel_pitch_mm") or float("nan")),
-                    image_shape=tuple(doc.get("image_shape_px") or (0, 0)), warnings=list(doc.get("warnings", [])))
-        for label, v in (doc.get("intrinsics") or {}).items():
-            table.intrinsics[label] = Intrinsics(
-                float(v["focal_length_px"]), tuple(v.get("principal_point_px", (0.0, 0.0))),
-                tuple(v.get("distortion", [0.0] * 5)), float(v.get("rms_px", 0.0)), int(v.get("views", 0)),
-                str(v.get("source", "file")), float(v.get("focal_length_sigma_px", 0.0)))
+        try:
+            table = cls(pixel_pitch_mm=float(doc.get("pixel_pitch_mm") or float("nan")),
+                        image_shape=tuple(doc.get("image_shape_px") or (0, 0)),
+                        warnings=[str(w) for w in doc.get("warnings", [])])
+        except (TypeError, ValueError) as exc:
+            raise SpecError(path, "pixel_pitch_mm", f"unreadable ({exc}); expected what lensfit measure writes") from None
+        intrinsics = doc.get("intrinsics") or {}
+        if not isinstance(intrinsics, dict):
+            raise SpecError(path, "intrinsics", "must map setting labels to calibrations")
+        for label, v in intrinsics.items():
+            try:
+                table.intrinsics[label] = Intrinsics(
+                    float(v["focal_length_px"]), tuple(v.get("principal_point_px", (0.0, 0.0))),
+                    tuple(v.get("distortion", [0.0] * 5)), float(v.get("rms_px", 0.0)), int(v.get("views", 0)),
+                    str(v.get("source", "file")), float(v.get("focal_length_sigma_px", 0.0)))
+            except (AttributeError, KeyError, TypeError, ValueError) as exc:
+                raise SpecError(path, f"intrinsics.{label}", f"unreadable calibration ({exc!r}); expected the fields "
+                                "lensfit measure writes") from None
         for i, r in enumerate(doc["samples"]):
             try:
                 start = r.get("start_px") or (0.0, 0.0)
@@ -132,7 +145,7 @@ class SampleTable:
                     sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
                     estimator=str(r.get("estimator", "")), flags=str(r.get("flags", "") or ""),
                     start_px=tuple(start), end_px=tuple(end), distance_source=str(r.get("distance_source", ""))))
-            except (KeyError, TypeError, ValueError) as exc:
+            except (AttributeError, KeyError, TypeError, ValueError) as exc:
                 raise SpecError(path, f"samples[{i}]", f"unreadable sample ({exc!r}); expected the columns "
                                 "lensfit measure writes") from None
         return table

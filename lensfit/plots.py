@@ -63,8 +63,16 @@ def plot_fit(result: FitResult, path: str | Path, *, title: str | None = None) -
     axr.set_ylabel("residual / sigma")
     axr.set_xlabel("inverse distance from the lens (1/m)")
     axr.grid(alpha=0.3)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=_creator(path))
     plt.close(fig)
+
+
+def _creator(path: str | Path) -> dict[str, str]:
+    """Matplotlib metadata naming lensfit as the writer (``lensfit.outputs.written_by`` reads it)."""
+    from lensfit.outputs import software_tag
+
+    key = {".png": "Software", ".svg": "Title", ".pdf": "Creator"}.get(Path(path).suffix.lower())
+    return {key: software_tag("lensfit")} if key else {}
 
 
 def _describe(result: FitResult, label: str) -> str:

@@ -120,8 +120,12 @@ def disk_kernel(diameter: float, oversample: int = 8) -> np.ndarray:
     n = 2 * half + 1
     sub = (np.arange(oversample) + 0.5) / oversample - 0.5
     fine = (np.arange(-half, half + 1)[:, None] + sub[None, :]).ravel()
-    inside = (fine[:, None] ** 2 + fine[None, :] ** 2) <= r * r
-    k = inside.reshape(n, oversample, n, oversample).mean(axis=(1, 3))
+    k = np.empty((n, n))
+    block = max(1, (1 << 22) // (n * oversample * oversample))  # cell rows per step: memory O(n), not O(n^2)
+    for i0 in range(0, n, block):
+        rows = fine[i0 * oversample:(i0 + block) * oversample]
+        inside = (rows[:, None] ** 2 + fine[None, :] ** 2) <= r * r
+        k[i0:i0 + block] = inside.reshape(-1, oversample, n, oversample).mean(axis=(1, 3))
     if k.sum() == 0:
         k[half, half] = 1.0
     return (k / k.sum()).astype(np.float64)

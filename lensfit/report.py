@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from lensfit.bench import QUANTITIES, Suite
+from lensfit.outputs import write_text
 
 CONFIG_KEYS = ("scene", "render", "effects", "noise", "estimator", "solver")
 
@@ -299,7 +300,7 @@ def write_report(records: list[dict[str, Any]], suite: Suite, prov: dict[str, An
                                          "tolerances": suite.tolerances},
            "cases": records, "configurations": summary["configurations"], "coverage": summary["coverage"]}
     files = {"json": out / "results.json", "md": out / "report.md", "html": out / "report.html"}
-    _atomic(files["json"], json.dumps(doc, indent=1, allow_nan=False))
+    write_text(files["json"], json.dumps(doc, indent=1, allow_nan=False))
     tables = _tables(summary, suite)
     refused = [r for r in records if r.get("error") or r.get("reasons")]
     title = f"lensfit benchmark: suite {suite.name}"
@@ -320,7 +321,7 @@ def write_report(records: list[dict[str, Any]], suite: Suite, prov: dict[str, An
                                                f"{r['seed']}): {r.get('error') or '; '.join(r['reasons'])}"
                                                for r in refused] + [""]
     md += ["## Provenance", ""] + [f"- {line}" for line in prov_lines] + [""]
-    _atomic(files["md"], "\n".join(md))
+    write_text(files["md"], "\n".join(md))
 
     e = html.escape
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{e(title)}</title>",
@@ -347,11 +348,6 @@ def write_report(records: list[dict[str, Any]], suite: Suite, prov: dict[str, An
             f"<li>{e(r['id'])}: {e(r.get('error') or '; '.join(r['reasons']))}</li>" for r in refused) + "</ul>")
     parts.append("<h2>Provenance</h2><ul>" + "".join(f"<li>{e(line)}</li>" for line in prov_lines) + "</ul>")
     parts.append("</body></html>")
-    _atomic(files["html"], "\n".join(parts))
+    write_text(files["html"], "\n".join(parts))
     return files
 
-
-def _atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    tmp.write_text(text)
-    tmp.replace(path)

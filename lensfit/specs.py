@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -56,9 +57,38 @@ def _field_path(parts) -> str:
     return out
 
 
+def _first_non_finite(data: Any, parts: tuple = ()) -> tuple[tuple, float] | None:
+    """(field path, value) of the first NaN or infinite number in nested dicts and lists."""
+    if isinstance(data, float) and not math.isfinite(data):
+        return parts, data
+    if isinstance(data, dict):
+        items = data.items()
+    elif isinstance(data, list):
+        items = enumerate(data)
+    else:
+        return None
+    for key, value in items:
+        found = _first_non_finite(value, (*parts, key))
+        if found is not None:
+            return found
+    return None
+
+
 def validate(data: Any, schema_name: str, path: str | Path) -> None:
-    """Validate ``data`` against a schema; the first (most relevant) problem raises SpecError."""
+    """Validate ``data`` against a schema; the first (most relevant) problem raises SpecError.
+
+    NaN and infinite numbers are refused everywhere before the schema is consulted (JSON Schema's
+    bounds let NaN through: every comparison with NaN is false); where a file may say infinity
+    it writes the string "inf".
+    """
     import jsonschema
+
+    bad = _first_non_finite(data)
+    if bad is not None:
+        where, value = bad
+        raise SpecError(path, _field_path(where) or "(top level)",
+                        f"got {value}: write a finite number (where infinity is meant, the string \"inf\" "
+                        "if the field allows it)")
 
     validator = jsonschema.Draft202012Validator(schema(schema_name))
     error = jsonschema.exceptions.best_match(validator.iter_errors(data))

@@ -62,6 +62,7 @@ class Stack:
     shape: tuple[int, int]
     camera: dict[str, Any] = field(default_factory=dict)
     intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
+    max_pixels: int | None = None
 
     @property
     def settings(self) -> list[str]:
@@ -74,7 +75,8 @@ class Stack:
     def read(self, index: int) -> np.ndarray:
         """Image ``index`` as linear float64 intensity (H, W), full scale 1."""
         entry = self.images[index]
-        return read_image(entry.file, entry.encoding, black_level=entry.black_level, white_level=entry.white_level)
+        return read_image(entry.file, entry.encoding, black_level=entry.black_level, white_level=entry.white_level,
+                          max_pixels=self.max_pixels)
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
@@ -92,26 +94,108 @@ def _to_grey(img: np.ndarray) -> np.ndarray:
     raise ValueError(f"unsupported image shape {img.shape}")
 
 
-def read_raster(path: Path, black_level: float | None = None, white_level: float | None = None) -> np.ndarray:
+def _png_header(path: Path) -> tuple[int, int]:
+    """(height, width) from a PNG's IHDR chunk (the first 24 bytes), without decoding."""
+    with path.open("rb") as fh:
+        head = fh.read(24)
+    if len(head) < 24 or not head.startswith(b"\x89PNG\r\n\x1a\n") or head[12:16] != b"IHDR":
+        raise SpecError(path, "", "is not a PNG file (bad signature or header); is it truncated or misnamed?")
+    return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(height, width) of an image from its header, without decoding the pixels.
+
+    RAW/DNG: the size LibRaw's postprocess produces (no rotation); PNG: IHDR; TIFF: the first page.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix in RAW_SUFFIXES:
+            import rawpy
+
+            raw = rawpy.RawPy()
+            try:
+                raw.open_file(str(path))
+                sizes = raw.sizes
+                return int(sizes.height), int(sizes.width)
+            finally:
+                raw.close()
+        if suffix == ".png":
+            return _png_header(path)
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(path) as tif:
+                page = tif.pages[0]
+                return int(page.imagelength), int(page.imagewidth)
+    except FileNotFoundError:
+        raise SpecError(path, "", "file not found") from None
+    except SpecError:
+        raise
+    except Exception as exc:  # decoders raise many types for corrupt or truncated headers
+        raise SpecError(path, "", f"cannot be read ({type(exc).__name__}: {exc})") from None
+    raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, DNG or a camera RAW file")
+
+
+def _decode_png(path: Path) -> np.ndarray:
+    """Every PNG layout at its full bit depth (1-16 bit grey, grey + alpha, RGB, RGBA, palette)."""
+    import cv2
+
+    data = np.fromfile(path, dtype=np.uint8)
+    log = cv2.utils.logging
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_SILENT)  # a corrupt file is reported below as one line, not as OpenCV's log
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    finally:
+        log.setLogLevel(level)
+    if img is None:
+        raise SpecError(path, "", "cannot be decoded as PNG; is it truncated or corrupt?")
+    if img.ndim == 3 and img.shape[-1] >= 3:  # OpenCV orders colour channels BGR(A)
+        img = img[..., [2, 1, 0, *range(3, img.shape[-1])]]
+    return img
+
+
+def _decode_tiff(path: Path) -> np.ndarray:
+    """The first page of a TIFF, samples on the last axis (planar or interleaved)."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        img = page.asarray()
+        axes = page.axes
+    if "S" in axes and img.ndim == len(axes):
+        img = np.moveaxis(img, axes.index("S"), -1)
+    return img
+
+
+def read_raster(path: Path, black_level: float | None = None, white_level: float | None = None, *,
+                max_pixels: int | None = None) -> np.ndarray:
     """PNG/TIFF -> float64 in full-scale units (integers / max of their type; floats as stored).
 
+    Every channel layout is read at its full bit depth (16-bit colour PNGs included). The size is
+    checked from the header against ``max_pixels`` (default: ``lensfit.limits``) before decoding.
     With ``black_level``/``white_level`` (raw sensor values stored in an integer file, e.g.
     12-bit DN in a 16-bit PNG) integers map to ``(value - black) / (white - black)`` instead.
     """
+    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS, check_image_size
+
+    check_image_size(path, *image_size(path), max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6))
     try:
-        if path.suffix.lower() in (".tif", ".tiff"):
-            import tifffile
-
-            img = tifffile.imread(path)
-        else:
-            import imageio.v3 as iio
-
-            img = iio.imread(path)
+        img = _decode_tiff(path) if path.suffix.lower() in (".tif", ".tiff") else _decode_png(path)
     except FileNotFoundError:
         raise SpecError(path, "", "file not found") from None
+    except SpecError:
+        raise
+    except MemoryError:
+        raise SpecError(path, "", "does not fit in memory while decoding; lower --max-megapixels or use a "
+                        "machine with more memory") from None
     except Exception as exc:  # decoders raise many types for corrupt or truncated files
         raise SpecError(path, "", f"cannot be decoded ({type(exc).__name__}: {exc}); is it truncated?") from None
     img = np.asarray(img)
+    if img.dtype == np.bool_:
+        img = img.astype(np.uint8)
     if img.dtype.kind in "ui":
         if black_level is not None or white_level is not None:
             black = float(black_level or 0.0)
@@ -134,10 +218,15 @@ def read_raster(path: Path, black_level: float | None = None, white_level: float
         raise SpecError(path, "", str(exc)) from None
 
 
-def read_raw(path: Path) -> np.ndarray:
-    """DNG or camera RAW -> linear float64 grey, full scale 1 (rawpy, gamma 1, no auto-brightening)."""
+def read_raw(path: Path, *, max_pixels: int | None = None) -> np.ndarray:
+    """DNG or camera RAW -> linear float64 grey, full scale 1 (rawpy, gamma 1, no auto-brightening).
+
+    The size is checked from the header against ``max_pixels`` before decoding."""
     import rawpy
 
+    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS, check_image_size
+
+    check_image_size(path, *image_size(path), max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6))
     try:
         with rawpy.imread(str(path)) as raw:
             rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, user_flip=0,
@@ -151,47 +240,37 @@ def read_raw(path: Path) -> np.ndarray:
 
 
 def read_image(path: str | Path, encoding: str = "linear", *, black_level: float | None = None,
-               white_level: float | None = None) -> np.ndarray:
+               white_level: float | None = None, max_pixels: int | None = None) -> np.ndarray:
     """Read one image as linear float64 grey intensity (H, W), full scale 1.
 
     ``black_level``/``white_level``: raw integer levels of a PNG/TIFF (see ``read_raster``);
-    RAW and DNG files carry their own.
+    RAW and DNG files carry their own. ``max_pixels``: the pixel budget, checked from the header
+    before decoding (default ``lensfit.limits.DEFAULT_MAX_MEGAPIXELS``).
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in RAW_SUFFIXES:
-        return read_raw(path)
+        return read_raw(path, max_pixels=max_pixels)
     if suffix not in RASTER_SUFFIXES:
         raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, DNG or a camera RAW file")
-    img = read_raster(path, black_level, white_level)
+    img = read_raster(path, black_level, white_level, max_pixels=max_pixels)
     return srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    """(height, width) without decoding the pixels where the format allows."""
-    suffix = path.suffix.lower()
-    if suffix in RAW_SUFFIXES:
-        return read_raw(path).shape
-    try:
-        if suffix in (".tif", ".tiff"):
-            import tifffile
-
-            with tifffile.TiffFile(path) as tif:
-                shape = tif.pages[0].shape
-        else:
-            import imageio.v3 as iio
-
-            shape = iio.improps(path).shape
-    except FileNotFoundError:
-        raise SpecError(path, "", "file not found") from None
-    except Exception as exc:
-        raise SpecError(path, "", f"cannot be read ({type(exc).__name__}: {exc})") from None
-    return int(shape[0]), int(shape[1])
-
-
-def load_stack(path: str | Path) -> Stack:
+def load_stack(path: str | Path, *, max_pixels: int | None = None, allow_outside: bool = False) -> Stack:
     """Read and validate a stack folder (or its ``stack.toml``); images are checked for
-    existence and a common size, and read later on demand."""
+    existence, the pixel budget and a common size (from their headers), and read later on demand.
+
+    Parameters
+    ----------
+    path : the stack folder or its stack.toml
+    max_pixels : refuse images declaring more pixels (default ``lensfit.limits.DEFAULT_MAX_MEGAPIXELS``)
+    allow_outside : read image files outside the stack folder (``../``, absolute paths, symbolic
+        links that lead out); refused by default, naming the entry
+    """
+    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS, check_image_size
+
+    max_pixels = max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6)
     path = Path(path)
     manifest_path = path / "stack.toml" if path.is_dir() else path
     folder = manifest_path.parent
@@ -212,8 +291,12 @@ def load_stack(path: str | Path) -> Stack:
                 raise SpecError(manifest_path, f"target[{i}].{name}", f"is required for kind = {t['kind']!r}")
     images = []
     shape = None
+    inside = folder.resolve()
     for i, entry in enumerate(data["image"]):
         file = folder / entry["file"]
+        if not allow_outside and not file.resolve().is_relative_to(inside):
+            raise SpecError(manifest_path, f"image[{i}].file", f"got {entry['file']!r}: it leads outside the stack "
+                            f"folder {folder}; copy the image into the folder (or pass --allow-outside-stack)")
         if not file.is_file():
             raise SpecError(manifest_path, f"image[{i}].file", f"got {entry['file']!r}: no such file in {folder}")
         if entry.get("white_level", math.inf) <= entry.get("black_level", 0):
@@ -223,7 +306,8 @@ def load_stack(path: str | Path) -> Stack:
             if tid not in ids:
                 raise SpecError(manifest_path, f"image[{i}].targets[{j}]", f"got {tid!r}: no [[target]] has this id; "
                                 f"valid: {', '.join(ids)}")
-        size = _image_size(file)
+        size = image_size(file)
+        check_image_size(file, *size, max_pixels)
         if shape is None:
             shape = size
         elif size != shape:
@@ -254,4 +338,4 @@ def load_stack(path: str | Path) -> Stack:
                             f"setting; valid: {', '.join(sorted(labels))}")
         known[entry["setting"]] = dict(entry)
     return Stack(path=folder, manifest_path=manifest_path, pixel_pitch_mm=pitch, targets=list(data.get("target", [])),
-                 images=images, shape=shape, camera=dict(cam), intrinsics=known)
+                 images=images, shape=shape, camera=dict(cam), intrinsics=known, max_pixels=max_pixels)

@@ -21,24 +21,45 @@ _OPTIONS = {"method": "--method", "samples_per_pixel": "--spp", "seed": "--seed"
 
 
 def _render_command(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    from lensfit.jaxcache import enable_compilation_cache
-    from synth.render import render
     from synth.scene import load_scene
-    from synth.stack import check_out_dir, write_stack
+    from synth.stack import check_out_dir
 
-    console = Console(stderr=True)
+    from lensfit.outputs import OutputLock, check_output
+
     scene = load_scene(args.scene)
     check_out_dir(args.out, args.force)  # refuse before spending time on the render
+    outputs = [("--out", Path(args.out))]
     if args.preview is not None:
         preview = Path(args.preview)
         if preview.suffix.lower() != ".png":
             raise InputError("preview", args.preview, "a .png file name")
-        if preview.exists() and not args.force:
-            raise InputError("preview", args.preview, "a new file", "it exists; pass --force to replace it")
+        if preview.resolve().is_relative_to(Path(args.out).resolve()):
+            raise InputError("preview", args.preview, "a file outside --out", "the stack folder holds only the stack")
+        preview.parent.mkdir(parents=True, exist_ok=True)
+        check_output(preview, "--preview", force=args.force)
+        outputs.append(("--preview", preview))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    with OutputLock(outputs):
+        return _render_locked(args)
+
+
+def _render_locked(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from lensfit.jaxcache import enable_compilation_cache
+    from lensfit.outputs import check_output
+    from synth.render import check_overrides, render
+    from synth.scene import load_scene
+    from synth.stack import check_out_dir, write_stack
+
+    check_out_dir(args.out, args.force)  # again, under the lock
+    if args.preview is not None:
+        check_output(args.preview, "--preview", force=args.force)
+    console = Console(stderr=True)
+    scene = load_scene(args.scene)
     enable_compilation_cache()
+    check_overrides(samples_per_pixel=args.spp, seed=args.seed, supersampling=args.supersampling)
     scene = scene.with_render(method=args.method, samples_per_pixel=args.spp, seed=args.seed,
                               supersampling=args.supersampling)
     total_rows = sum(s.camera.height_px for s in scene.shots)
@@ -65,8 +86,7 @@ def _render_command(args: argparse.Namespace) -> int:
     if args.preview is not None:
         from synth.preview import recorded, write_preview
 
-        Path(args.preview).parent.mkdir(parents=True, exist_ok=True)
-        write_preview(args.preview, recorded(result))
+        write_preview(args.preview, recorded(result), force=args.force)
         print(f"wrote the contact sheet {args.preview}")
     return EXIT_OK
 
@@ -75,9 +95,10 @@ def _plan_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from synth.render import plan
+    from synth.render import check_overrides, plan
     from synth.scene import load_scene
 
+    check_overrides(samples_per_pixel=args.spp)
     scene = load_scene(args.scene).with_render(method=args.method, samples_per_pixel=args.spp)
     plans = plan(scene)
     r = scene.render
@@ -169,7 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--format", choices=["png", "tiff", "float-tiff", "dng"],
                    help="image files (default png, 16-bit; dng with the mosaic effect, which requires it)")
     r.add_argument("--preview", metavar="PNG", help="also write a contact sheet of the shots (sRGB, to look at)")
-    r.add_argument("--force", action="store_true", help="replace an existing non-empty DIR (and --preview file)")
+    r.add_argument("--force", action="store_true", help="replace a stack folder (and --preview file) that synth wrote; never other files")
     r.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     r.set_defaults(func=_render_command, prog="synth render")
 
@@ -186,16 +207,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from lensfit.outputs import run_guarded
+
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except InputError as exc:
-        print(f"{args.prog}: error: {exc.describe(_OPTIONS)}", file=sys.stderr)
-        return EXIT_USAGE
-    except SpecError as exc:
-        print(f"{args.prog}: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+
+    def known(exc: Exception):
+        if isinstance(exc, InputError):
+            return exc.describe(_OPTIONS), EXIT_USAGE
+        return None
+
+    return run_guarded(args.prog, lambda: args.func(args), known)
 
 
 if __name__ == "__main__":

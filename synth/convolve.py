@@ -74,6 +74,24 @@ def blurred_footprint_px(obj: PlacedObject, shot: Shot, extent: float = 1.0) -> 
     return (u0 - r, v0 - r, u1 + r, v1 + r)
 
 
+def convolve_bytes(shot: Shot, supersampling: int, *, camera=None) -> float:
+    """Peak memory (bytes) ``render_convolve`` needs for one shot: the largest object's blur
+    kernel and its FFT grid (objects are convolved one after another), plus the image."""
+    cam = camera if camera is not None else shot.camera
+    W, H, S = cam.width_px, cam.height_px, int(supersampling)
+    peak = 0.0
+    for obj in shot.objects:
+        coc = float(cam.coc_diameter_px(float(obj.pose.t_cam_target[2])))
+        n = 2 * math.ceil(0.5 * coc * S + 0.5) + 1  # kernel side, sub-pixels (lensfit.psf.disk_kernel)
+        reach_px = n // 2 // S + 1
+        u0, v0, u1, v1 = footprint_px(obj, shot)
+        cols = max(0, min(math.ceil(u1) + 1, W - 1 + reach_px) - max(math.floor(u0) - 1, -reach_px) + 1) * S
+        rows = max(0, min(math.ceil(v1) + 1, H - 1 + reach_px) - max(math.floor(v0) - 1, -reach_px) + 1) * S
+        fft = float(cols + n) * float(rows + n)
+        peak = max(peak, 12.0 * n * n + 40.0 * fft)  # kernel (float64 + float32); 2 images, their spectra
+    return peak + 16.0 * W * H
+
+
 def render_convolve(shot: Shot, background: float, supersampling: int, *, camera=None,
                     aperture=None) -> np.ndarray:
     """Render one shot of fronto-parallel objects; returns linear radiance, float32 (H, W).

@@ -86,15 +86,16 @@ def _superpixels(cfa: np.ndarray, pattern: str) -> np.ndarray:
     return np.repeat(np.repeat(rgb / count, 2, axis=0), 2, axis=1)
 
 
-def write_preview(path, images: dict[str, np.ndarray], **kwargs) -> None:
-    """Write the contact sheet as PNG (a temporary sibling, then renamed)."""
+def write_preview(path, images: dict[str, np.ndarray], *, force: bool = True, **kwargs) -> None:
+    """Write the contact sheet as PNG (a temporary sibling, then renamed), tagged ``Software =
+    synth VERSION`` so that ``--force`` may replace it later (``lensfit.outputs.written_by``)."""
     from pathlib import Path
 
-    import cv2
+    from PIL import Image, PngImagePlugin
 
-    path = Path(path)
+    from lensfit.outputs import software_tag, write_all
+
     sheet = contact_sheet(images, **kwargs)
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    if not cv2.imwrite(str(tmp), sheet[..., ::-1]):
-        raise OSError(f"could not write {path}")
-    tmp.replace(path)
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Software", software_tag("synth"))
+    write_all([(Path(path), lambda tmp: Image.fromarray(sheet).save(tmp, format="PNG", pnginfo=info))], force=force)

@@ -214,6 +214,15 @@ def camera_array(cam):
                         cam.aperture_diameter_mm], jnp.float32)
 
 
+#: Working memory per lens sample inside one compiled tile (rays, weights, hits; float32).
+BYTES_PER_SAMPLE = 96
+
+
+def raytrace_bytes(width_px: int, spp: int) -> float:
+    """Peak memory (bytes) of one ray-tracing tile: at least one image row of ``spp`` samples."""
+    return float(BYTES_PER_SAMPLE) * max(TILE_SAMPLES, width_px * spp)
+
+
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
                     progress: Callable[[int], None] | None = None, *, camera=None,
                     aperture: tuple = ("circle",), front_stop: tuple[float, float] | None = None,

@@ -19,8 +19,9 @@ import numpy as np
 
 from lensfit import __version__
 from lensfit.errors import InputError
-from synth.convolve import blurred_footprint_px, render_convolve
-from synth.raytrace import render_raytrace
+from lensfit.limits import RENDER_MEMORY_BYTES, format_bytes
+from synth.convolve import blurred_footprint_px, convolve_bytes, render_convolve
+from synth.raytrace import BYTES_PER_SAMPLE, raytrace_bytes, render_raytrace
 from synth.effects import Effects
 from synth.scene import Scene, Shot, load_scene
 from synth import textures
@@ -92,10 +93,19 @@ def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[fl
     return sub / CONVOLVE_SUBPIXELS_PER_S + 0.05, f"{sub / 1e6:.1f} M sub-pixels convolved"
 
 
-def choose_method(shot: Shot, requested: str, effects: Effects | None = None) -> tuple[str, bool, str]:
-    """(method, exact, reason) for one shot. ``auto`` picks the cheapest exact method."""
+def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *, samples_per_pixel: int = 1,
+                  supersampling: int = 4) -> tuple[str, bool, str]:
+    """(method, exact, reason) for one shot. ``auto`` picks the cheapest exact method that fits
+    the memory budget (``lensfit.limits.RENDER_MEMORY_BYTES``); a method that does not fit is
+    refused before anything is allocated."""
     if requested not in METHODS:
         raise InputError("method", requested, "one of " + ", ".join(METHODS))
+    method, exact, why = _choose(shot, requested, effects, supersampling)
+    _check_memory(shot, method, samples_per_pixel, supersampling, effects)
+    return method, exact, why
+
+
+def _choose(shot: Shot, requested: str, effects: Effects | None, supersampling: int) -> tuple[str, bool, str]:
     only_raytrace = effects.needs_raytrace if effects is not None else None
     if only_raytrace:
         if requested == "convolve":
@@ -106,9 +116,52 @@ def choose_method(shot: Shot, requested: str, effects: Effects | None = None) ->
         return "raytrace", True, "requested; ray tracing is exact for every planar scene"
     if requested == "convolve":
         return "convolve", exact, ("requested; " + why) if exact else f"requested although not exact: {why}"
+    if exact and convolve_bytes(shot, supersampling) > RENDER_MEMORY_BYTES:
+        return "raytrace", True, (f"auto: {why}, but its blur kernel and FFT would need "
+                                  f"{format_bytes(convolve_bytes(shot, supersampling))}: ray tracing instead")
     if exact:
         return "convolve", True, "auto: " + why
     return "raytrace", True, "auto: " + why
+
+
+#: Bytes per pixel and channel that a shot's images take through the pipeline (float32 render,
+#: float64 stages, sensor values) and its truth maps (depth and CoC, float32), measured loosely.
+IMAGE_BYTES_PER_PIXEL = 32
+
+
+def _check_memory(shot: Shot, method: str, spp: int, supersampling: int, effects: Effects | None) -> None:
+    """Refuse a shot whose render would take more than the memory budget, naming the option."""
+    budget = format_bytes(RENDER_MEMORY_BYTES)
+    cam = shot.camera
+    channels = effects.channels if effects is not None else 1
+    images = float(IMAGE_BYTES_PER_PIXEL) * cam.width_px * cam.height_px * (channels + 1)
+    if images > RENDER_MEMORY_BYTES:
+        raise InputError("camera.width_px", cam.width_px, f"a smaller image than {cam.width_px} x {cam.height_px} px",
+                         f"its images would need {format_bytes(images)} in the pipeline (budget {budget})")
+    if effects is not None and effects.diffraction is not None:
+        from synth.effects import diffraction
+
+        need = diffraction.bytes_needed(effects.diffraction, working_f_number(cam), cam.pixel_pitch_mm,
+                                        cam.width_px, cam.height_px)
+        if need > RENDER_MEMORY_BYTES:
+            raise InputError("diffraction", f"f/{working_f_number(cam):.3g} at {cam.pixel_pitch_mm * 1000:g} um pixels",
+                             "an Airy pattern a few hundred pixels wide or less",
+                             f"its kernel and FFT would need {format_bytes(need)} (budget {budget}); use a larger "
+                             "pixel pitch or a smaller f-number")
+    if method == "raytrace":
+        need = raytrace_bytes(shot.camera.width_px, spp)
+        if need > RENDER_MEMORY_BYTES:
+            most = int(RENDER_MEMORY_BYTES // (BYTES_PER_SAMPLE * shot.camera.width_px))
+            raise InputError("samples_per_pixel", spp, f"at most {most} for a {shot.camera.width_px} px wide image",
+                             f"one image row of ray-tracing samples would need {format_bytes(need)} (budget {budget})")
+    else:
+        need = convolve_bytes(shot, supersampling)
+        if need > RENDER_MEMORY_BYTES:
+            raise InputError("method", "convolve", "raytrace or auto for this shot",
+                             f"{shot.name}'s blur kernel and FFT grid would need {format_bytes(need)} (budget "
+                             f"{budget}): its blur ({shot.camera.coc_diameter_px(min(o.pose.t_cam_target[2] for o in shot.objects)):.3g} "
+                             "px or more) is too large to convolve; is the focus distance meant to be so close to the "
+                             "focal length?")
 
 
 def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[tuple[str, float]]:
@@ -163,7 +216,8 @@ def plan(scene: Scene) -> list[ShotPlan]:
     out = []
     r = scene.render
     for shot in scene.shots:
-        method, exact, reason = choose_method(shot, r.method, scene.effects)
+        method, exact, reason = choose_method(shot, r.method, scene.effects, samples_per_pixel=r.samples_per_pixel,
+                                              supersampling=r.supersampling)
         seconds, work = _estimate(shot, method, r.samples_per_pixel, r.supersampling)
         stages = _stages(scene, shot, method, seconds)
         out.append(ShotPlan(shot, method, exact, reason, tuple(n for n, _ in stages), sum(t for _, t in stages), work,
@@ -411,6 +465,17 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
     return image, raw, extra, seconds
 
 
+def check_overrides(*, samples_per_pixel: int | None = None, supersampling: int | None = None,
+                    seed: int | None = None) -> None:
+    """The ranges of the scene spec's [render] fields, for values given as arguments."""
+    if samples_per_pixel is not None and not 1 <= samples_per_pixel <= 65536:
+        raise InputError("samples_per_pixel", samples_per_pixel, "between 1 and 65536")
+    if supersampling is not None and not 1 <= supersampling <= 16:
+        raise InputError("supersampling", supersampling, "between 1 and 16")
+    if seed is not None and not 0 <= seed < 2**32:
+        raise InputError("seed", seed, "between 0 and 2**32 - 1")
+
+
 def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_pixel: int | None = None,
            seed: int | None = None, supersampling: int | None = None, image_format: str | None = None,
            progress: Callable[[str, int, int], None] | None = None) -> RenderResult:
@@ -429,12 +494,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
-    if samples_per_pixel is not None and samples_per_pixel < 1:
-        raise InputError("samples_per_pixel", samples_per_pixel, ">= 1")
-    if supersampling is not None and not 1 <= supersampling <= 16:
-        raise InputError("supersampling", supersampling, "between 1 and 16")
-    if seed is not None and seed < 0:
-        raise InputError("seed", seed, ">= 0")
+    check_overrides(samples_per_pixel=samples_per_pixel, supersampling=supersampling, seed=seed)
     if image_format is not None and image_format not in ("png", "tiff", "float-tiff", "dng"):
         raise InputError("image_format", image_format, "one of png, tiff, float-tiff, dng")
     problem = scene.effects.format_problem(image_format) if image_format is not None else None

@@ -55,18 +55,20 @@ def manifest_toml(manifest: dict) -> str:
 
 
 def check_out_dir(out: str | Path, force: bool) -> Path:
-    """Refuse an existing non-empty folder (or a file) unless ``force``."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("out", str(out), "a folder path", "it is an existing file; choose another --out")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise InputError("out", str(out), "an empty or new folder",
-                         "it already holds files; pass --force to replace them")
-    return out
+    """Refuse, before any work, a file, a folder holding anything synth did not write, or (without
+    ``force``) a non-empty stack folder (``lensfit.outputs.check_output``)."""
+    from lensfit.outputs import check_output
+
+    return check_output(out, "--out", force=force, folder=True)
 
 
 def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -> Path:
-    """Write a stack folder atomically; returns its path."""
+    """Write a stack folder atomically; returns its path.
+
+    The folder is written as a temporary sibling and renamed into place. An existing folder is
+    replaced only with ``force`` and only when it holds nothing but a stack synth wrote (checked
+    again just before the swap); its old contents are removed only then.
+    """
     image_format = result.image_format
 
     out = check_out_dir(out, force)
@@ -95,13 +97,18 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
             truth["image_format"] += "; sensor DN with the black and white levels in stack.toml"
         (tmp / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
         (tmp / "stack.toml").write_text(manifest_toml(result.manifest))
-        if out.exists():
+        check_out_dir(out, force)  # again: something may have been put there while rendering
+        if out.is_dir() and any(out.iterdir()):
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             out.rename(old / out.name)
-            tmp.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
+            try:
+                tmp.rename(out)
+            except BaseException:
+                (old / out.name).rename(out)  # put the old stack back
+                raise
+            shutil.rmtree(old, ignore_errors=True)  # a stack synth wrote (checked above), nothing else
         else:
-            tmp.rename(out)
+            tmp.rename(out)  # over an empty folder, or a new name
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -148,8 +148,13 @@ def test_render_refuses_non_empty_out_without_force(tmp_path, capsys):
     code, _, err = run(capsys, "render", scene, "--out", out)
     assert code == 2 and "--out" in err and "--force" in err
     assert (out / "precious.txt").read_text() == "keep me"
-    code, _, err = run(capsys, "render", scene, "--out", out, "--force")
-    assert code == 0 and not (out / "precious.txt").exists() and (out / "truth.json").exists()
+    code, _, err = run(capsys, "render", scene, "--out", out, "--force")  # --force replaces only synth's own stacks
+    assert code == 2 and "did not write" in err and (out / "precious.txt").read_text() == "keep me"
+    (out / "precious.txt").unlink()
+    code, _, err = run(capsys, "render", scene, "--out", out)  # an empty folder is fine
+    assert code == 0 and (out / "truth.json").exists()
+    code, _, err = run(capsys, "render", scene, "--out", out, "--force", "--seed", "5")
+    assert code == 0 and json.loads((out / "truth.json").read_text())["seed"] == 5
 
 
 def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch):

@@ -82,6 +82,16 @@ def kernel(wavelength_nm: float, working_f_number: float, pixel_pitch_mm: float,
     return k / k.sum()
 
 
+def bytes_needed(params: Diffraction, working_f_number: float, pixel_pitch_mm: float, width_px: int,
+                 height_px: int, oversample: int = 8) -> float:
+    """Peak memory (bytes) of :func:`apply` for one channel: the oversampled kernel grid (x, y, r,
+    Airy) and the padded FFT convolution."""
+    reach_mm = J1_ZEROS[params.reach_rings - 1] / math.pi * max(params.wavelength_nm) * 1e-6 * working_f_number
+    half = max(1, math.ceil(reach_mm / pixel_pitch_mm))
+    n = 2 * half + 1
+    return 40.0 * (n * oversample) ** 2 + 40.0 * (width_px + 2 * half + n) * (height_px + 2 * half + n)
+
+
 def apply(image: np.ndarray, params: Diffraction, working_f_number: float, pixel_pitch_mm: float) -> np.ndarray:
     """Convolve each channel of ``image`` (H, W) or (H, W, C) with its wavelength's Airy kernel."""
     import scipy.fft

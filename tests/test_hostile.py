@@ -1,0 +1,546 @@
+"""Hostile inputs: data loss, escapes from the stack folder, memory bombs, signals, races,
+absurd numbers. Every case must end in a one-line refusal with a non-zero exit (or a typed
+refusal from the API), never a traceback, never a lost or half-written file, never a read
+outside the stack folder.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from lensfit.cli import main as lensfit_main
+from lensfit.errors import InputError, OutputError, SpecError
+from lensfit.outputs import OutputLock, check_output, written_by
+from lensfit.stack import load_stack, read_image
+from synth.cli import main as synth_main
+
+SCENE = """
+[camera]
+pixel_pitch_mm = 0.006
+width_px = 96
+height_px = 64
+
+[lens]
+focal_length_mm = 50.0
+f_number = 4.0
+focus_distance_mm = 1500.0
+
+[render]
+samples_per_pixel = 16
+
+[[object]]
+id = "board"
+target = "checkerboard"
+squares = [4, 3]
+square_mm = 8.0
+distance_mm = 1200.0
+"""
+
+REC709 = np.array([0.2126, 0.7152, 0.0722])
+BIN = Path(sys.executable).parent
+
+
+def one_line_error(err: str, *needles: str) -> None:
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err and "error:" in lines[0], err
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def run_cli(capsys, main, *argv):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def scene_file(tmp_path, text=SCENE):
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return p
+
+
+def samples_json(path: Path) -> Path:
+    """A samples file as lensfit measure writes it: a V of blur against distance (thin lens,
+    f 50 mm, f/4, focus 1500 mm, pitch 6 um), written out independently of lensfit."""
+    f, N, D, p = 50.0, 4.0, 1500.0, 0.006
+    s = f * D / (D - f)
+    rows = []
+    for i, d in enumerate(np.linspace(700.0, 4000.0, 24)):
+        c = (f / N) * s * abs(1 / D - 1 / d) / p
+        rows.append({"image": f"shot_{i % 6}.png", "setting": "a", "distance_mm": float(d),
+                     "coc_diameter_px": float(c), "sigma_px": 0.05})
+    path.write_text(json.dumps({"samples": rows, "pixel_pitch_mm": p}))
+    return path
+
+
+# --------------------------------------------------------------------------- outputs: never lose data
+
+
+def test_force_never_deletes_a_folder_synth_did_not_write(tmp_path, capsys):
+    scene = scene_file(tmp_path)
+    out = tmp_path / "photos"
+    (out / "raw").mkdir(parents=True)
+    (out / "IMG_0001.CR2").write_bytes(b"a user's photo")
+    (out / "raw" / "IMG_0002.CR2").write_bytes(b"another")
+    code, _, err = run_cli(capsys, synth_main, "render", scene, "--out", out, "--force")
+    assert code == 2
+    one_line_error(err, "--out", "did not write")
+    assert "pass --force" not in err  # the error must not suggest the flag that would not help
+    assert (out / "IMG_0001.CR2").read_bytes() == b"a user's photo"
+    assert (out / "raw" / "IMG_0002.CR2").read_bytes() == b"another"
+
+
+def test_force_replaces_a_stack_synth_wrote_but_not_one_a_user_added_to(tmp_path, capsys):
+    scene = scene_file(tmp_path)
+    out = tmp_path / "stack"
+    assert run_cli(capsys, synth_main, "render", scene, "--out", out)[0] == 0
+    code, _, err = run_cli(capsys, synth_main, "render", scene, "--out", out)
+    assert code == 2
+    one_line_error(err, "--force")  # synth's own stack: --force would replace it
+    assert run_cli(capsys, synth_main, "render", scene, "--out", out, "--force", "--seed", "3")[0] == 0
+    assert json.loads((out / "truth.json").read_text())["seed"] == 3
+    (out / "notes.txt").write_text("my notes on this stack")
+    code, _, err = run_cli(capsys, synth_main, "render", scene, "--out", out, "--force")
+    assert code == 2
+    one_line_error(err, "notes.txt")
+    assert (out / "notes.txt").read_text() == "my notes on this stack"
+    assert json.loads((out / "truth.json").read_text())["seed"] == 3
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary or lock left
+
+
+def test_fit_force_replaces_only_its_own_files(tmp_path, capsys):
+    samples = samples_json(tmp_path / "samples.json")
+    user = tmp_path / "results.json"
+    user.write_text('{"my": "own results"}')
+    args = ("fit", samples, "--focal-length-px", 8333.3, "--pixel-pitch", 0.006)
+    code, _, err = run_cli(capsys, lensfit_main, *args, "--out", user, "--force")
+    assert code == 2
+    one_line_error(err, "--out", "not written by lensfit")
+    assert user.read_text() == '{"my": "own results"}'
+    ours = tmp_path / "ours.json"
+    plot = tmp_path / "fit.png"
+    assert run_cli(capsys, lensfit_main, *args, "--out", ours, "--plot", plot)[0] in (0, 3)
+    assert written_by(ours) == "lensfit" and written_by(plot) == "lensfit"
+    code, _, err = run_cli(capsys, lensfit_main, *args, "--out", ours)
+    assert code == 2
+    one_line_error(err, "--force")
+    assert run_cli(capsys, lensfit_main, *args, "--out", ours, "--plot", plot, "--force")[0] in (0, 3)
+    folder = tmp_path / "a_folder"
+    folder.mkdir()
+    code, _, err = run_cli(capsys, lensfit_main, *args, "--out", folder, "--force")
+    assert code == 2
+    one_line_error(err, "is a folder")
+    code, _, err = run_cli(capsys, lensfit_main, *args, "--out", samples, "--force")
+    assert code == 2 and samples.is_file()
+
+
+@pytest.mark.parametrize("suffix", [".png", ".svg", ".pdf"])
+def test_written_by_tells_our_plots_from_a_users(tmp_path, suffix):
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from lensfit.plots import _creator
+
+    fig = plt.figure()
+    fig.savefig(tmp_path / f"ours{suffix}", metadata=_creator(tmp_path / f"ours{suffix}"))
+    fig.savefig(tmp_path / f"users{suffix}")
+    plt.close(fig)
+    assert written_by(tmp_path / f"ours{suffix}") == "lensfit"
+    assert written_by(tmp_path / f"users{suffix}") is None
+
+
+def test_written_by_samples_csv_and_json(tmp_path, calibration_samples):
+    calibration_samples.write(tmp_path / "s.csv")
+    calibration_samples.write(tmp_path / "s.json")
+    assert written_by(tmp_path / "s.csv") == "lensfit" and written_by(tmp_path / "s.json") == "lensfit"
+    (tmp_path / "u.csv").write_text("image,setting,distance\nx,a,1\n")
+    (tmp_path / "u.json").write_text('{"provenance": {"program": "excel"}}')
+    assert written_by(tmp_path / "u.csv") is None and written_by(tmp_path / "u.json") is None
+    (tmp_path / "link.json").symlink_to(tmp_path / "s.json")
+    assert written_by(tmp_path / "link.json") is None  # never replace through a link
+
+
+def test_lock_excludes_a_second_writer_and_stale_locks_are_taken_over(tmp_path):
+    out = tmp_path / "results.json"
+    with OutputLock([("--out", out)]):
+        with pytest.raises(OutputError, match=f"process {os.getpid()}"):
+            with OutputLock([("--out", out)]):
+                pass
+    assert not (tmp_path / ".results.json.lock").exists()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    import socket
+
+    (tmp_path / ".results.json.lock").write_text(f"{dead.pid} {socket.gethostname()}\n")
+    with OutputLock([("--out", out)]):  # the writer that left it is gone
+        pass
+
+
+def _cli(name: str) -> list[str]:
+    return [str(BIN / name)]
+
+
+def test_two_renders_to_one_new_folder_one_wins_intact(tmp_path):
+    scene = scene_file(tmp_path)
+    out = tmp_path / "stack"
+    procs = [subprocess.Popen(_cli("synth") + ["render", str(scene), "--out", str(out)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = [(p.wait(timeout=300), p.stdout.read(), p.stderr.read()) for p in procs]
+    codes = sorted(r[0] for r in results)
+    assert codes == [0, 2], results
+    loser = next(r for r in results if r[0] == 2)
+    one_line_error(loser[2], "--out")
+    truth = json.loads((out / "truth.json").read_text())
+    assert all((out / im["file"]).is_file() for im in truth["images"])
+    assert load_stack(out).images  # a complete, valid stack
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml", "stack"]
+
+
+def test_two_fits_to_one_output_one_wins_intact(tmp_path):
+    samples = samples_json(tmp_path / "samples.json")
+    out = tmp_path / "r.json"
+    cmd = _cli("lensfit") + ["fit", str(samples), "--focal-length-px", "8333.3", "--pixel-pitch", "0.006",
+                             "--out", str(out)]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = [(p.wait(timeout=300), p.stdout.read(), p.stderr.read()) for p in procs]
+    assert sorted(r[0] == 2 for r in results) == [False, True], results
+    winner = next(r for r in results if r[0] != 2)
+    loser = next(r for r in results if r[0] == 2)
+    one_line_error(loser[2], "--out")
+    doc = json.loads(out.read_text())
+    assert doc["provenance"]["program"] == "lensfit" and "a" in doc["settings"]
+    assert winner[0] in (0, 3)
+
+
+@pytest.mark.parametrize("sig,code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_signal_during_render_exits_cleanly_and_leaves_nothing(tmp_path, sig, code):
+    slow = SCENE.replace("width_px = 96", "width_px = 1200").replace("height_px = 64", "height_px = 800") \
+        .replace("samples_per_pixel = 16", "samples_per_pixel = 1024") + '\n[[shot]]\n[[shot]]\n[[shot]]\n'
+    scene = scene_file(tmp_path, slow.replace("[render]", '[render]\nmethod = "raytrace"'))
+    out = tmp_path / "stack"
+    proc = subprocess.Popen(_cli("synth") + ["render", str(scene), "--out", str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    lock = tmp_path / ".stack.lock"
+    deadline = time.time() + 120
+    while not lock.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, proc.communicate()
+    time.sleep(1.0)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == code, err
+    one_line_error(err, "temporary files removed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml"]
+
+
+def test_measure_refuses_a_bad_output_before_any_work(tmp_path, capsys, monkeypatch, calibration_stack):
+    import lensfit.measure
+
+    def must_not_run(*a, **k):
+        raise AssertionError("measured before checking the output")
+
+    monkeypatch.setattr(lensfit.measure, "measure", must_not_run)
+    code, _, err = run_cli(capsys, lensfit_main, "measure", calibration_stack, "--out", tmp_path / "no" / "s.csv")
+    assert code == 2
+    one_line_error(err, "does not exist")
+    (tmp_path / "mine.csv").write_text("a,b\n1,2\n")
+    code, _, err = run_cli(capsys, lensfit_main, "measure", calibration_stack, "--out", tmp_path / "mine.csv",
+                           "--force")
+    assert code == 2
+    one_line_error(err, "not written by lensfit")
+    assert (tmp_path / "mine.csv").read_text() == "a,b\n1,2\n"
+
+
+def test_unforeseen_failure_is_one_line(capsys, monkeypatch):
+    import lensfit.cli
+
+    def broken(args):
+        raise RuntimeError("something nobody planned for")
+
+    monkeypatch.setattr(lensfit.cli, "_dof_command", broken)
+    code, _, err = run_cli(capsys, lensfit_main, "dof", "--focal-length", 50, "--f-number", 2, "--focus-distance",
+                           1000, "--coc", 0.03)
+    assert code == 70
+    one_line_error(err, "internal error", "RuntimeError")
+
+
+# --------------------------------------------------------------------------- inputs: only inside the stack
+
+
+def _png(path: Path, shape=(40, 60), value=30000) -> Path:
+    cv2.imwrite(str(path), np.full(shape, value, np.uint16))
+    return path
+
+
+def _stack(folder: Path, file: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "stack.toml").write_text(f'[camera]\npixel_pitch_mm = 0.006\n\n[[target]]\nid = "board"\n'
+                                       'kind = "checkerboard"\nsquares = [6, 4]\nsquare_mm = 20.0\n\n'
+                                       f'[[image]]\nfile = "{file}"\n')
+    return folder
+
+
+@pytest.mark.parametrize("how", ["parent", "absolute", "symlink"])
+def test_image_entries_outside_the_stack_are_refused(tmp_path, how):
+    outside = _png(tmp_path / "outside.png")
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    if how == "parent":
+        entry = "../outside.png"
+    elif how == "absolute":
+        entry = str(outside)
+    else:
+        (folder / "inside.png").symlink_to(outside)
+        entry = "inside.png"
+    _stack(folder, entry)
+    with pytest.raises(SpecError, match=r"image\[0\]\.file.*outside the stack folder"):
+        load_stack(folder)
+    stack = load_stack(folder, allow_outside=True)  # the explicit opt-in
+    assert stack.read(0).mean() == pytest.approx(30000 / 65535)
+
+
+def test_etc_passwd_is_not_read(tmp_path, capsys):
+    folder = _stack(tmp_path / "stack", "../../../../../../../../etc/passwd")
+    code, _, err = run_cli(capsys, lensfit_main, "fit", folder)
+    assert code == 2
+    one_line_error(err, "image[0].file", "outside")
+
+
+# --------------------------------------------------------------------------- full bit depth, every layout
+
+
+def _expected_grey(rgb: np.ndarray, full: float) -> np.ndarray:
+    return (rgb.astype(np.float64) / full) @ REC709
+
+
+def test_16_bit_colour_png_is_read_at_16_bits_like_the_same_tiff(tmp_path):
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 65536, (30, 50, 3), dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "c.png"), rgb[..., ::-1])  # OpenCV writes BGR
+    tifffile.imwrite(tmp_path / "c.tif", rgb, photometric="rgb")
+    tifffile.imwrite(tmp_path / "p.tif", np.moveaxis(rgb, -1, 0), photometric="rgb", planarconfig="separate")
+    want = _expected_grey(rgb, 65535.0)
+    for name in ("c.png", "c.tif", "p.tif"):
+        np.testing.assert_allclose(read_image(tmp_path / name), want, rtol=0, atol=1e-12, err_msg=name)
+
+
+def test_every_png_layout(tmp_path):
+    from PIL import Image
+
+    rng = np.random.default_rng(2)
+    grey8 = rng.integers(0, 256, (20, 30), dtype=np.uint8)
+    rgba16 = rng.integers(0, 65536, (20, 30, 4), dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "rgba16.png"), rgba16[..., [2, 1, 0, 3]])
+    np.testing.assert_allclose(read_image(tmp_path / "rgba16.png"), _expected_grey(rgba16[..., :3], 65535.0),
+                               atol=1e-12)
+    Image.fromarray(grey8, "L").save(tmp_path / "l.png")
+    np.testing.assert_allclose(read_image(tmp_path / "l.png"), grey8 / 255.0, atol=1e-12)
+    la = np.stack([grey8, np.full_like(grey8, 200)], axis=-1)
+    Image.fromarray(la, "LA").save(tmp_path / "la.png")
+    np.testing.assert_allclose(read_image(tmp_path / "la.png"), grey8 / 255.0, atol=1e-9)
+    pal = Image.fromarray(grey8 // 64, "P")
+    pal.putpalette([0, 0, 0, 255, 0, 0, 0, 255, 0, 0, 0, 255] + [0] * 756)
+    pal.save(tmp_path / "p.png")
+    colours = np.array([[0, 0, 0], [255, 0, 0], [0, 255, 0], [0, 0, 255]])[grey8 // 64]
+    np.testing.assert_allclose(read_image(tmp_path / "p.png"), _expected_grey(colours, 255.0), atol=1e-9)
+    bits = grey8 > 127
+    Image.fromarray(bits).convert("1").save(tmp_path / "b.png")
+    np.testing.assert_allclose(read_image(tmp_path / "b.png"), bits.astype(float), atol=1e-12)
+
+
+# --------------------------------------------------------------------------- bombs and broken files
+
+
+def _patch_png_size(src: Path, dst: Path, width: int, height: int) -> Path:
+    data = bytearray(src.read_bytes())
+    data[16:20], data[20:24] = width.to_bytes(4, "big"), height.to_bytes(4, "big")
+    data[29:33] = zlib.crc32(bytes(data[12:29])).to_bytes(4, "big")
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+def test_png_declaring_13000_squared_is_refused_from_its_header(tmp_path, capsys):
+    bomb = _patch_png_size(_png(tmp_path / "small.png"), tmp_path / "bomb.png", 13000, 13000)
+    assert bomb.stat().st_size < 2000
+    with pytest.raises(SpecError, match="169.0 MP.*--max-megapixels"):
+        read_image(bomb)
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    bomb.rename(folder / "bomb.png")
+    _stack(folder, "bomb.png")
+    code, _, err = run_cli(capsys, lensfit_main, "fit", folder)
+    assert code == 2
+    one_line_error(err, "bomb.png", "MP")
+    code, _, err = run_cli(capsys, lensfit_main, "fit", folder, "--max-megapixels", "nan")
+    assert code == 2
+    one_line_error(err, "--max-megapixels")
+
+
+def test_compressed_tiff_bomb_is_refused_before_decoding(tmp_path):
+    path = tmp_path / "bomb.tif"
+    tile = np.zeros((1024, 1024), np.uint8)
+    tifffile.imwrite(path, (tile for _ in range(20 * 20)), shape=(20480, 20480), dtype=np.uint8,
+                     compression="zlib", tile=(1024, 1024))
+    assert path.stat().st_size < 50_000_000
+    with pytest.raises(SpecError, match="419.4 MP"):
+        read_image(path)
+
+
+@pytest.mark.parametrize("name,content", [
+    ("truncated.png", None), ("garbage.png", b"not an image at all" * 10), ("empty.tif", b""),
+    ("garbage.tif", b"II*\x00" + b"\xff" * 64), ("garbage.dng", b"\x00" * 512), ("garbage.cr2", b"MM\x00*" * 40),
+    ("text.jpg", b"\xff\xd8\xff"),
+])
+def test_broken_files_are_one_line_refusals(tmp_path, capsys, name, content):
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    if content is None:
+        full = _png(tmp_path / "full.png", (200, 300)).read_bytes()
+        (folder / name).write_bytes(full[: len(full) // 2])
+    else:
+        (folder / name).write_bytes(content)
+    _stack(folder, name)
+    code, _, err = run_cli(capsys, lensfit_main, "measure", folder, "--out", tmp_path / "s.csv")
+    assert code == 2
+    one_line_error(err, name)
+    assert not (tmp_path / "s.csv").exists()
+
+
+# --------------------------------------------------------------------------- numbers
+
+
+@pytest.mark.parametrize("line,field", [
+    ("pixel_pitch_mm = nan", "camera.pixel_pitch_mm"), ("pixel_pitch_mm = inf", "camera.pixel_pitch_mm"),
+    ("pixel_pitch_mm = 1e300", "camera.pixel_pitch_mm"), ("pixel_pitch_mm = -0.006", "camera.pixel_pitch_mm"),
+])
+def test_manifest_numbers_that_are_not_physical_are_refused(tmp_path, capsys, line, field):
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    _png(folder / "a.png")
+    (folder / "stack.toml").write_text(f'[camera]\n{line}\n\n[[image]]\nfile = "a.png"\n')
+    code, _, err = run_cli(capsys, lensfit_main, "measure", folder, "--out", tmp_path / "s.csv")
+    assert code == 2
+    one_line_error(err, field)
+
+
+@pytest.mark.parametrize("old,new,field", [
+    ("f_number = 4.0", "f_number = nan", "lens.f_number"),
+    ("f_number = 4.0", "f_number = 0.3", "lens.f_number"),
+    ("pixel_pitch_mm = 0.006", "pixel_pitch_mm = 1e300", "camera.pixel_pitch_mm"),
+    ("distance_mm = 1200.0", "distance_mm = -inf", "object[0].distance_mm"),
+])
+def test_scene_numbers_that_are_not_physical_are_refused(tmp_path, capsys, old, new, field):
+    scene = scene_file(tmp_path, SCENE.replace(old, new))
+    code, _, err = run_cli(capsys, synth_main, "plan", scene)
+    assert code == 2
+    one_line_error(err, field)
+
+
+def test_render_resources_are_checked_before_allocation(tmp_path, capsys):
+    scene = scene_file(tmp_path)
+    code, _, err = run_cli(capsys, synth_main, "render", scene, "--out", tmp_path / "o", "--spp", 10**9)
+    assert code == 2
+    one_line_error(err, "--spp")
+    hair = scene_file(tmp_path, SCENE.replace("focus_distance_mm = 1500.0", "focus_distance_mm = 50.000001"))
+    code, _, err = run_cli(capsys, synth_main, "render", hair, "--out", tmp_path / "o", "--method", "convolve")
+    assert code == 2
+    one_line_error(err, "--method", "PiB")
+    code, out, err = run_cli(capsys, synth_main, "plan", hair)  # auto: ray traces, memory bounded by its tiles
+    assert code == 0 and "raytrace" in out
+    assert not (tmp_path / "o").exists()
+
+
+def test_wide_image_at_many_samples_is_refused_by_memory(tmp_path, capsys):
+    wide = SCENE.replace("width_px = 96", "width_px = 20000")
+    code, _, err = run_cli(capsys, synth_main, "plan", scene_file(tmp_path, wide), "--spp", 65536, "--method",
+                           "raytrace")
+    assert code == 2
+    one_line_error(err, "--spp", "at most")
+
+
+def _extreme(rng, lo, hi, n):
+    kind = rng.integers(4)
+    if kind == 0:
+        return 10 ** rng.uniform(math.log10(lo), math.log10(hi), n)
+    if kind == 1:
+        return np.full(n, 10 ** rng.uniform(math.log10(lo), math.log10(hi)))
+    if kind == 2:
+        return np.full(n, rng.choice([lo, hi]))
+    return 10 ** rng.uniform(math.log10(lo), math.log10(hi)) * (1 + 1e-9 * rng.normal(size=n))
+
+
+def test_fit_never_crashes_or_returns_nan_on_extreme_finite_samples():
+    """Random sample sets at the edges of the valid ranges (and beyond them): a result without
+    NaN or inf (estimates or typed reasons), or an InputError naming the field; nothing else."""
+    import warnings
+
+    from lensfit.fitting import fit
+
+    rng = np.random.default_rng(20261123)
+    outcomes = {"ok": 0, "not_identifiable": 0, "InputError": 0}
+    for trial in range(60):
+        n = int(rng.integers(1, 30))
+        widen = 1e3 if trial % 4 == 0 else 1.0  # a quarter of the sets go beyond the valid ranges
+        d = _extreme(rng, 0.1 / widen, 1e9 * widen, n)
+        c = _extreme(rng, 1e-9, 1e6 * widen, n) * rng.choice([0.0, 1.0], n, p=[0.1, 0.9])
+        sg = _extreme(rng, 1e-6 / widen, 1e6, n)
+        rows = [{"setting": str(rng.choice(["a", "b"])), "distance_mm": float(a), "coc_diameter_px": float(b),
+                 "sigma_px": float(e)} for a, b, e in zip(d, c, sg)]
+        pitch = float(_extreme(rng, 1e-4, 1.0 * widen, 1)[0])
+        fpx = float(_extreme(rng, 1.0, 1e7, 1)[0]) if rng.random() < 0.8 else None
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # no RuntimeWarning escapes either
+                result = fit(rows, pixel_pitch_mm=pitch, focal_length_px=fpx)
+        except InputError as exc:
+            assert exc.argument in ("pixel_pitch_mm", "focal_length_px", "samples") or \
+                exc.argument.startswith("samples["), exc
+            outcomes["InputError"] += 1
+            continue
+        json.dumps(result.to_json_dict(), allow_nan=False)
+        assert result.ok or result.reasons
+        outcomes[result.code] += 1
+    assert outcomes["InputError"] >= 5 and outcomes["not_identifiable"] + outcomes["ok"] >= 30, outcomes
+
+
+def test_check_output_refuses_an_unwritable_folder(tmp_path):
+    if os.geteuid() == 0:
+        pytest.skip("root writes everywhere")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    with pytest.raises(OutputError, match="not writable"):
+        check_output(ro / "r.json", "--out", force=False)
+
+
+@pytest.mark.parametrize("name,content", [
+    ("s.csv", b"\xff\xfe\x00binary\x00\x81"), ("s.csv", b"setting,distance_mm\na,1000\n"),
+    ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px\na,nan,3,0.1\n"),
+    ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px\na,ten,3,0.1\n"),
+    ("s.json", b"[[1, 2], [3]]"), ("s.json", b'{"samples": [[1, 2]]}'),
+    ("s.json", b'{"samples": [], "intrinsics": {"a": 5}}'), ("s.json", b'{"samples": "x", "pixel_pitch_mm": 0.006}'),
+    ("s.json", b'{"samples": [{"setting": "a", "distance_mm": 1e400, "coc_diameter_px": 1, "sigma_px": 1}]}'),
+    ("s.json", b"\x00\x01\x02"),
+])
+def test_hostile_samples_files_are_one_line_refusals(tmp_path, capsys, name, content):
+    path = tmp_path / name
+    path.write_bytes(content)
+    code, _, err = run_cli(capsys, lensfit_main, "fit", path, "--pixel-pitch", 0.006, "--focal-length-px", 8000)
+    assert code == 2, err
+    one_line_error(err)
