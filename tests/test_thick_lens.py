@@ -1,0 +1,145 @@
+"""The thick-lens fit (pupil magnification P) against samples simulated from paraxial optics
+written out here, independent of lensfit: the entrance pupil E (diameter A = f/N) images to
+the exit pupil E' (diameter P A); an object at x from E images at x' from E' with
+1/x' = 1/(P f) - 1/(P^2 x); the blur on a sensor at s_x = x'(X) is the exit-pupil cone's cross
+section P A |s_x - x'| / x'; a pinhole calibration centred on E sees chief rays leave E' with
+tan(theta') = tan(theta) / P, so it measures f_px = s_x / (P p).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lensfit.errors import InputError
+from lensfit.fitting import fit
+
+PITCH = 0.005
+
+
+def image_distance(f, P, x):
+    """x' from the exit pupil for an object at x from the entrance pupil (inf allowed)."""
+    inv_x = 0.0 if math.isinf(x) else 1.0 / x
+    return 1.0 / (1.0 / (P * f) - inv_x / P**2)
+
+
+def simulate(f, P, settings, rng, *, noise_px=0.05, rel_noise=0.005, fpx_rel_sigma=1e-4, n=40):
+    """Rows and per-setting calibrated f_px for settings {label: (N, X, (near, far))}."""
+    rows, fpx, fsg = [], {}, {}
+    for label, (N, X, (near, far)) in settings.items():
+        A = f / N
+        s_x = image_distance(f, P, X)
+        for i, d in enumerate(1.0 / np.linspace(1.0 / near, 1.0 / far, n)):
+            xi = image_distance(f, P, d)
+            c = P * A * abs(s_x - xi) / xi / PITCH
+            sigma = math.hypot(noise_px, rel_noise * c)
+            rows.append({"setting": label, "distance_mm": float(d), "coc_diameter_px": abs(c + rng.normal(0, sigma)),
+                         "sigma_px": sigma, "image": f"{label}_{i % 8}.png"})
+        true_fpx = s_x / (P * PITCH)
+        fpx[label] = true_fpx * (1 + fpx_rel_sigma * rng.normal())
+        fsg[label] = fpx_rel_sigma * true_fpx
+    return rows, fpx, fsg
+
+
+def inside(est, truth):
+    lo, hi = est.ci95
+    return (lo is None or lo <= truth) and (hi is None or truth <= hi)
+
+
+def check(est, truth, rel):
+    assert est.value is not None, est.reason
+    assert abs(est.value / truth - 1) <= rel, f"{est.value} vs {truth} ({100 * (est.value / truth - 1):+.2f}%)"
+    assert inside(est, truth), f"{truth} outside {est.ci95}"
+
+
+BRACKETS = {
+    "telephoto 135 mm P 0.55": (135.0, 0.55, {"near": (5.6, 1500.0, (900.0, 3000.0)),
+                                               "far": (5.6, 4000.0, (2000.0, 9000.0))}),
+    "retrofocus 24 mm P 2.1": (24.0, 2.1, {"near": (4.0, 400.0, (250.0, 900.0)),
+                                            "mid": (4.0, 800.0, (450.0, 2000.0)),
+                                            "far": (4.0, 2000.0, (900.0, 6000.0))}),
+    "double Gauss 50 mm P 0.95": (50.0, 0.95, {"near": (2.8, 500.0, (350.0, 800.0)),
+                                                "far": (2.8, 2000.0, (1000.0, 5000.0))}),
+}
+
+
+@pytest.mark.parametrize("name", list(BRACKETS))
+def test_focus_bracket_recovers_pupil_magnification_and_the_lens(name):
+    f, P, settings = BRACKETS[name]
+    rows, fpx, fsg = simulate(f, P, settings, np.random.default_rng(7))
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    assert r.ok, r.reasons
+    assert r.pupil_magnification_source == "fitted"
+    check(r.pupil_magnification, P, 0.05)
+    check(r.focal_length_mm, f, 0.01)
+    for label, (N, X, _) in settings.items():
+        check(r.settings[label]["f_number"], N, 0.01)
+        check(r.settings[label]["focus_distance_mm"], X, 0.01)
+        check(r.settings[label]["sensor_distance_mm"], image_distance(f, P, X), 0.01)  # exit pupil to sensor
+        e = r.settings[label]["focus_distance_from_sensor_mm"]
+        assert e.value is None and "entrance pupil" in e.reason  # not determined by blur + pinhole
+
+
+def test_thin_lens_mapping_of_a_telephoto_is_biased_as_predicted():
+    """One setting of a P = 0.5 lens read as a thin lens: f and N come out high by about
+    (f/X)(1/P - 1) (DOMAIN: 1/f = 1/S + 1/(P X)); the stated assumption P = 1 says so."""
+    f, P, N, X = 100.0, 0.5, 4.0, 2000.0
+    rows, fpx, fsg = simulate(f, P, {"a": (N, X, (1200.0, 5000.0))}, np.random.default_rng(3))
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    assert r.pupil_magnification_source == "assumed" and r.pupil_magnification.value == 1.0
+    assert any("pupil magnification" in w for w in r.warnings)
+    S = image_distance(f, P, X) / P
+    f_thin = 1.0 / (1.0 / S + 1.0 / X)
+    assert r.focal_length_mm.value == pytest.approx(f_thin, rel=2e-3)
+    assert f_thin / f - 1 == pytest.approx((f / X) * (1 / P - 1), rel=0.1)
+    # the right assumption gives the lens back
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=P)
+    check(r.focal_length_mm, f, 0.003)
+    check(r.settings["a"]["f_number"], N, 0.01)
+    assert r.pupil_magnification_source == "assumed" and r.pupil_magnification.value == P
+
+
+def test_a_prior_range_widens_the_intervals_honestly():
+    f, P, N, X = 100.0, 0.6, 4.0, 1500.0
+    rng = np.random.default_rng(11)
+    rows, fpx, fsg = simulate(f, P, {"a": (N, X, (900.0, 4000.0))}, rng)
+    fixed = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0)
+    ranged = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg,
+                 pupil_magnification=(0.5, 2.0))
+    assert ranged.pupil_magnification_source == "prior"
+    assert not inside(fixed.focal_length_mm, f)  # the silent thin-lens answer excludes the truth ...
+    assert inside(ranged.focal_length_mm, f)  # ... the stated range holds it
+    assert inside(ranged.settings["a"]["f_number"], N)
+    assert ranged.focal_length_mm.sigma > 5 * fixed.focal_length_mm.sigma
+    lo, hi = ranged.pupil_magnification.ci95
+    assert 0.45 < lo < 0.6 and 1.7 < hi < 2.3  # the data add nothing to the prior on P
+
+
+def test_thin_lens_is_the_p_equal_1_case():
+    f, N, X = 50.0, 2.8, 1500.0
+    settings = {"a": (N, X, (800.0, 4000.0)), "b": (N, 3000.0, (1500.0, 8000.0))}
+    rows, fpx, fsg = simulate(f, 1.0, settings, np.random.default_rng(5))
+    auto = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    check(auto.pupil_magnification, 1.0, 0.05)
+    thin = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0)
+    check(thin.focal_length_mm, f, 0.002)
+    e = thin.settings["a"]["focus_distance_from_sensor_mm"]  # the thin lens: E is the lens plane
+    assert e.value == pytest.approx(X + image_distance(f, 1.0, X), rel=2e-3)
+
+
+def test_settings_at_one_focus_distance_cannot_fit_p_and_say_so():
+    f, P = 85.0, 0.8
+    settings = {"f2": (2.0, 1500.0, (900.0, 4000.0)), "f4": (4.0, 1500.0, (900.0, 4000.0))}
+    rows, fpx, fsg = simulate(f, P, settings, np.random.default_rng(9))
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    assert r.pupil_magnification_source == "assumed"
+    assert any("pupil magnification" in w and "focus" in w for w in r.warnings)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, math.nan, math.inf, 50.0, (2.0, 1.0), (0.0, 1.0), "x"])
+def test_bad_pupil_magnification_is_refused(bad):
+    rows, fpx, fsg = simulate(50.0, 1.0, {"a": (2.8, 1500.0, (800.0, 4000.0))}, np.random.default_rng(1))
+    with pytest.raises(InputError, match="pupil_magnification"):
+        fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, pupil_magnification=bad)
