@@ -24,7 +24,7 @@ EXIT_NOT_IDENTIFIABLE = 3  # the fit ran, but some parameter cannot be determine
 # Library argument names -> the options a user typed, so that errors name what they wrote.
 _MEASURE_OPTIONS = {"estimator": "--estimator", "setting": "setting"}
 _FIT_OPTIONS = {**_MEASURE_OPTIONS, "pixel_pitch_mm": "--pixel-pitch", "focal_length_px": "--focal-length-px",
-                "loss": "--loss", "blur_floor_px": "--blur-floor"}
+                "loss": "--loss", "blur_floor_px": "--blur-floor", "pupil_magnification": "--pupil-magnification"}
 
 _DOF_OPTIONS = {
     "focal_length_mm": "--focal-length",
@@ -291,6 +291,11 @@ def _print_fit(result, document) -> None:
     def num(x, spec):
         return "n/a" if x is None else format(x, spec)
 
+    pm = document["pupil_magnification"]
+    if pm["value"] is not None:
+        how = {"fitted": "fitted", "prior": "from the stated range", "assumed": "assumed"}[pm["source"]]
+        spread = f" ± {pm['sigma']:.3g}" if pm["sigma"] else ""
+        print(f"pupil magnification P = {pm['value']:.4g}{spread} ({how}); distances are from the entrance pupil")
     print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {num(d['rms_residual_px'], '.3f')} px, "
           f"reduced chi-square {num(d['chi2_reduced'], '.2f')}, condition number "
           f"{num(d['condition_number'], '.3g')}, loss {d['loss']}")
@@ -360,7 +365,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
 
     with console.status("fitting"):
         result = fit(table, pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
-                     blur_floor_px=args.blur_floor)
+                     blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification)
     document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
 
     written = _write_fit_outputs(args, source, table, result, document)
@@ -474,6 +479,17 @@ def _number(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
 
 
+def _pupil(text: str) -> float | tuple[float, float]:
+    """``--pupil-magnification``: a number, or ``LO:HI``."""
+    try:
+        if ":" in text:
+            lo, hi = text.split(":", 1)
+            return float(lo), float(hi)
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or LO:HI, got {text!r}") from None
+
+
 def _input_options(p: argparse.ArgumentParser) -> None:
     """Options on reading a stack: the pixel budget and reading outside the stack folder."""
     from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
@@ -543,6 +559,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="robust loss (default huber; cauchy for many outliers)")
     ft.add_argument("--blur-floor", type=_number, metavar="PX",
                     help="fix the blur floor (px) instead of fitting it per setting")
+    ft.add_argument("--pupil-magnification", type=_pupil, metavar="P|LO:HI",
+                    help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
+                         "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
+                         "fitted from two or more focus settings, else 1 (thin lens) with a warning")
     ft.add_argument("--pixel-pitch", type=_number, metavar="MM", help="pixel pitch, mm (for a samples CSV)")
     ft.add_argument("--focal-length-px", type=_number, metavar="PX",
                     help="calibrated focal length in px (for a samples CSV, which has no intrinsics)")

@@ -3,10 +3,11 @@
 Model
 -----
 For lens setting ``k`` (a focus distance ``D_k`` and f-number ``N_k``; all settings share the
-focal length ``f``) and a sample on an edge whose ends lie at ``d0`` and ``d1`` from the lens
-plane::
+focal length ``f`` and the pupil magnification ``P``) and a sample on an edge whose ends lie at
+``d0`` and ``d1`` from the entrance pupil (the lens plane of a thin lens)::
 
-    s_k  = 1 / (1/f - 1/D_k)              sensor distance (thin lens), mm
+    s_k  = 1 / (1/f - 1/(P D_k))          pinhole distance S = f_px * p, mm (thin lens: P = 1,
+                                          the lens-to-sensor distance)
     K_k  = A_k * s_k = f * s_k / N_k       slope of the blur "V" in inverse distance, mm^2
     c(t) = sqrt( (K_k/p)^2 * (1/D_k - 1/d(t))^2 + b_k^2 )              px, local blur
     c    = ( integral_0^1 c(t)^q dt )^(1/q),  q = BLUR_POWER_MEAN = 1.3     px, the edge's blur
@@ -27,11 +28,20 @@ Why this form:
 - The floor is fitted per setting with a weak prior ``b_k ~ 0 +- 1 px`` (a regulariser that
   matters only when no sample lies near the focus plane), or fixed by the caller.
 
+Thick lenses (DOMAIN notes, "Real lenses"): with ``A`` the entrance-pupil diameter, ``P`` the
+exit/entrance pupil ratio and ``s_x`` the exit pupil's distance from the sensor, the blur is
+``(A s_x / P) |1/D - 1/d|`` and a pinhole calibration centred on the entrance pupil measures
+``S = s_x / P``: the V is ``A S |1/D - 1/d|`` whatever ``P`` is, and only the mapping from ``S``
+to ``f`` carries ``P``: ``1/f = 1/S + 1/(P D)``. Two or more focus settings that share ``f`` and
+``P`` (unit focusing) determine ``P`` (``1/S_k`` is linear in ``1/D_k``); with one setting ``P``
+is an assumption (1 by default, with a warning) or a stated prior range.
+
 Observations: the blur samples (weights from each sample's stated 1 sigma) and, per setting,
-the calibrated focal length in px, ``f_px = s_k / p`` with its 1 sigma (a pinhole calibration
-measures the sensor distance of a thin lens). Parameters (float64, chosen to stay well
-conditioned from macro to infinity): ``log f``; per setting the inverse focus distance
-``1000/D_k`` (dioptres, 0 at infinity, allowed to cross it), ``log N_k`` and ``b_k``.
+the calibrated focal length in px, ``f_px = s_k / p`` with its 1 sigma. Parameters (float64,
+chosen to stay well conditioned from macro to infinity): ``log f``; per setting the inverse
+focus distance ``1000/D_k`` (dioptres, 0 at infinity, allowed to cross it), ``log N_k`` and
+``b_k``; ``log P`` (held where assumed; a log-normal prior where a range is given, a very weak
+one where it is fitted).
 
 Solver: a closed-form start (for each candidate vertex on a grid spanning the data, linear
 least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix
@@ -194,6 +204,10 @@ class FitResult:
     weights: np.ndarray
     _full: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
     _setup: dict[str, Any] = field(repr=False, default_factory=dict)  # solver rows, for cramer_rao
+    #: the pupil magnification P (exit / entrance pupil diameter) the fit used, and how:
+    #: "fitted" (two or more focus settings), "prior" (a stated range) or "assumed" (a value)
+    pupil_magnification: Estimate = field(default_factory=lambda: Estimate(1.0, 0.0, (1.0, 1.0), (1.0, 1.0)))
+    pupil_magnification_source: str = "assumed"
 
     @property
     def ok(self) -> bool:
@@ -213,6 +227,8 @@ class FitResult:
                 for i in range(len(names))}
         return {
             "focal_length_mm": self.focal_length_mm.to_json_dict(),
+            "pupil_magnification": self.pupil_magnification.to_json_dict() | {
+                "source": self.pupil_magnification_source},
             "settings": {label: {q: e.to_json_dict() for q, e in qs.items()} | {"samples": int(np.sum(
                 self.samples.setting == self.samples.labels.index(label)))} for label, qs in self.settings.items()},
             "result": self.code,
@@ -370,7 +386,21 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
 
 
 def _unpack(theta, m):
-    return theta[0], theta[1:1 + m], theta[1 + m:1 + 2 * m], theta[1 + 2 * m:1 + 3 * m]
+    """(log f, inverse focus distances in dioptres, log N, floors in px, log P) from the vector."""
+    return theta[0], theta[1:1 + m], theta[1 + m:1 + 2 * m], theta[1 + 2 * m:1 + 3 * m], theta[1 + 3 * m]
+
+
+def _size(m: int) -> int:
+    """Length of the parameter vector for ``m`` settings."""
+    return 2 + 3 * m
+
+
+def _pinhole_distance(xp, f, x, P):
+    """``S = 1 / (1/f - x/P)``: the distance a pinhole calibration centred on the entrance pupil
+    measures (``f_px * p``), for focus at inverse distance ``x`` (1/mm) from the entrance pupil
+    (paraxial thick lens, DOMAIN "Real lenses"; ``s`` of the thin lens at ``P = 1``). Focus
+    nearer than the lens can image is clamped."""
+    return 1.0 / xp.maximum(1.0 / f - x / P, 1e-6 / f)
 
 
 def _edge_blur(xp, slope_px, x, w_nodes, floor):
@@ -384,22 +414,21 @@ def _model(theta, m, setting, w_nodes, pitch):
     """Blur diameter in px of each sample (JAX)."""
     import jax.numpy as jnp
 
-    log_f, inv_d, log_n, floor = _unpack(theta, m)
+    log_f, inv_d, log_n, floor, log_p = _unpack(theta, m)
     f = jnp.exp(log_f)
     x = inv_d / 1000.0  # 1/mm
-    inv_s = jnp.maximum(1.0 / f - x, 1e-6 / f)  # focus nearer than f is not a thin-lens image
-    s = 1.0 / inv_s
-    slope_px = f * s / jnp.exp(log_n) / pitch  # K/p
+    s = _pinhole_distance(jnp, f, x, jnp.exp(log_p))
+    slope_px = f * s / jnp.exp(log_n) / pitch  # K/p = A S / p
     k = setting
     return _edge_blur(jnp, slope_px[k], x[k], w_nodes, floor[k]), s
 
 
 def _model_np(theta, m, k, w_nodes, pitch):
     """The same for the samples of setting ``k`` (NumPy)."""
-    log_f, inv_d, log_n, floor = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
+    log_f, inv_d, log_n, floor, log_p = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
     f = math.exp(log_f)
     x = inv_d[k] / 1000.0
-    s = 1.0 / max(1.0 / f - x, 1e-6 / f)
+    s = float(_pinhole_distance(np, f, x, math.exp(log_p)))
     n = len(w_nodes)
     return _edge_blur(np, np.full(n, f * s / math.exp(log_n[k]) / pitch), np.full(n, x), w_nodes,
                       np.full(n, floor[k]))
@@ -409,13 +438,14 @@ def _residuals(theta_free, args):
     """Weighted residuals: blur rows, then the focal-length-in-px rows, then the floor priors."""
     import jax.numpy as jnp
 
-    (theta_fixed, free_idx, m, setting, w_nodes, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w, floor_w) = args
+    (theta_fixed, free_idx, m, setting, w_nodes, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w, floor_w, p_prior) = args
     theta = theta_fixed.at[free_idx].set(theta_free)
     c, s = _model(theta, m, setting, w_nodes, pitch)
     r_blur = (c - coc) * sqrt_w_over_sigma
     r_fpx = (s / pitch - fpx) * fpx_w
     r_floor = theta[1 + 2 * m:1 + 3 * m] * floor_w
-    return jnp.concatenate([r_blur, r_fpx, r_floor])
+    r_p = ((theta[1 + 3 * m] - p_prior[0]) * p_prior[1])[None]  # prior on log P (weight 0: none)
+    return jnp.concatenate([r_blur, r_fpx, r_floor, r_p])
 
 
 _SOLVERS: dict[Any, Any] = {}
@@ -446,12 +476,12 @@ def _solver(m: int):
     def quantities(t):
         import jax.numpy as jnp
 
-        log_f, inv_d, log_n, floor = _unpack(t, m)
+        log_f, inv_d, log_n, floor, log_p = _unpack(t, m)
         f = jnp.exp(log_f)
-        s = 1.0 / jnp.maximum(1.0 / f - inv_d / 1000.0, 1e-6 / f)
+        s = _pinhole_distance(jnp, f, inv_d / 1000.0, jnp.exp(log_p))
         return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
                 "log_K": log_f + jnp.log(s) - log_n, "inv_d": inv_d, "floor": floor, "s": s, "N": jnp.exp(log_n),
-                "f": f}
+                "f": f, "log_P": log_p, "log_sx": log_p + jnp.log(s)}
 
     @jax.jit
     def derived(t):
@@ -571,8 +601,14 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         focal_length_px: float | dict[str, float] | None = None,
         focal_length_sigma_px: float | dict[str, float] | None = None,
         loss: str = "huber", blur_floor_px: float | None = None,
-        floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12) -> FitResult:
+        floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
+        pupil_magnification: float | tuple[float, float] | None = None) -> FitResult:
     """Fit focal length, and per setting f-number and focus distance, to blur samples.
+
+    Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
+    the lens plane of a thin lens). The lens may be thick: its pupil magnification
+    ``P`` (exit / entrance pupil diameter) enters through ``1/S = 1/f - 1/(P X)``, where
+    ``S = f_px * p`` is what the calibration measures (module notes).
 
     Parameters
     ----------
@@ -589,6 +625,12 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     blur_floor_px : fix the blur floor (px) instead of fitting it per setting
     floor_prior_sigma_px : width of the weak prior on a fitted floor (about 0)
     max_irls : reweighting rounds for the robust loss
+    pupil_magnification : how P is treated. None (default): fitted where two or more calibrated
+        settings focus at different distances (unit focusing: they share f and P), otherwise
+        assumed 1 (the thin lens) with a warning that says so and what it costs. A number:
+        assumed at that value. A range ``(lo, hi)``: a prior on P (log-normal, the range its
+        95 % interval), which the data may sharpen and which widens the intervals of f and N
+        honestly where they cannot.
 
     Returns
     -------
@@ -608,11 +650,12 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("blur_floor_px", blur_floor_px, ">= 0 px and finite")
     if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
         raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
+    pupil = _pupil_mode(pupil_magnification)
     data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
                    focal_length_sigma_px=focal_length_sigma_px)
     try:
         with np.errstate(all="ignore"):  # overflow on the way is caught below, not printed
-            result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls)
+            result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls, pupil)
     except InputError:
         raise
     except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
@@ -626,17 +669,74 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     return result
 
 
+#: Pupil magnifications outside this range are refused (real photographic lenses: about 0.3
+#: for long telephotos to about 4 for extreme retrofocus wide angles).
+PUPIL_MAGNIFICATION_RANGE = (0.1, 10.0)
+#: Width (1 sigma of log P) of the weak prior that keeps a fitted P in a sane range; a factor of
+#: e^3 = 20 either way, so it never matters where the data determine P.
+_P_PRIOR_SIGMA_LOG = 3.0
+#: A fitted P needs focus settings spread enough that its relative 1 sigma stays below this.
+_P_MAX_RELATIVE_SIGMA = 0.1
+
+
+def _pupil_mode(value) -> tuple:
+    """("auto",), ("fixed", P) or ("prior", log mean, log sigma) from the ``pupil_magnification`` argument."""
+    lo_ok, hi_ok = PUPIL_MAGNIFICATION_RANGE
+    req = f"a number between {lo_ok:g} and {hi_ok:g}, a range (lo, hi) within it, or None"
+
+    def number(v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and lo_ok <= v <= hi_ok):
+            raise InputError("pupil_magnification", value, req)
+        return float(v)
+
+    if value is None:
+        return ("auto",)
+    if isinstance(value, (tuple, list)):
+        if len(value) != 2:
+            raise InputError("pupil_magnification", value, req)
+        lo, hi = number(value[0]), number(value[1])
+        if not lo < hi:
+            raise InputError("pupil_magnification", value, req, "give the range as (lo, hi) with lo < hi")
+        return ("prior", 0.5 * (math.log(lo) + math.log(hi)), 0.25 * (math.log(hi) - math.log(lo)))
+    return ("fixed", number(value))
+
+
+def _p_identifiable(data: FitData, verts: np.ndarray, usable: list[int], fpx_sig: np.ndarray) -> tuple[bool, str]:
+    """Whether calibrated settings ``usable`` focus far enough apart to fit P (unit focusing:
+    ``1/S_k = 1/f - (1/P)(1/X_k)`` is a line in ``1/X_k``), and if not, why."""
+    if len(usable) < 2:
+        return False, "one calibrated focus setting cannot determine it"
+    x = verts[usable]
+    spread = float(np.sqrt(np.sum((x - x.mean()) ** 2)))
+    inv_s = 1.0 / (data.focal_length_px[usable] * data.pixel_pitch_mm)
+    sd_inv_s = float(np.max(inv_s * fpx_sig[usable] / data.focal_length_px[usable]))
+    if spread <= 0 or sd_inv_s / spread > _P_MAX_RELATIVE_SIGMA:
+        return False, (f"the calibrated settings focus too close together (inverse focus distances within "
+                       f"{1000 * np.ptp(x):.3g} /m) to determine it; focus a bracket at distances a factor 2 or more "
+                       "apart")
+    return True, ""
+
+
+def _p_start(data: FitData, verts: np.ndarray, usable: list[int]) -> float:
+    """Closed-form P from the line ``1/S_k = 1/f - (1/P) x_k`` through the calibrated settings."""
+    x = verts[usable]
+    y = 1.0 / (data.focal_length_px[usable] * data.pixel_pitch_mm)
+    slope = np.polyfit(x, y, 1)[0] if len(usable) >= 2 and np.ptp(x) > 0 else -1.0
+    P = -1.0 / slope if slope < 0 else 1.0
+    return float(min(max(P, PUPIL_MAGNIFICATION_RANGE[0]), PUPIL_MAGNIFICATION_RANGE[1]))
+
+
 def _refused(data: FitData, loss: str, reason: str) -> FitResult:
     """A result that states ``reason`` for every quantity (value None; never NaN)."""
     n, m = len(data.coc_px), len(data.labels)
     none = Estimate(None, reason=reason)
     return FitResult({label: {q: none for q in QUANTITIES} for label in data.labels}, none, "not_identifiable",
                      [reason], [], np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)), math.inf, n, 0, math.nan,
-                     math.nan, loss, [], data, np.zeros(n), np.ones(n), np.zeros(1 + 3 * m))
+                     math.nan, loss, [], data, np.zeros(n), np.ones(n), np.zeros(_size(m)))
 
 
 def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigma_px: float,
-         max_irls: int) -> FitResult:
+         max_irls: int, pupil: tuple) -> FitResult:
     """The body of :func:`fit` on validated data (it may raise on data of absurd magnitude;
     :func:`fit` turns that into a refusal)."""
     import jax
@@ -656,7 +756,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
 
     # ---- closed-form start
     fixed_floor = blur_floor_px is not None
-    theta = np.zeros(1 + 3 * m)
+    theta = np.zeros(_size(m))
+    i_p = 1 + 3 * m
     verts, slopes = np.zeros(m), np.ones(m)
     for k in range(m):
         sel = data.setting == k
@@ -664,18 +765,42 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                                      not fixed_floor, blur_floor_px or 0.0)
         verts[k], slopes[k] = x, max(slope, 1e-6)
         theta[1 + 2 * m + k] = blur_floor_px if fixed_floor else max(b, 0.3)
-    f_guess = [1 / (1 / (data.focal_length_px[k] * p) + verts[k]) for k in range(m) if has_fpx[k] and k not in blocked]
-    f_guess = f_guess or [1 / (1 / (data.focal_length_px[k] * p) + verts[k]) for k in range(m) if has_fpx[k]]
+
+    # ---- the pupil magnification: fitted, given a prior, or assumed (never silently)
+    fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
+    usable = [k for k in range(m) if has_fpx[k] and k not in blocked]
+    p_prior = (0.0, 0.0)
+    if pupil[0] == "fixed":
+        P0, p_source = pupil[1], "assumed"
+    elif pupil[0] == "prior":
+        P0, p_source, p_prior = math.exp(pupil[1]), "prior", (pupil[1], 1.0 / pupil[2])
+    else:
+        fit_p, why_not = _p_identifiable(data, verts, usable, fpx_sig)
+        if fit_p:
+            P0, p_source, p_prior = _p_start(data, verts, usable), "fitted", (0.0, 1.0 / _P_PRIOR_SIGMA_LOG)
+        else:
+            P0, p_source = 1.0, "assumed"
+            if has_fpx.any():
+                warnings.append(f"pupil magnification P = 1 assumed (a thin lens): {why_not}. A real lens has P "
+                                "about 0.5-0.9 (telephoto) to 1.2-2.5 (retrofocus wide angle), which moves f and N "
+                                "by about (f/X)(1/P - 1); give pupil_magnification (--pupil-magnification) as a "
+                                "value or a range, or add a second focus setting")
+    theta[i_p] = math.log(P0)
+
+    f_guess = [1 / (1 / (data.focal_length_px[k] * p) + verts[k] / P0) for k in range(m)
+               if has_fpx[k] and k not in blocked]
+    f_guess = f_guess or [1 / (1 / (data.focal_length_px[k] * p) + verts[k] / P0) for k in range(m) if has_fpx[k]]
     f0 = float(np.median(f_guess)) if f_guess else 50.0
     theta[0] = math.log(f0)
     for k in range(m):
-        x = min(verts[k], 0.9 / f0)
-        s = 1 / (1 / f0 - x)
+        x = min(verts[k], 0.9 * P0 / f0)
+        s = 1 / (1 / f0 - x / P0)
         theta[1 + k] = 1000 * x
         theta[1 + m + k] = math.log(f0 * s / (slopes[k] * p))
 
     # ---- free parameters
-    free = np.ones(1 + 3 * m, bool)
+    free = np.ones(_size(m), bool)
+    free[i_p] = p_source != "assumed"
     if not any(has_fpx[k] and k not in blocked for k in range(m)):
         # Without a calibrated setting whose V is determined, f only scales N: held at a
         # nominal value and reported as unknown.
@@ -683,11 +808,11 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     for k in blocked:
         free[[1 + k, 1 + m + k, 1 + 2 * m + k]] = False
     if fixed_floor:
-        free[1 + 2 * m:] = False
+        free[1 + 2 * m:1 + 3 * m] = False
     free_idx = np.flatnonzero(free)
 
     fpx = np.where(has_fpx, data.focal_length_px, 0.0)
-    fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * fpx)
+    fpx_sig = np.where(has_fpx, fpx_sig, 0.0)
     fpx_w = np.where(has_fpx, 1.0 / np.maximum(fpx_sig, 1e-300), 0.0)
     floor_w = np.where(fixed_floor, 0.0, 1.0 / floor_prior_sigma_px) * np.ones(m)
     for k in blocked:
@@ -705,7 +830,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         ``rows`` (0/1 per sample); returns (theta, weights, converged)."""
         theta, converged = theta.copy(), True
         for it in range(rounds):
-            args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w)
+            args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
+                                p_prior)
             sol, ok = _solver(m)[0](jnp.asarray(theta[free_idx]), args)
             sol = np.asarray(sol)
             if not np.all(np.isfinite(sol)):
@@ -725,7 +851,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     with jax.enable_x64(True):
         theta, weights, converged = irls(theta, row_on, np.ones(n))
         # Residuals and Jacobian with the final weights.
-        args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w)
+        args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
+                            p_prior)
         if free_idx.size:
             res, jac = (np.asarray(a) for a in _solver(m)[1](jnp.asarray(theta[free_idx]), args))
         else:
@@ -763,7 +890,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
             refits = []
             for g in groups:  # one LM solve each, robust weights held (cheap: no recompilation)
                 args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on * (data.group != g)
-                                    / data.sigma_px, fpx, fpx_w, floor_w)
+                                    / data.sigma_px, fpx, fpx_w, floor_w, p_prior)
                 refits.append(np.asarray(_solver(m)[0](jnp.asarray(theta[free_idx]), args)[0]))
         refits = np.array(refits)
         G = len(groups)
@@ -776,7 +903,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
 
                 z = (float(student.ppf(0.8413447460685429, G - 1)), float(student.ppf(0.975, G - 1)))
             cov = corr * np.outer(sd, sd)
-    full_cov = np.zeros((1 + 3 * m, 1 + 3 * m))
+    full_cov = np.zeros((_size(m), _size(m)))
     full_cov[np.ix_(free_idx, free_idx)] = cov
 
     degenerate = cond > MAX_CONDITION
@@ -806,12 +933,25 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # ---- derived quantities
     settings: dict[str, dict[str, Estimate]] = {}
     reasons: list[str] = []
-    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons, z)
+    thin = p_source == "assumed" and theta[i_p] == 0.0
+    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons, z,
+                    thin)
+    if p_source == "assumed":
+        p_est = Estimate(P0, 0.0, (P0, P0), (P0, P0),
+                         "assumed (a thin lens)" if thin else "assumed (given as pupil_magnification)")
+    else:
+        sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
+        p_est = _positive(math.exp(theta[i_p]), sd_p, z)
+        if p_source == "fitted" and ("log_P" in weak or sd_p > MAX_RELATIVE_SIGMA):
+            p_est = Estimate(None, reason=f"the pupil magnification is poorly constrained (relative 1 sigma "
+                             f"{100 * sd_p:.0f}%): focus the settings farther apart")
+            reasons.append(f"pupil_magnification: {p_est.reason}")
     code = "ok" if not reasons else "not_identifiable"
     return FitResult(settings, f_est, code, reasons, fnames, theta[free_idx], cov, corr, cond, n_used, n_out,
                      chi2_red, float(np.sqrt(np.mean(resid[used] ** 2))) if n_used else 0.0, loss, warnings, data,
                      resid, weights, theta.copy(),
-                     dict(free_idx=free_idx, fpx=fpx, fpx_w=fpx_w, floor_w=floor_w, row_on=row_on))
+                     dict(free_idx=free_idx, fpx=fpx, fpx_w=fpx_w, floor_w=floor_w, row_on=row_on, p_prior=p_prior),
+                     p_est, p_source)
 
 
 def _padded_size(n: int) -> int:
@@ -822,7 +962,7 @@ def _padded_size(n: int) -> int:
     return _bucket(n, 64)
 
 
-def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w):
+def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w, p_prior=(0.0, 0.0)):
     """The solver's ``args`` (JAX arrays), samples padded to :func:`_padded_size`."""
     import jax.numpy as jnp
 
@@ -833,7 +973,8 @@ def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, 
 
     return (jnp.asarray(theta), jnp.asarray(free_idx), padded(data.setting.astype(np.int32), 0),
             padded(data.w_nodes, 1e-3), padded(data.coc_px, 1.0), padded(sqrt_w_over_sigma, 0.0),
-            data.pixel_pitch_mm, jnp.asarray(fpx), jnp.asarray(fpx_w), jnp.asarray(floor_w))
+            data.pixel_pitch_mm, jnp.asarray(fpx), jnp.asarray(fpx_w), jnp.asarray(floor_w),
+            jnp.asarray(p_prior, dtype=jnp.float64))
 
 
 def _solver_residual_fn(m):
@@ -853,7 +994,7 @@ def _predict_all(theta: np.ndarray, m: int, data: FitData) -> np.ndarray:
 
 def _parameter_names(labels: list[str]) -> list[str]:
     return (["log_f"] + [f"inv_focus_per_m[{k}]" for k in labels] + [f"log_N[{k}]" for k in labels]
-            + [f"floor_px[{k}]" for k in labels])
+            + [f"floor_px[{k}]" for k in labels] + ["log_P"])
 
 
 def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float, np.ndarray]:
@@ -888,10 +1029,17 @@ def _positive(value: float, sigma_log: float, z: tuple[float, float] = (1.0, _Z9
     return Estimate(value, value * sigma_log, (value / z1, value * z1), (value / z2, value * z2))
 
 
+_FROM_SENSOR_UNKNOWN = ("not determined for a thick lens: it needs the distance from the entrance pupil to the "
+                        "sensor, which blur and a pinhole calibration do not give (the focus distance is reported "
+                        "from the entrance pupil)")
+
+
 def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
-            z: tuple[float, float] = (1.0, _Z95)) -> Estimate:
+            z: tuple[float, float] = (1.0, _Z95), thin: bool = True) -> Estimate:
     """Fill ``settings`` with every reported quantity; returns the shared focal length. ``z``:
-    the multiples of sigma for the 68 % and 95 % intervals."""
+    the multiples of sigma for the 68 % and 95 % intervals. ``thin``: the lens is taken as thin
+    (P = 1 assumed), so the entrance pupil is the lens plane and the focus distance from the
+    sensor plane is known; otherwise that distance is not determined."""
     import jax
     import jax.numpy as jnp
 
@@ -955,12 +1103,14 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                 ds = out["focus_distance_mm"]
                 out["focus_distance_from_sensor_mm"] = Estimate(
                     dval + s_val, ds.sigma, tuple(None if v is None else v + s_val for v in ds.ci68),
-                    tuple(None if v is None else v + s_val for v in ds.ci95))
+                    tuple(None if v is None else v + s_val for v in ds.ci95)) if thin else Estimate(
+                    None, reason=_FROM_SENSOR_UNKNOWN)
             else:
                 note = (f"focus at infinity within the uncertainty (inverse focus distance {inv_d:.3g} +- "
                         f"{s_inv:.2g} /m)")
                 out["focus_distance_mm"] = Estimate(None, None, dist(lo68, hi68), dist(lo95, hi95), note, True)
-                out["focus_distance_from_sensor_mm"] = Estimate(None, None, None, None, note, True)
+                out["focus_distance_from_sensor_mm"] = (Estimate(None, None, None, None, note, True) if thin
+                                                        else Estimate(None, reason=_FROM_SENSOR_UNKNOWN))
             fl = float(q["floor"][k])
             s_fl = sd("floor", k)
             out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - z[0] * s_fl, 0.0), abs(fl) + z[0] * s_fl),
@@ -976,13 +1126,13 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
             if lens_reason:
                 for qn in ("f_number", "aperture_diameter_mm", "sensor_distance_mm"):
                     out[qn] = Estimate(None, reason=lens_reason)
-                if not out["focus_distance_from_sensor_mm"].infinite:
+                if thin and not out["focus_distance_from_sensor_mm"].infinite:
                     out["focus_distance_from_sensor_mm"] = Estimate(None, reason=lens_reason)
                 reasons.append(f"settings.{label}.f_number: {lens_reason}")
             else:
                 out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k), z)
                 out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), z)
-                out["sensor_distance_mm"] = _positive(s_val, sd("log_s", k), z)
+                out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k), z)
         out["focal_length_mm"] = f_est
         settings[label] = {qn: out[qn] for qn in QUANTITIES}
     return f_est
@@ -1006,7 +1156,8 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
 
     data, setup = result.samples, result._setup
     m = len(data.labels)
-    theta = np.zeros(1 + 3 * m)
+    theta = np.zeros(_size(m))
+    theta[1 + 3 * m] = result._full[1 + 3 * m]  # P as the fit had it
     theta[0] = math.log(focal_length_mm)
     for k, label in enumerate(data.labels):
         n_true, d_true = settings[label]
@@ -1015,11 +1166,11 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
     free_idx = setup["free_idx"]
     with jax.enable_x64(True):
         args = _solver_args(theta, free_idx, data, setup["row_on"] / data.sigma_px, setup["fpx"], setup["fpx_w"],
-                            setup["floor_w"])
+                            setup["floor_w"], setup.get("p_prior", (0.0, 0.0)))
         _, jac = _solver(m)[1](jnp.asarray(theta[free_idx]), args)
         values, grads = _solver(m)[2](jnp.asarray(theta))
     cov_free, _, _ = _covariance(np.asarray(jac), 1.0)
-    cov = np.zeros((1 + 3 * m, 1 + 3 * m))
+    cov = np.zeros((_size(m), _size(m)))
     cov[np.ix_(free_idx, free_idx)] = cov_free
 
     def sd(name, k=None):

@@ -226,7 +226,10 @@ def test_focus_bracket_shares_the_focal_length():
     for label, (N, D) in settings_.items():
         check_close(r.settings[label]["f_number"], N, 0.005)
         check_close(r.settings[label]["focus_distance_mm"], D, 0.005)
-    assert len(r.parameter_names) == 1 + 3 * 3
+    assert len(r.parameter_names) == 2 + 3 * 3  # f, P shared; focus, N, floor per setting
+    assert r.pupil_magnification_source == "fitted"  # a thin lens: P = 1 within its interval
+    lo, hi = r.pupil_magnification.ci95
+    assert lo <= 1.0 <= hi and hi - lo < 0.05
 
 
 def test_a_setting_without_calibration_borrows_the_shared_focal_length():

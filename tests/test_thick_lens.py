@@ -48,10 +48,13 @@ def inside(est, truth):
     return (lo is None or lo <= truth) and (hi is None or truth <= hi)
 
 
-def check(est, truth, rel):
+def check(est, truth, rel, k_sigma=3.0):
+    """Within ``rel`` of the truth and within ``k_sigma`` of its stated sigma (one case; the
+    95 % coverage over many cases is tested separately)."""
     assert est.value is not None, est.reason
     assert abs(est.value / truth - 1) <= rel, f"{est.value} vs {truth} ({100 * (est.value / truth - 1):+.2f}%)"
-    assert inside(est, truth), f"{truth} outside {est.ci95}"
+    assert abs(est.value - truth) <= k_sigma * est.sigma, f"{est.value} vs {truth}: {est.value - truth:+.3g} " \
+        f"is more than {k_sigma} sigma ({est.sigma:.3g})"
 
 
 BRACKETS = {
@@ -114,7 +117,9 @@ def test_a_prior_range_widens_the_intervals_honestly():
     assert inside(ranged.settings["a"]["f_number"], N)
     assert ranged.focal_length_mm.sigma > 5 * fixed.focal_length_mm.sigma
     lo, hi = ranged.pupil_magnification.ci95
-    assert 0.45 < lo < 0.6 and 1.7 < hi < 2.3  # the data add nothing to the prior on P
+    # the data add nothing to the prior on P: its 95 % range (0.5, 2), widened a little by the
+    # Student-t of the image jackknife (8 images)
+    assert 0.4 < lo < 0.6 and 1.7 < hi < 2.5
 
 
 def test_thin_lens_is_the_p_equal_1_case():
@@ -143,3 +148,19 @@ def test_bad_pupil_magnification_is_refused(bad):
     rows, fpx, fsg = simulate(50.0, 1.0, {"a": (2.8, 1500.0, (800.0, 4000.0))}, np.random.default_rng(1))
     with pytest.raises(InputError, match="pupil_magnification"):
         fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, pupil_magnification=bad)
+
+
+def test_intervals_of_p_f_and_n_cover_the_truth():
+    """Over 30 noise draws of the telephoto bracket, the 95 % intervals hold the truth 80-100 %
+    of the time (a binomial 95 % band around 95 % for 30 draws reaches down to about 83 %)."""
+    f, P, settings = BRACKETS["telephoto 135 mm P 0.55"]
+    hits = {"P": 0, "f": 0, "N": 0, "X": 0}
+    draws = 30
+    for seed in range(draws):
+        rows, fpx, fsg = simulate(f, P, settings, np.random.default_rng(100 + seed), n=24)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        hits["P"] += inside(r.pupil_magnification, P)
+        hits["f"] += inside(r.focal_length_mm, f)
+        hits["N"] += inside(r.settings["far"]["f_number"], settings["far"][0])
+        hits["X"] += inside(r.settings["far"]["focus_distance_mm"], settings["far"][1])
+    assert all(h >= 0.8 * draws for h in hits.values()), hits
