@@ -1,0 +1,331 @@
+"""Compound lenses: a prescription (a table of spherical surfaces), its paraxial data and exact
+sequential ray tracing.
+
+A prescription lists surfaces front (object side) to back, each with
+
+============== ===== ========================================================================
+field          unit  meaning
+============== ===== ========================================================================
+radius_mm      mm    radius of curvature, > 0: centre of curvature behind the surface; "inf":
+                     flat (the aperture stop is usually a flat, glassless surface)
+thickness_mm   mm    axial distance to the next surface (the last one's is ignored: the sensor
+                     position follows from the focus)
+n                    refractive index after the surface at the d line (587.56 nm); 1 = air
+V                    Abbe number of that glass (dispersion; optional)
+semi_aperture  mm    clear radius: rays outside it are blocked (this is where cat's-eye
+_mm                  vignetting comes from)
+stop                 the aperture stop (exactly one surface); its radius sets the f-number
+============== ===== ========================================================================
+
+Coordinates: the optical axis is z, light travels towards +z (from the object to the sensor);
+the first surface's vertex is at z = 0. Distances the user sees (the object and focus
+distances) are measured from the entrance pupil, the point a pinhole calibration finds.
+
+Paraxial data (:func:`paraxial`) come from the y-nu trace (W. J. Smith, Modern Optical
+Engineering, ch. 2-3): refraction ``n' u' = n u - y (n' - n) / R``, transfer ``y' = y + t u'``.
+Real rays (:func:`trace`) intersect each sphere exactly and refract by the vector form of
+Snell's law; a ray outside a clear aperture or totally reflected is blocked. The same function
+runs on NumPy (float64, for analysis and tests) and inside JAX (for rendering).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lensfit.errors import SpecError
+
+
+@dataclass(frozen=True)
+class Surface:
+    """One refracting surface (or the stop) of a prescription; see the module notes."""
+
+    radius_mm: float
+    thickness_mm: float
+    n: float
+    semi_aperture_mm: float
+    stop: bool = False
+    abbe: float | None = None
+
+    @property
+    def curvature_per_mm(self) -> float:
+        return 0.0 if math.isinf(self.radius_mm) else 1.0 / self.radius_mm
+
+
+@dataclass(frozen=True)
+class Prescription:
+    """A compound lens: surfaces front to back (see the module notes)."""
+
+    name: str
+    surfaces: tuple[Surface, ...]
+    source: str = ""
+    design_f_number: float | None = None
+
+    @property
+    def stop_index(self) -> int:
+        return next(i for i, s in enumerate(self.surfaces) if s.stop)
+
+    def vertices_mm(self) -> np.ndarray:
+        """z of each surface's vertex (the first at 0)."""
+        t = np.array([s.thickness_mm for s in self.surfaces[:-1]])
+        return np.concatenate([[0.0], np.cumsum(t)])
+
+    def indices_before(self) -> np.ndarray:
+        """Refractive index in front of each surface (air before the first)."""
+        return np.array([1.0] + [s.n for s in self.surfaces[:-1]])
+
+    def with_stop_radius(self, radius_mm: float) -> "Prescription":
+        i = self.stop_index
+        surfaces = list(self.surfaces)
+        surfaces[i] = replace(surfaces[i], semi_aperture_mm=float(radius_mm))
+        return replace(self, surfaces=tuple(surfaces))
+
+    def with_f_number(self, f_number: float) -> "Prescription":
+        """The stop opened or closed so that EFL / entrance-pupil diameter = ``f_number``.
+
+        The entrance pupil scales linearly with the stop radius (paraxially), so one step is exact.
+        """
+        para = paraxial(self)
+        scale = (para.efl_mm / f_number) / para.entrance_pupil_diameter_mm
+        return self.with_stop_radius(self.surfaces[self.stop_index].semi_aperture_mm * scale)
+
+
+@dataclass(frozen=True)
+class Paraxial:
+    """First-order data of a prescription (mm; z from the first vertex, +z towards the sensor).
+
+    ``efl_mm``: effective focal length; ``bfl_mm``: last vertex to the rear focal point;
+    ``front_principal_z_mm``/``rear_principal_z_mm``: principal planes; entrance and exit pupils:
+    position and diameter (the stop seen from the object and from the sensor);
+    ``pupil_magnification``: exit / entrance pupil diameter (P).
+    """
+
+    efl_mm: float
+    bfl_mm: float
+    front_focal_z_mm: float
+    rear_focal_z_mm: float
+    front_principal_z_mm: float
+    rear_principal_z_mm: float
+    entrance_pupil_z_mm: float
+    entrance_pupil_diameter_mm: float
+    exit_pupil_z_mm: float
+    exit_pupil_diameter_mm: float
+
+    @property
+    def pupil_magnification(self) -> float:
+        return self.exit_pupil_diameter_mm / self.entrance_pupil_diameter_mm
+
+    @property
+    def f_number(self) -> float:
+        return self.efl_mm / self.entrance_pupil_diameter_mm
+
+    def to_json_dict(self) -> dict[str, float]:
+        out = {k: float(v) for k, v in self.__dict__.items()}
+        out["pupil_magnification"] = float(self.pupil_magnification)
+        out["f_number"] = float(self.f_number)
+        return out
+
+
+def _ynu(rx: Prescription, y: float, nu: float, start: int = 0, stop: int | None = None) -> tuple[float, float]:
+    """Paraxial ray (height ``y`` at surface ``start``, reduced angle ``n u`` before it) through
+    surfaces ``start`` .. ``stop - 1``; returns (y, n u) just after the last refraction, at its vertex."""
+    surfaces = rx.surfaces
+    stop = len(surfaces) if stop is None else stop
+    n_before = rx.indices_before()
+    for i in range(start, stop):
+        s = surfaces[i]
+        nu = nu - y * (s.n - n_before[i]) * s.curvature_per_mm
+        if i < stop - 1:
+            y = y + s.thickness_mm * nu / s.n
+    return y, nu
+
+
+def paraxial(rx: Prescription) -> Paraxial:
+    """Effective focal length, focal and principal planes and pupils by paraxial (y-nu) tracing."""
+    z = rx.vertices_mm()
+    last = len(rx.surfaces) - 1
+    # Rear: a ray parallel to the axis from the object side.
+    y, nu = _ynu(rx, 1.0, 0.0)
+    efl = -1.0 / nu  # image space is air
+    bfl = -y / nu
+    rear_focal = z[last] + bfl
+    rear_principal = rear_focal - efl
+    # Front: the reversed system (a ray parallel to the axis from the sensor side).
+    rev = reverse(rx)
+    yb, nub = _ynu(rev, 1.0, 0.0)
+    ffl = -yb / nub  # first vertex to the front focal point, measured towards the object
+    front_focal = -ffl
+    front_principal = front_focal + efl
+    # Pupils: the chief ray crosses the axis at the stop. Rays with unit y and zero angle, and zero y
+    # and unit angle, at the first vertex, carried to the stop, give the linear map to solve.
+    k = rx.stop_index
+    z_stop = z[k]
+
+    def at_stop(y0, u0):
+        y1, nu1 = _ynu(rx, y0, u0, 0, k) if k > 0 else (y0, u0)
+        n_k = rx.indices_before()[k]
+        return y1 + (z_stop - z[k - 1]) * nu1 / n_k if k > 0 else y0
+
+    a, b = at_stop(1.0, 0.0), at_stop(0.0, 1.0)
+    # Chief ray: y0 = -b/a per unit object-space angle; it crosses the axis where y0 + z u = 0.
+    y0 = -b / a
+    entrance_z = -y0  # z of the axis crossing in object space (u = 1)
+    stop_radius = rx.surfaces[k].semi_aperture_mm
+    epd = 2.0 * stop_radius / abs(a)  # marginal ray from infinity: height h at z = 0 reaches a*h at the stop
+    # Exit pupil: the same chief ray in image space.
+    yc, nuc = _ynu(rx, y0, 1.0)
+    exit_z = z[last] - yc / nuc
+    p_mag = 1.0 / nuc  # angular magnification of the pupils is u'/u = nuc; P = u / u'
+    return Paraxial(efl, bfl, front_focal, rear_focal, front_principal, rear_principal, entrance_z, epd, exit_z,
+                    abs(p_mag) * epd)
+
+
+def reverse(rx: Prescription) -> Prescription:
+    """The same lens traversed from the sensor side: surfaces in reverse order, radii negated,
+    each index the one in front of the surface in the original (z measured the other way)."""
+    s = rx.surfaces
+    n_before = rx.indices_before()
+    out = []
+    for i in range(len(s) - 1, -1, -1):
+        out.append(Surface(-s[i].radius_mm, s[i - 1].thickness_mm if i > 0 else 0.0, float(n_before[i]),
+                           s[i].semi_aperture_mm, s[i].stop, s[i - 1].abbe if i > 0 else None))
+    return replace(rx, surfaces=tuple(out))
+
+
+def trace(rx: Prescription, origin, direction, xp=np, *, n_image: float = 1.0):
+    """Exact sequential trace of rays through every surface, front to back.
+
+    Parameters
+    ----------
+    rx : the prescription (the reversed one, :func:`reverse`, traces from the sensor side)
+    origin : (x, y, z) arrays, mm, points on the rays in front of the first surface (z from its
+        vertex)
+    direction : (dx, dy, dz) arrays, unit vectors with dz > 0
+    xp : numpy or jax.numpy
+
+    Returns
+    -------
+    (x, y, z), (dx, dy, dz), passed, heights: the rays after the last surface (on it), whether
+    each passed every clear aperture without total internal reflection, and the (x, y) at every
+    surface (a list).
+    """
+    x, y, z = origin
+    dx, dy, dz = direction
+    z_v = rx.vertices_mm()
+    n_before = rx.indices_before()
+    passed = xp.ones_like(x, dtype=bool)
+    heights = []
+    for i, s in enumerate(rx.surfaces):
+        zv = float(z_v[i])
+        c = s.curvature_per_mm
+        if c == 0.0:
+            t = (zv - z) / dz
+        else:
+            # |p + t d - centre| = |R|, centre on the axis at zv + R: solve the quadratic, take the root
+            # nearest the vertex (the one on the hemisphere facing the incoming ray).
+            R = s.radius_mm
+            oz = z - (zv + R)
+            b = x * dx + y * dy + oz * dz
+            cc = x * x + y * y + oz * oz - R * R
+            disc = b * b - cc
+            passed = passed & (disc >= 0)
+            root = xp.sqrt(xp.maximum(disc, 0.0))
+            t = xp.where(R > 0, -b - root, -b + root)
+        x, y, z = x + t * dx, y + t * dy, z + t * dz
+        passed = passed & (x * x + y * y <= s.semi_aperture_mm ** 2)
+        heights.append((x, y))
+        n1, n2 = float(n_before[i]), float(s.n)
+        if n1 != n2:
+            # Surface normal towards +z side... use the unit normal pointing against the incoming ray.
+            if c == 0.0:
+                nx, ny, nz = xp.zeros_like(x), xp.zeros_like(x), xp.ones_like(x)
+            else:
+                nx, ny, nz = -x * c, -y * c, 1.0 - (z - zv) * c  # (centre - p) / R, oriented to +z
+            cos_i = nx * dx + ny * dy + nz * dz
+            sgn = xp.where(cos_i < 0, -1.0, 1.0)
+            nx, ny, nz, cos_i = nx * sgn, ny * sgn, nz * sgn, cos_i * sgn  # now cos_i >= 0
+            mu = n1 / n2
+            k = 1.0 - mu * mu * (1.0 - cos_i * cos_i)
+            passed = passed & (k >= 0)
+            cos_t = xp.sqrt(xp.maximum(k, 0.0))
+            g = cos_t - mu * cos_i
+            dx, dy, dz = mu * dx + g * nx, mu * dy + g * ny, mu * dz + g * nz
+    return (x, y, z), (dx, dy, dz), passed, heights
+
+
+# --------------------------------------------------------------------------- files
+
+
+def lens_dir() -> Path:
+    from lensfit.specs import specs_dir
+
+    return specs_dir() / "lenses"
+
+
+def list_prescriptions() -> list[str]:
+    return sorted(p.stem for p in lens_dir().glob("*.toml"))
+
+
+def prescription_from_dict(data: dict[str, Any], path: str | Path = "<lens>") -> Prescription:
+    """A prescription from its table (a lens file, or an inline ``[lens] surface = [...]``)."""
+    rows = data.get("surface")
+    if not isinstance(rows, list) or len(rows) < 2:
+        raise SpecError(path, "surface", "needs a list of at least two surfaces, front to back")
+    surfaces = []
+    for i, r in enumerate(rows):
+        where = f"surface[{i}]"
+        if not isinstance(r, dict):
+            raise SpecError(path, where, "must be a table with radius_mm, thickness_mm, n, semi_aperture_mm")
+        unknown = set(r) - {"radius_mm", "thickness_mm", "n", "V", "semi_aperture_mm", "stop"}
+        if unknown:
+            raise SpecError(path, f"{where}.{sorted(unknown)[0]}", "unknown field; valid: radius_mm, thickness_mm, "
+                            "n, V, semi_aperture_mm, stop")
+        for name in ("radius_mm", "thickness_mm", "n", "semi_aperture_mm"):
+            if name not in r:
+                raise SpecError(path, f"{where}.{name}", "is required but missing")
+        radius = math.inf if r["radius_mm"] in ("inf", "-inf") else r["radius_mm"]
+        if not isinstance(radius, (int, float)) or radius == 0 or not math.isfinite(abs(radius) if radius != math.inf
+                                                                                    else 1.0):
+            raise SpecError(path, f"{where}.radius_mm", f"got {r['radius_mm']!r}: a non-zero number of mm or \"inf\"")
+        checks = (("thickness_mm", r["thickness_mm"], 0.0, 1e5), ("n", r["n"], 1.0, 4.0),
+                  ("semi_aperture_mm", r["semi_aperture_mm"], 1e-6, 1e4))
+        for name, v, lo, hi in checks:
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not (math.isfinite(v) and lo <= v <= hi):
+                raise SpecError(path, f"{where}.{name}", f"got {v!r}: must be a number from {lo:g} to {hi:g}")
+        if math.isfinite(radius) and abs(radius) < r["semi_aperture_mm"]:
+            raise SpecError(path, f"{where}.semi_aperture_mm", f"got {r['semi_aperture_mm']}: larger than the "
+                            f"radius of curvature ({radius}); no sphere is that wide")
+        abbe = r.get("V")
+        if abbe is not None and not (isinstance(abbe, (int, float)) and 10 <= abbe <= 120):
+            raise SpecError(path, f"{where}.V", f"got {abbe!r}: an Abbe number from 10 to 120")
+        surfaces.append(Surface(float(radius), float(r["thickness_mm"]), float(r["n"]), float(r["semi_aperture_mm"]),
+                                bool(r.get("stop", False)), None if abbe is None else float(abbe)))
+    stops = [i for i, s in enumerate(surfaces) if s.stop]
+    if len(stops) != 1:
+        raise SpecError(path, "surface", f"exactly one surface must have stop = true, found {len(stops)}")
+    if surfaces[-1].n != 1.0:
+        raise SpecError(path, f"surface[{len(surfaces) - 1}].n", "the last surface must leave the lens into air (n = 1)")
+    rx = Prescription(str(data.get("name", Path(str(path)).stem)), tuple(surfaces), str(data.get("source", "")),
+                      data.get("design_f_number"))
+    para = paraxial(rx)
+    if not (math.isfinite(para.efl_mm) and para.efl_mm > 0):
+        raise SpecError(path, "surface", f"the lens has no positive focal length (EFL {para.efl_mm:.4g} mm); "
+                        "check the signs of the radii (> 0: centre of curvature behind the surface)")
+    return rx
+
+
+def load_prescription(name: str | Path) -> Prescription:
+    """A shipped design by name (``data_specs/lenses/NAME.toml``) or the path of a lens file."""
+    from lensfit.specs import load_toml
+
+    path = Path(name)
+    if path.suffix != ".toml":
+        path = lens_dir() / f"{name}.toml"
+        if not path.is_file():
+            raise SpecError("lens.prescription", "", f"got {name!r}: no such design; shipped: "
+                            f"{', '.join(list_prescriptions())} (or the path of a lens .toml)")
+    return prescription_from_dict(load_toml(path), path)
