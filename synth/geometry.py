@@ -21,7 +21,9 @@ Written with ``1/D_s`` so that focus at infinity (1/D_s = 0) is exact.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -170,3 +172,63 @@ class ChannelCamera(ThinLensCamera):
             inv_z = np.where(np.isinf(z), 0.0, 1.0 / z)
         return (self.channel_aperture_diameter_mm * self.channel_sensor_distance_mm
                 * np.abs(self.channel_inverse_focus_per_mm - inv_z) / self.pixel_pitch_mm)
+
+
+@dataclass(frozen=True)
+class CompoundLensCamera(ThinLensCamera):
+    """A camera with a real compound lens (``synth.lens.Prescription``), focused by moving the
+    whole lens (unit focusing) so that the paraxial image of the focus distance lies on the sensor.
+
+    ``focal_length_mm`` is the prescription's EFL; ``f_number`` = EFL / entrance-pupil diameter
+    (the stop is scaled to it); ``focus_distance_mm`` and every object distance are measured
+    from the entrance pupil, the centre a pinhole calibration finds. ``sensor_distance_mm`` is
+    the pinhole-equivalent distance ``S = f_px * p`` (chief rays through the entrance pupil land
+    at ``S tan(theta)`` paraxially), so projection and the truth's f_px stay those of a pinhole
+    at the entrance pupil; ``coc_diameter_px`` is the paraxial thick-lens blur ``A S |1/X - 1/d| / p``.
+    The image itself is ray traced through every surface (``synth.raytrace``).
+    """
+
+    prescription: Any = None
+
+    @functools.cached_property
+    def stopped(self):
+        """The prescription with its stop set to this f-number."""
+        return self.prescription.with_f_number(self.f_number)
+
+    @functools.cached_property
+    def paraxial(self):
+        from synth.lens import paraxial
+
+        return paraxial(self.stopped)
+
+    @functools.cached_property
+    def sensor_z_mm(self) -> float:
+        """z of the sensor (lens coordinates: first vertex at 0): the paraxial image of the focus."""
+        from synth.lens import image_z
+
+        return image_z(self.stopped, self.paraxial.entrance_pupil_z_mm - self.focus_distance_mm)
+
+    @functools.cached_property
+    def sensor_distance_mm(self) -> float:
+        para = self.paraxial
+        return (self.sensor_z_mm - para.exit_pupil_z_mm) / para.pupil_magnification
+
+    def coc_diameter_px(self, depth_mm) -> np.ndarray:
+        z = np.asarray(depth_mm, dtype=np.float64)
+        with np.errstate(divide="ignore"):
+            inv_z = np.where(np.isinf(z), 0.0, 1.0 / z)
+        return self.aperture_diameter_mm * self.sensor_distance_mm * np.abs(
+            self.inverse_focus_distance - inv_z) / self.pixel_pitch_mm
+
+    def truth(self) -> dict[str, Any]:
+        """Thick-lens entries of truth.json's setting: distances from the entrance pupil; the
+        exit pupil to sensor distance as ``sensor_distance_mm``; the paraxial data."""
+        para = self.paraxial
+        from_sensor = self.focus_distance_mm + (self.sensor_z_mm - para.entrance_pupil_z_mm)
+        return {"sensor_distance_mm": self.sensor_z_mm - para.exit_pupil_z_mm,
+                "pinhole_distance_mm": self.sensor_distance_mm,
+                "focus_distance_from_sensor_mm": from_sensor if math.isfinite(from_sensor) else None,
+                "pupil_magnification": para.pupil_magnification,
+                "lens": {"prescription": self.prescription.name, "source": self.prescription.source,
+                         "distances_from": "entrance pupil", "sensor_z_mm": self.sensor_z_mm,
+                         "paraxial": para.to_json_dict()}}

@@ -329,3 +329,13 @@ def load_prescription(name: str | Path) -> Prescription:
             raise SpecError("lens.prescription", "", f"got {name!r}: no such design; shipped: "
                             f"{', '.join(list_prescriptions())} (or the path of a lens .toml)")
     return prescription_from_dict(load_toml(path), path)
+
+
+def image_z(rx: Prescription, object_z_mm: float) -> float:
+    """z of the paraxial image of the axial point at ``object_z_mm`` (lens coordinates; -inf:
+    an object at infinity, whose image is the rear focal point)."""
+    if math.isinf(object_z_mm):
+        y, nu = _ynu(rx, 1.0, 0.0)
+    else:
+        y, nu = _ynu(rx, -object_z_mm, 1.0)  # unit angle from the object point to the first vertex
+    return float(rx.vertices_mm()[-1] - y / nu)

@@ -107,6 +107,8 @@ def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *,
 
 def _choose(shot: Shot, requested: str, effects: Effects | None, supersampling: int) -> tuple[str, bool, str]:
     only_raytrace = effects.needs_raytrace if effects is not None else None
+    if getattr(shot.camera, "prescription", None) is not None:
+        only_raytrace = f"the compound lens {shot.camera.prescription.name}"
     if only_raytrace:
         if requested == "convolve":
             raise InputError("method", requested, "raytrace or auto", f"{only_raytrace} is simulated only by ray tracing")
@@ -541,6 +543,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             "focus_distance_from_sensor_mm": _finite_or_none(cam.focus_distance_mm + cam.sensor_distance_mm),
             "aperture_diameter_mm": cam.aperture_diameter_mm,
             "focal_length_px": cam.focal_length_px,
+            **(cam.truth() if getattr(cam, "prescription", None) is not None else {}),
         })
         images_truth.append({
             "file": name, "shot": shot.name, "setting": shot.setting,

@@ -18,7 +18,7 @@ import numpy as np
 from lensfit.errors import InputError, SpecError
 from lensfit.specs import load_toml, validate
 from synth.effects import Effects, parse as parse_effects
-from synth.geometry import Pose, ThinLensCamera
+from synth.geometry import CompoundLensCamera, Pose, ThinLensCamera
 
 DEFAULTS = {
     "effects": ("defocus",),
@@ -201,17 +201,53 @@ def load_scene(path: str | Path) -> Scene:
     return scene_from_dict(data, path)
 
 
+#: Effects a compound lens produces by itself (tracing), which a scene may not add on top.
+_TRACED_EFFECTS = ("distortion", "chromatic_aberration", "vignetting")
+
+
+def _prescription(lens: dict, path):
+    """The compound lens a scene's [lens] names, or None for a thin lens."""
+    if "prescription" not in lens:
+        return None
+    if "focal_length_mm" in lens:
+        raise SpecError(path, "lens.focal_length_mm", "conflicts with lens.prescription, whose EFL is the focal "
+                        "length; remove one")
+    from synth.lens import load_prescription
+
+    name = lens["prescription"]
+    if name.endswith(".toml") and not Path(name).is_absolute():
+        name = str(Path(str(path)).parent / name)
+    try:
+        return load_prescription(name)
+    except SpecError as exc:
+        raise SpecError(path, "lens.prescription", str(exc)) from None
+
+
 def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene:
     """Validate a scene given as a dict (as parsed from TOML) and resolve its shots."""
     validate(data, "scene", path)
     cam, lens = data["camera"], data["lens"]
     pitch = _pitch(cam, path)
-    f = float(lens["focal_length_mm"])
+    rx = _prescription(lens, path)
+    if rx is not None:
+        from synth.lens import paraxial
+
+        f = paraxial(rx).efl_mm
+    else:
+        f = float(lens["focal_length_mm"])
     aperture = lens.get("aperture", "circle")
     aperture = {"shape": aperture} if isinstance(aperture, str) else dict(aperture)
     render = data.get("render", {})
     names = tuple(render.get("effects", DEFAULTS["effects"]))
     effects = parse_effects(data, path, names, aperture)
+    if rx is not None:
+        for name in _TRACED_EFFECTS:
+            if name in names:
+                raise SpecError(path, "render.effects", f"{name!r} comes out of the compound lens's ray tracing "
+                                "(lens.prescription); remove it from the list")
+        if aperture.get("shape", "circle") != "circle":
+            raise SpecError(path, "lens.aperture", "a compound lens's stop is round; polygon and anamorphic "
+                            "apertures are for the thin lens")
     fmt = render.get("format", "dng" if effects.mosaic is not None else DEFAULTS["format"])
     problem = effects.format_problem(fmt)
     if problem is not None:
@@ -271,8 +307,13 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
             fld = f"{where}.pose" if t.id in overrides else f"object[{ids.index(t.id)}]"
             _check_in_front(path, f"{fld}.distance_mm", t, pose, f)
             placed.append(PlacedObject(t, pose))
-        camera = ThinLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
-                                width_px=int(cam["width_px"]), height_px=int(cam["height_px"]))
+        if rx is None:
+            camera = ThinLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
+                                    width_px=int(cam["width_px"]), height_px=int(cam["height_px"]))
+        else:
+            camera = CompoundLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
+                                        width_px=int(cam["width_px"]), height_px=int(cam["height_px"]),
+                                        prescription=rx)
         if ("shutter_s" in sh or "iso" in sh) and effects.exposure is None:
             raise SpecError(path, f"{where}.{'shutter_s' if 'shutter_s' in sh else 'iso'}",
                             "is an exposure setting, but 'exposure' is not in render.effects; add it or remove this")

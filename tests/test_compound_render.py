@@ -1,0 +1,88 @@
+"""Rendering through compound lenses: the blur in the image is the prescription's own spot.
+
+For each shipped design, an edge between two squares of a checkerboard is rendered out of
+focus; its edge profile must be the one the real-ray spot of an object point at that field
+position predicts (the spot's cumulative distribution across the edge, averaged over a pixel),
+the spot computed here by tracing rays forward from the object point through the entrance
+pupil to the sensor (float64, no renderer involved).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from synth.lens import load_prescription, paraxial, trace
+from synth.render import render
+from synth.scene import scene_from_dict
+
+CASES = {  # design: (f-number, focus distance, board distance), mm from the entrance pupil
+    "double-gauss-50": (4.0, 2000.0, 1200.0),
+    "cooke-triplet-50": (5.0, 2000.0, 1200.0),
+    "telephoto-250": (5.6, 8000.0, 7000.0),
+    "retrofocus-24": (4.0, 1000.0, 500.0),
+}
+W, H, PITCH = 96, 64, 0.006
+ROWS = slice(2, 14)  # image rows well away from the horizontal edge through the centre
+
+
+def spot_offsets_px(cam, depth_mm, field_y_mm, n=200_000, seed=0):
+    """x offsets (px, on the sensor) of the rays from the object point (0, field_y, depth) that
+    pass the lens, from their mean, where they land on the sensor: the real-ray spot."""
+    rx, para = cam.stopped, cam.paraxial
+    rng = np.random.default_rng(seed)
+    r = 0.5 * para.entrance_pupil_diameter_mm * 1.6 * np.sqrt(rng.uniform(0, 1, n))  # beyond the pupil: blocked
+    phi = rng.uniform(0, 2 * math.pi, n)
+    z_obj = para.entrance_pupil_z_mm - depth_mm
+    src = np.array([0.0, field_y_mm, z_obj])
+    tgt = np.stack([r * np.cos(phi), r * np.sin(phi), np.full(n, para.entrance_pupil_z_mm)])
+    d = tgt - src[:, None]
+    d /= np.linalg.norm(d, axis=0)
+    start = src[:, None] + ((-1.0 - z_obj) / d[2]) * d
+    (x, y, z), (dx, dy, dz), passed, _ = trace(rx, tuple(start), tuple(d))
+    xs = (x + (cam.sensor_z_mm - z) / dz * dx)[passed] / PITCH
+    return xs - xs.mean()
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_rendered_blur_is_the_prescriptions_spot(name):
+    N, focus, dist = CASES[name]
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": PITCH, "width_px": W, "height_px": H},
+        "lens": {"prescription": name, "f_number": N, "focus_distance_mm": focus},
+        "render": {"samples_per_pixel": 1024, "seed": 1},
+        "object": [{"id": "board", "target": "checkerboard", "squares": [2, 2], "square_mm": 400.0,
+                    "distance_mm": dist, "dark": 0.1, "light": 0.9}],
+    })
+    img = render(scene).images["shot_000.png"].astype(np.float64)[ROWS].mean(axis=0)
+    cam = scene.shots[0].camera
+    cx, cy = cam.principal_point_px
+    row = 0.5 * (ROWS.start + ROWS.stop - 1)
+    offsets = spot_offsets_px(cam, dist, (row - cy) * PITCH * dist / cam.sensor_distance_mm)
+    diameter = np.ptp(offsets)
+    assert 6.0 < diameter < 40.0, f"the case must defocus clearly and stay in the frame ({diameter:.1f} px)"
+    # The edge spread function the spot predicts, averaged over each pixel's width.
+    t = np.arange(W) - cx
+    u = (np.arange(16) + 0.5) / 16 - 0.5
+    ordered = np.sort(offsets)
+    esf = np.mean([np.searchsorted(ordered, t + du) / len(ordered) for du in u], axis=0)
+    dark, light = img[:10].mean(), img[-10:].mean()
+    measured = (img - dark) / (light - dark)
+    assert np.max(np.abs(measured - esf)) < 0.03, (name, np.round(measured - esf, 3))
+
+
+def test_paraxial_coc_is_the_small_aperture_limit_of_the_real_spot():
+    """At f/22 aberrations are small: the real spot's variance approaches that of the paraxial
+    thick-lens blur disk A S |1/X - 1/d| (a uniform disk of diameter c has variance c^2/16)."""
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": PITCH, "width_px": W, "height_px": H},
+        "lens": {"prescription": "double-gauss-50", "f_number": 22.0, "focus_distance_mm": 2000.0},
+        "object": [{"id": "b", "target": "uniform", "size_mm": [10.0, 10.0], "distance_mm": 700.0}],
+    })
+    cam = scene.shots[0].camera
+    offsets = spot_offsets_px(cam, 700.0, 0.0)
+    c = float(cam.coc_diameter_px(700.0))
+    assert np.std(offsets) == pytest.approx(c / 4.0, rel=0.02)
+    assert paraxial(load_prescription("double-gauss-50").with_f_number(22.0)).f_number == pytest.approx(22.0)
