@@ -429,6 +429,41 @@ def _bench_fit_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _bench_lenses_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from lensfit.bench_lenses import run
+    from lensfit.jaxcache import enable_compilation_cache
+
+    if not 1 <= args.spp <= 65536:
+        raise CliError(f"--spp must be between 1 and 65536, got {args.spp}")
+    enable_compilation_cache()
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        result = run(args.lens or None, spp=args.spp, progress=lambda m: status.update(f"benchmarking: {m}"))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    table = Table(title=f"real lenses (demo stack scaled to each, f/11, {args.spp} spp): error of the first setting")
+    for col in ("lens", "P", "fit", "f", "N", "focus distance", "in 95 %", "P fitted"):
+        table.add_column(col, justify="right" if col not in ("lens", "fit") else "left")
+
+    def pct(e):
+        return "refused" if e["relative_error"] is None else f"{100 * e['relative_error']:+.2f}%"
+
+    for row in result["rows"]:
+        for how, fr in row["fits"].items():
+            e = fr["errors"]
+            inside = sum(bool(v["within_ci95"]) for v in e.values())
+            p_fit = "" if not how.startswith("thick (bracket") or fr["pupil_magnification"] is None else \
+                f"{fr['pupil_magnification']:.3f} ± {fr['pupil_magnification_sigma']:.3f}"
+            table.add_row(row["lens"], f"{row['pupil_magnification']:.3f}", how, pct(e["focal_length_mm"]),
+                          pct(e["f_number"]), pct(e["focus_distance_mm"]), f"{inside}/3", p_fit)
+    Console(width=None if sys.stdout.isatty() else 160).print(table)
+    return EXIT_OK
+
+
 def _bench_command(args: argparse.Namespace) -> int:
     from rich.console import Console
 
@@ -596,6 +631,15 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--estimator", default="edge", metavar="NAME", help="blur estimator (edge)")
     bf.add_argument("--json", action="store_true", help="print JSON")
     bf.set_defaults(func=_bench_fit_command, prog="lensfit bench-fit")
+
+    bl = sub.add_parser("bench-lenses", help="thin- and thick-lens fits on stacks ray traced through real lenses",
+                        description="Render the demo calibration stack through every shipped compound lens "
+                                    "(data_specs/lenses) at two focus distances, and fit it as a thin lens (one setting), "
+                                    "as a thick lens with P given, and as a thick lens with P fitted from the bracket.")
+    bl.add_argument("--lens", action="append", metavar="NAME", help="only this design (repeatable)")
+    bl.add_argument("--spp", type=int, default=64, help="ray-tracing samples per pixel (default 64)")
+    bl.add_argument("--json", action="store_true", help="print JSON")
+    bl.set_defaults(func=_bench_lenses_command, prog="lensfit bench-lenses")
 
     bm = sub.add_parser("bench-measure", help="accuracy and time per edge of the blur estimators",
                         description="Benchmark: slanted edges rendered by synth at several CoC diameters and "

@@ -208,6 +208,9 @@ _TRACED_EFFECTS = ("distortion", "chromatic_aberration", "vignetting")
 def _prescription(lens: dict, path):
     """The compound lens a scene's [lens] names, or None for a thin lens."""
     if "prescription" not in lens:
+        if "focal_length_mm" not in lens:
+            raise SpecError(path, "lens.focal_length_mm", "is required but missing (or give lens.prescription, a "
+                            "compound lens)")
         return None
     if "focal_length_mm" in lens:
         raise SpecError(path, "lens.focal_length_mm", "conflicts with lens.prescription, whose EFL is the focal "
