@@ -332,6 +332,7 @@ def write_all(files: Iterable[tuple[Path, Callable[[Path], None]]], *, force: bo
             tmp = temporary_sibling(final)
             pending.append((tmp, final))
             writer(tmp)
+        check_interrupted()
         placed = []
         for tmp, final in pending:
             place(tmp, final, force=force)
@@ -349,6 +350,16 @@ def write_text(path: str | Path, text: str, *, force: bool = True) -> Path:
     return path
 
 
+_RECEIVED: list[int] = []
+
+
+def check_interrupted() -> None:
+    """Raise :class:`Interrupted` if a stop signal arrived (even one whose exception was
+    swallowed by a C callback); writers call it before putting anything in place."""
+    if _RECEIVED:
+        raise Interrupted(_RECEIVED[-1])
+
+
 @contextlib.contextmanager
 def signals_as_exceptions() -> Iterator[None]:
     """Turn SIGTERM (and SIGHUP) into :class:`lensfit.errors.Interrupted` inside the block, so
@@ -356,6 +367,7 @@ def signals_as_exceptions() -> Iterator[None]:
     import signal
 
     def handler(signum, frame):
+        _RECEIVED.append(signum)  # kept: a raise inside a C callback (e.g. JAX's gc hook) is swallowed
         raise Interrupted(signum)
 
     previous = {}
@@ -389,7 +401,9 @@ def run_guarded(prog: str, body: Callable[[], int],
 
     try:
         with signals_as_exceptions():
-            return body()
+            code = body()
+            check_interrupted()
+            return code
     except Interrupted as exc:
         message, code = f"{exc}; temporary files removed, existing outputs unchanged", exc.exit_code
     except KeyboardInterrupt:

@@ -97,6 +97,9 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
             truth["image_format"] += "; sensor DN with the black and white levels in stack.toml"
         (tmp / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
         (tmp / "stack.toml").write_text(manifest_toml(result.manifest))
+        from lensfit.outputs import check_interrupted
+
+        check_interrupted()  # a stop signal, even one a C callback swallowed: nothing is put in place
         check_out_dir(out, force)  # again: something may have been put there while rendering
         if out.is_dir() and any(out.iterdir()):
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
