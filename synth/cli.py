@@ -40,24 +40,22 @@ def _render_command(args: argparse.Namespace) -> int:
         outputs.append(("--preview", preview))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with OutputLock(outputs):
-        return _render_locked(args)
+        return _render_locked(args, scene)
 
 
-def _render_locked(args: argparse.Namespace) -> int:
+def _render_locked(args: argparse.Namespace, scene) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from lensfit.jaxcache import enable_compilation_cache
     from lensfit.outputs import check_output
     from synth.render import check_overrides, render
-    from synth.scene import load_scene
     from synth.stack import check_out_dir, write_stack
 
     check_out_dir(args.out, args.force)  # again, under the lock
     if args.preview is not None:
         check_output(args.preview, "--preview", force=args.force)
     console = Console(stderr=True)
-    scene = load_scene(args.scene)
     enable_compilation_cache()
     check_overrides(samples_per_pixel=args.spp, seed=args.seed, supersampling=args.supersampling)
     scene = scene.with_render(method=args.method, samples_per_pixel=args.spp, seed=args.seed,
