@@ -4,17 +4,20 @@ prescription (``data_specs/lenses``), fitted as a thin lens and as a thick lens.
 Each lens gets the demo's calibration stack (``data_specs/scenes/demo.toml``: two ChArUco
 boards at 0.5 to 3 times the focus distance, seven of twelve views tilted) with every length,
 the pixel pitch included, scaled by f / 25 mm, so that field of view and blur in pixels are the
-demo's at the same f-number; rendered at two focus distances (X and 2X, unit focusing), 600 x
-400 px. Three fits per lens:
+demo's at the same f-number (setting "far", focus X = 40 f), and the same stack at a third of
+every distance and board size (setting "near", focus X / 3): a focus bracket (unit focusing)
+whose two calibrations are far enough apart to determine P; 600 x 400 px, the lens focused at
+its best focus (``focus_plane = "best"``). Three fits per lens:
 
-- ``thin (one setting)``: the first setting alone, the pupil magnification P assumed 1 (what a
+- ``thin (one setting)``: the near setting alone, the pupil magnification P assumed 1 (what a
   thin-lens tool reports);
-- ``thick, P given``: the first setting alone, P given as the prescription's (an assumption a
+- ``thick, P given``: the near setting alone, P given as the prescription's (an assumption a
   user with the lens data can make);
 - ``thick (bracket)``: both settings, P fitted.
 
-Errors are against the prescription's paraxial data (EFL, f-number = EFL / entrance-pupil
-diameter, focus distance from the entrance pupil), recorded in each stack's truth.json.
+Errors are against the truth.json of each stack: the prescription's paraxial EFL, f-number =
+EFL / entrance-pupil diameter, and the focus distance from the entrance pupil (the distance
+imaged at best focus).
 """
 
 from __future__ import annotations
@@ -46,8 +49,15 @@ def _scale_lengths(node: Any, k: float) -> Any:
     return node
 
 
+#: The near setting's distances (and board sizes) as a fraction of the far setting's: a bracket
+#: whose inverse focus distances differ by 2/X, enough for the calibrations to determine P.
+NEAR_FRACTION = 1.0 / 3.0
+
+
 def lens_scene(name: str, f_number: float = 11.0, spp: int = 64) -> dict[str, Any]:
-    """The demo scene scaled to the prescription ``name``, shot at focus X and 2X."""
+    """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f) and the
+    same scene at a third of the distances with boards a third the size (setting "near": focus
+    X / 3; the same pictures in pinhole terms, three times the blur), unit focusing."""
     from synth.lens import load_prescription, paraxial
 
     efl = paraxial(load_prescription(name)).efl_mm
@@ -58,10 +68,16 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64) -> dict[str, An
     focus = scene["lens"]["focus_distance_mm"]
     scene["lens"] = {"prescription": name, "f_number": f_number, "focus_distance_mm": focus}
     scene["render"] = {"effects": ["defocus"], "method": "raytrace", "samples_per_pixel": spp, "seed": 0}
-    shots = scene["shot"]
-    scene["shot"] = ([{**s, "setting": "near"} for s in shots]
-                     + [{**s, "setting": "far", "focus_distance_mm": 2 * focus, "name": f"far_{i:03d}"}
-                        for i, s in enumerate(shots)])
+    near = _scale_lengths({"object": scene["object"], "shot": scene["shot"]}, NEAR_FRACTION)
+    for obj in near["object"]:
+        obj["id"] = f"{obj['id']}-near"
+    for shot in near["shot"]:
+        shot["objects"] = [f"{o}-near" for o in shot["objects"]]
+        shot["pose"] = [{**p, "id": f"{p['id']}-near"} for p in shot.get("pose", [])]
+    scene["object"] = scene["object"] + near["object"]
+    scene["shot"] = ([{**s, "setting": "near", "focus_distance_mm": NEAR_FRACTION * focus, "name": f"near_{i:03d}"}
+                      for i, s in enumerate(near["shot"])]
+                     + [{**s, "setting": "far", "name": f"far_{i:03d}"} for i, s in enumerate(scene["shot"])])
     scene["name"] = f"{name}-bracket"
     return scene
 
@@ -78,7 +94,7 @@ def _errors(result, truth: dict[str, Any], label: str) -> dict[str, Any]:
     return out
 
 
-def run(names: list[str] | None = None, spp: int = 64,
+def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Render, measure and fit every lens; returns rows of errors and seconds."""
     import json
@@ -94,7 +110,7 @@ def run(names: list[str] | None = None, spp: int = 64,
         for name in names or list_prescriptions():
             say(f"{name}: rendering 24 shots")
             t0 = time.perf_counter()
-            scene = scene_from_dict(lens_scene(name, spp=spp), f"<{name} bracket>")
+            scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp), f"<{name} bracket>")
             folder = write_stack(render(scene), Path(tmp) / name)
             t_render = time.perf_counter() - t0
             truth = json.loads((folder / "truth.json").read_text())
@@ -113,7 +129,8 @@ def run(names: list[str] | None = None, spp: int = 64,
                    "fits": {}}
             for how, res in fits.items():
                 row["fits"][how] = {"errors": _errors(res, truth, "near"), "result": res.code,
+                                    "errors_far": _errors(res, truth, "far") if "far" in res.settings else None,
                                     "pupil_magnification": res.pupil_magnification.value,
                                     "pupil_magnification_sigma": res.pupil_magnification.sigma}
             rows.append(row)
-    return {"rows": rows, "samples_per_pixel": spp}
+    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number}

@@ -441,11 +441,12 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
     enable_compilation_cache()
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
-        result = run(args.lens or None, spp=args.spp, progress=lambda m: status.update(f"benchmarking: {m}"))
+        result = run(args.lens or None, spp=args.spp, f_number=args.f_number, progress=lambda m: status.update(f"benchmarking: {m}"))
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK
-    table = Table(title=f"real lenses (demo stack scaled to each, f/11, {args.spp} spp): error of the first setting")
+    table = Table(title=f"real lenses (demo stack scaled to each, f/{args.f_number:g}, {args.spp} spp): errors of "
+                        "the near setting (and the far one in the bracket)")
     for col in ("lens", "P", "fit", "f", "N", "focus distance", "in 95 %", "P fitted"):
         table.add_column(col, justify="right" if col not in ("lens", "fit") else "left")
 
@@ -460,6 +461,11 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
                 f"{fr['pupil_magnification']:.3f} ± {fr['pupil_magnification_sigma']:.3f}"
             table.add_row(row["lens"], f"{row['pupil_magnification']:.3f}", how, pct(e["focal_length_mm"]),
                           pct(e["f_number"]), pct(e["focus_distance_mm"]), f"{inside}/3", p_fit)
+            if fr.get("errors_far"):
+                e = fr["errors_far"]
+                inside = sum(bool(v["within_ci95"]) for v in e.values())
+                table.add_row("", "", "  same fit, far setting", pct(e["focal_length_mm"]), pct(e["f_number"]),
+                              pct(e["focus_distance_mm"]), f"{inside}/3", "")
     Console(width=None if sys.stdout.isatty() else 160).print(table)
     return EXIT_OK
 
@@ -638,6 +644,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "as a thick lens with P given, and as a thick lens with P fitted from the bracket.")
     bl.add_argument("--lens", action="append", metavar="NAME", help="only this design (repeatable)")
     bl.add_argument("--spp", type=int, default=64, help="ray-tracing samples per pixel (default 64)")
+    bl.add_argument("--f-number", type=_number, default=11.0, metavar="N",
+                    help="f-number of every shot (default 11; the designs' own: 2.8-5.6)")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=_bench_lenses_command, prog="lensfit bench-lenses")
 

@@ -177,7 +177,10 @@ class ChannelCamera(ThinLensCamera):
 @dataclass(frozen=True)
 class CompoundLensCamera(ThinLensCamera):
     """A camera with a real compound lens (``synth.lens.Prescription``), focused by moving the
-    whole lens (unit focusing) so that the paraxial image of the focus distance lies on the sensor.
+    whole lens (unit focusing) so that the focus distance is imaged on the sensor: at the lens's
+    best focus for it (``focus_plane = "best"``: the smallest RMS spot of the axial point, where a
+    camera's autofocus puts it; spherical aberration moves it from the paraxial image) or at its
+    paraxial image (``"paraxial"``).
 
     ``focal_length_mm`` is the prescription's EFL; ``f_number`` = EFL / entrance-pupil diameter
     (the stop is scaled to it); ``focus_distance_mm`` and every object distance are measured
@@ -189,6 +192,7 @@ class CompoundLensCamera(ThinLensCamera):
     """
 
     prescription: Any = None
+    focus_plane: str = "best"
 
     @functools.cached_property
     def stopped(self):
@@ -203,10 +207,32 @@ class CompoundLensCamera(ThinLensCamera):
 
     @functools.cached_property
     def sensor_z_mm(self) -> float:
-        """z of the sensor (lens coordinates: first vertex at 0): the paraxial image of the focus."""
+        """z of the sensor (lens coordinates: first vertex at 0): the best-focus or paraxial image
+        of the axial point at the focus distance."""
+        return self.best_focus_z_mm if self.focus_plane == "best" else self.paraxial_image_z_mm
+
+    @functools.cached_property
+    def paraxial_image_z_mm(self) -> float:
+        """z of the paraxial image of the axial point at the focus distance."""
         from synth.lens import image_z
 
         return image_z(self.stopped, self.paraxial.entrance_pupil_z_mm - self.focus_distance_mm)
+
+    @functools.cached_property
+    def best_focus_z_mm(self) -> float:
+        """z where the real rays from the axial point at the focus distance have the smallest RMS spot."""
+        from synth.lens import best_focus_image_z
+
+        return best_focus_image_z(self.stopped, self.paraxial.entrance_pupil_z_mm - self.focus_distance_mm)
+
+    @functools.cached_property
+    def paraxial_inverse_focus_distance(self) -> float:
+        """1/distance (1/mm, from the entrance pupil) of the object whose paraxial image is on the
+        sensor; negative when that object is virtual (the sensor in front of the rear focal point,
+        as the best focus for infinity is)."""
+        from synth.lens import object_z
+
+        return 1.0 / (self.paraxial.entrance_pupil_z_mm - object_z(self.stopped, self.sensor_z_mm))
 
     @functools.cached_property
     def sensor_distance_mm(self) -> float:
@@ -225,10 +251,16 @@ class CompoundLensCamera(ThinLensCamera):
         exit pupil to sensor distance as ``sensor_distance_mm``; the paraxial data."""
         para = self.paraxial
         from_sensor = self.focus_distance_mm + (self.sensor_z_mm - para.entrance_pupil_z_mm)
+        inv_paraxial = self.paraxial_inverse_focus_distance
         return {"sensor_distance_mm": self.sensor_z_mm - para.exit_pupil_z_mm,
+                "focus_plane": self.focus_plane,
+                "paraxial_focus_distance_mm": 1.0 / inv_paraxial if inv_paraxial > 0 else None,
+                "paraxial_inverse_focus_distance_per_mm": inv_paraxial,
                 "pinhole_distance_mm": self.sensor_distance_mm,
                 "focus_distance_from_sensor_mm": from_sensor if math.isfinite(from_sensor) else None,
                 "pupil_magnification": para.pupil_magnification,
                 "lens": {"prescription": self.prescription.name, "source": self.prescription.source,
                          "distances_from": "entrance pupil", "sensor_z_mm": self.sensor_z_mm,
+                         "paraxial_image_z_mm": self.paraxial_image_z_mm,
+                         "best_focus_image_z_mm": self.best_focus_z_mm,
                          "paraxial": para.to_json_dict()}}

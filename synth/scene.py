@@ -251,6 +251,9 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
         if aperture.get("shape", "circle") != "circle":
             raise SpecError(path, "lens.aperture", "a compound lens's stop is round; polygon and anamorphic "
                             "apertures are for the thin lens")
+    elif "focus_plane" in lens:
+        raise SpecError(path, "lens.focus_plane", "applies to a compound lens (lens.prescription) only: a thin "
+                        "lens has no aberration, its best and paraxial focus coincide; remove it")
     fmt = render.get("format", "dng" if effects.mosaic is not None else DEFAULTS["format"])
     problem = effects.format_problem(fmt)
     if problem is not None:
@@ -316,7 +319,7 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
         else:
             camera = CompoundLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
                                         width_px=int(cam["width_px"]), height_px=int(cam["height_px"]),
-                                        prescription=rx)
+                                        prescription=rx, focus_plane=lens.get("focus_plane", "best"))
         if ("shutter_s" in sh or "iso" in sh) and effects.exposure is None:
             raise SpecError(path, f"{where}.{'shutter_s' if 'shutter_s' in sh else 'iso'}",
                             "is an exposure setting, but 'exposure' is not in render.effects; add it or remove this")

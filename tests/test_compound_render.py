@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 
+from lensfit.errors import SpecError
 from synth.lens import load_prescription, paraxial, trace
 from synth.render import render
 from synth.scene import scene_from_dict
@@ -28,7 +29,7 @@ W, H, PITCH = 96, 64, 0.006
 ROWS = slice(2, 14)  # image rows well away from the horizontal edge through the centre
 
 
-def spot_offsets_px(cam, depth_mm, field_y_mm, n=200_000, seed=0):
+def spot_offsets_px(cam, depth_mm, field_y_mm, n=200_000, seed=0, sensor_shift_mm=0.0):
     """x offsets (px, on the sensor) of the rays from the object point (0, field_y, depth) that
     pass the lens, from their mean, where they land on the sensor: the real-ray spot."""
     rx, para = cam.stopped, cam.paraxial
@@ -42,7 +43,7 @@ def spot_offsets_px(cam, depth_mm, field_y_mm, n=200_000, seed=0):
     d /= np.linalg.norm(d, axis=0)
     start = src[:, None] + ((-1.0 - z_obj) / d[2]) * d
     (x, y, z), (dx, dy, dz), passed, _ = trace(rx, tuple(start), tuple(d))
-    xs = (x + (cam.sensor_z_mm - z) / dz * dx)[passed] / PITCH
+    xs = (x + (cam.sensor_z_mm + sensor_shift_mm - z) / dz * dx)[passed] / PITCH
     return xs - xs.mean()
 
 
@@ -86,3 +87,39 @@ def test_paraxial_coc_is_the_small_aperture_limit_of_the_real_spot():
     c = float(cam.coc_diameter_px(700.0))
     assert np.std(offsets) == pytest.approx(c / 4.0, rel=0.02)
     assert paraxial(load_prescription("double-gauss-50").with_f_number(22.0)).f_number == pytest.approx(22.0)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_best_focus_plane_gives_the_sharpest_axial_spot(name):
+    """focus_plane = "best" (default) puts the sensor where the axial point at the focus distance
+    has its smallest real-ray spot (spherical aberration moves that from the paraxial image);
+    "paraxial" puts it at the paraxial image, and truth says which distance each one images."""
+    N, focus, _ = CASES[name]
+    cams = {}
+    for plane in ("best", "paraxial"):
+        scene = scene_from_dict({
+            "camera": {"pixel_pitch_mm": PITCH, "width_px": W, "height_px": H},
+            "lens": {"prescription": name, "f_number": N, "focus_distance_mm": focus, "focus_plane": plane},
+            "object": [{"id": "b", "target": "uniform", "size_mm": [10.0, 10.0], "distance_mm": focus}],
+        })
+        cams[plane] = scene.shots[0].camera
+    best, par = cams["best"], cams["paraxial"]
+    spot = {k: np.std(spot_offsets_px(c, focus, 0.0, n=400_000)) for k, c in cams.items()}
+    assert spot["best"] < 0.8 * spot["paraxial"], spot
+    # The sensor moved a small step either way from best focus blurs the axial spot.
+    for dz in (-0.004, 0.004):
+        moved = spot_offsets_px(best, focus, 0.0, n=400_000, sensor_shift_mm=dz * best.focal_length_mm)
+        assert np.std(moved) > spot["best"], (dz, np.std(moved), spot["best"])
+    assert par.truth()["paraxial_focus_distance_mm"] == pytest.approx(focus, rel=1e-9)
+    # Best focus lies in front of the paraxial image (under-corrected): a farther paraxial object.
+    assert best.truth()["paraxial_focus_distance_mm"] > focus
+    assert best.truth()["focus_plane"] == "best"
+
+
+def test_focus_plane_is_refused_for_a_thin_lens():
+    with pytest.raises(SpecError, match="lens.focus_plane"):
+        scene_from_dict({
+            "camera": {"pixel_pitch_mm": PITCH, "width_px": W, "height_px": H},
+            "lens": {"focal_length_mm": 50.0, "f_number": 4.0, "focus_distance_mm": 2000.0, "focus_plane": "best"},
+            "object": [{"id": "b", "target": "uniform", "size_mm": [10.0, 10.0], "distance_mm": 700.0}],
+        })

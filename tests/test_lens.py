@@ -142,3 +142,61 @@ def test_bad_prescriptions_are_refused_naming_the_field(change, field):
     rows[0] = {**rows[0], **change}
     with pytest.raises(SpecError, match=field.replace("[", r"\[").replace("]", r"\]")):
         prescription_from_dict({"surface": rows})
+
+
+@pytest.mark.parametrize("name", DESIGNS)
+def test_best_focus_is_the_least_rms_plane_of_optilands_rays(name):
+    """The best-focus plane (smallest RMS spot of the axial point) from rays optiland traces, by
+    scanning planes; ours comes from a closed form on our own trace."""
+    from optiland.rays import RealRays
+
+    from synth.lens import best_focus_image_z, image_z
+
+    rx = load_prescription(name).with_f_number(5.6)
+    para = paraxial(rx)
+    lens = to_optiland(rx, para.bfl_mm)
+    X = 30 * para.efl_mm
+    z_obj = para.entrance_pupil_z_mm - X
+    # A polar grid of equal-area cells over the entrance pupil (overfilled: the stop clips).
+    # Fine rings: the stop's edge falls between two of them, so their spacing is the sampling error.
+    rho = np.sqrt((np.arange(400) + 0.5) / 400) * 0.6 * para.entrance_pupil_diameter_mm
+    phi = (np.arange(90) + 0.5) / 90 * 2 * math.pi
+    R, F = np.meshgrid(rho, phi)
+    tgt = np.stack([(R * np.cos(F)).ravel(), (R * np.sin(F)).ravel(), np.full(R.size, para.entrance_pupil_z_mm)])
+    src = np.array([0.0, 0.0, z_obj])[:, None]
+    d = tgt - src
+    d /= np.linalg.norm(d, axis=0)
+    start = src + ((-5.0 - z_obj) / d[2]) * d
+    rays = RealRays(start[0], start[1], start[2], d[0], d[1], d[2], np.ones(R.size), np.full(R.size, 0.58756))
+    lens.surface_group.trace(rays)
+    x, y, z = (np.asarray(getattr(lens.surface_group, k))[-1] for k in ("x", "y", "z"))
+    L, M, N = (np.asarray(getattr(rays, k)) for k in ("L", "M", "N"))
+    (_, _, _), (_, _, _), passed, _ = trace(rx, tuple(start), tuple(d))  # which rays the stop lets through
+    x, y, z, L, M, N = (q[passed] for q in (x, y, z, L, M, N))
+    z_par = image_z(rx, z_obj)
+    # optiland's image-surface z is relative to its own origin: put it on ours by the last vertex.
+    z = z - np.asarray(lens.surface_group.positions).ravel()[-2] + rx.vertices_mm()[-1]
+    planes = z_par + np.linspace(-0.5, 0.1, 6001) * para.efl_mm / 50
+    rms = [np.sqrt(np.var(x + (p - z) * L / N) + np.var(y + (p - z) * M / N)) for p in planes]
+    scanned = planes[int(np.argmin(rms))]
+    ours = best_focus_image_z(rx, z_obj)
+    step = planes[1] - planes[0]
+    assert abs(ours - scanned) < 2 * step + 0.01 * (z_par - scanned), (ours, scanned, z_par)
+    assert ours < z_par  # under-corrected spherical aberration: best focus in front of the paraxial image
+
+
+@pytest.mark.parametrize("name", DESIGNS)
+def test_best_focus_tends_to_the_paraxial_image_as_the_stop_closes(name):
+    """Third-order spherical aberration: the focus shift grows as the aperture squared, 1/N^2."""
+    from synth.lens import best_focus_image_z, image_z, object_z
+
+    base = load_prescription(name)
+    shifts = []
+    for N in (32.0, 64.0):
+        rx = base.with_f_number(N)
+        para = paraxial(rx)
+        z_obj = para.entrance_pupil_z_mm - 40 * para.efl_mm
+        z_par = image_z(rx, z_obj)
+        assert object_z(rx, z_par) == pytest.approx(z_obj, rel=1e-9)  # the inverse of image_z
+        shifts.append(z_par - best_focus_image_z(rx, z_obj))
+    assert shifts[0] > 0 and shifts[0] / shifts[1] == pytest.approx(4.0, rel=0.1)
