@@ -125,8 +125,11 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
             P = truth["settings"]["near"]["pupil_magnification"]
             fits = {"thin (one setting)": fit(one), "thick, P given (one setting)": fit(one, pupil_magnification=P),
                     "thick (bracket, P fitted)": fit(table)}
+            calibration = {label: {"focal_length_px": k.focal_length_px, "sigma": k.focal_length_sigma_px,
+                                   "relative_error": k.focal_length_px / truth["settings"][label]["focal_length_px"] - 1}
+                           for label, k in table.intrinsics.items()}
             row = {"lens": name, "pupil_magnification": P, "seconds_render": t_render, "seconds_measure": t_measure,
-                   "fits": {}}
+                   "calibration": calibration, "fits": {}}
             for how, res in fits.items():
                 row["fits"][how] = {"errors": _errors(res, truth, "near"), "result": res.code,
                                     "errors_far": _errors(res, truth, "far") if "far" in res.settings else None,

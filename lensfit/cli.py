@@ -467,6 +467,11 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
                 table.add_row("", "", "  same fit, far setting", pct(e["focal_length_mm"]), pct(e["f_number"]),
                               pct(e["focus_distance_mm"]), f"{inside}/3", "")
     Console(width=None if sys.stdout.isatty() else 160).print(table)
+    for row in result["rows"]:
+        cal = ", ".join(f"{label} {100 * c['relative_error']:+.3f}% (sigma {100 * c['sigma'] / c['focal_length_px']:.3f}%)"
+                        for label, c in row["calibration"].items())
+        print(f"{row['lens']}: calibrated f_px error {cal}; render {row['seconds_render']:.0f} s, "
+              f"measure {row['seconds_measure']:.0f} s")
     return EXIT_OK
 
 

@@ -194,7 +194,8 @@ def _edge_tasks(target: Target, det: Detection, pose: TargetPose, intr: Intrinsi
         step = project(pose.to_camera(np.array([mid, mid + nrm])), intr)
         scale = float(np.linalg.norm(step[1] - step[0]))
         task = EdgeTask(px[0], px[2], seg.clear_left_mm * scale, seg.clear_right_mm * scale,
-                        context={"segment": seg, "target": target, "pose": pose, "intrinsics": intr})
+                        context={"segment": seg, "target": target, "pose": pose, "intrinsics": intr,
+                                 "end_depths_mm": (float(ends_cam[0, 2]), float(ends_cam[2, 2]))})
         out.append((seg, task, ends_cam[:, 2]))
     return out
 

@@ -75,7 +75,56 @@ def _disk_esf_integral2_jvp(primals, tangents):
     return disk_esf_integral2(x), disk_esf_integral(x) * dx
 
 
-def pixel_edge_profile(d, radius_px, nx, ny):
+def rim_esf(x):
+    """Edge-spread function of the unit disk with intensity 2 rho^2 (a bright rim, dark centre;
+    the same light as the uniform disk) at x = t/R; its line-spread function is
+    ``4/(3 pi) sqrt(1 - x^2) (1 + 2 x^2)``, variance 1/3 (the uniform disk's: 1/4)."""
+    xc = jnp.clip(x, -1.0, 1.0)
+    return 0.5 + (xc * jnp.sqrt(1.0 - xc * xc) * (2.0 * xc * xc + 1.0) / 3.0 + jnp.arcsin(xc)) / jnp.pi
+
+
+@jax.custom_jvp
+def rim_esf_integral(x):
+    """Antiderivative of :func:`rim_esf`, 0 at -inf (x for x >= 1)."""
+    inside = jnp.abs(x) < 1.0
+    xs = jnp.where(inside, x, 0.0)
+    x2 = xs * xs
+    root = jnp.sqrt(1.0 - x2)
+    core = ((4.0 * x2 * x2 + 2.0 * x2 + 24.0) * root + 30.0 * xs * jnp.arcsin(xs)) / (30.0 * jnp.pi) + 0.5 * xs
+    return jnp.where(inside, core, jnp.where(x >= 1.0, x, 0.0))
+
+
+@rim_esf_integral.defjvp
+def _rim_esf_integral_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return rim_esf_integral(x), rim_esf(x) * dx
+
+
+@jax.custom_jvp
+def rim_esf_integral2(x):
+    """Second antiderivative of :func:`rim_esf`, 0 at -inf (x^2/2 + 1/6 for x >= 1)."""
+    inside = jnp.abs(x) < 1.0
+    xs = jnp.where(inside, x, 0.0)
+    x2 = xs * xs
+    root = jnp.sqrt(1.0 - x2)
+    core = (((4.0 * x2 * x2 + 2.0 * x2 + 114.0) * xs * root + (90.0 * x2 + 30.0) * jnp.arcsin(xs)) / (180.0 * jnp.pi)
+            + 0.25 * x2 + 1.0 / 12.0)
+    return jnp.where(inside, core, jnp.where(x >= 1.0, 0.5 * x * x + 1.0 / 6.0, 0.0))
+
+
+@rim_esf_integral2.defjvp
+def _rim_esf_integral2_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return rim_esf_integral2(x), rim_esf_integral(x) * dx
+
+
+def second_moment_diameter(radius_px, beta):
+    """Diameter of the uniform disk with the second moment of the profile ``1 + beta (2 rho^2 - 1)``
+    of radius R: ``2 R sqrt(1 + beta / 3)`` (mean rho^2 = 1/2 + beta/6)."""
+    return 2.0 * radius_px * jnp.sqrt(jnp.maximum(1.0 + beta / 3.0, 0.0))
+
+
+def pixel_edge_profile(d, radius_px, nx, ny, beta=0.0):
     """Mean over a unit pixel of a disk-blurred step rising towards +d (exact, closed form).
 
     Parameters
@@ -86,6 +135,10 @@ def pixel_edge_profile(d, radius_px, nx, ny):
         Blur-disk radius R = c/2 in pixels (>= 0; 0 gives a sharp step).
     nx, ny : scalars
         Components of the edge normal in image coordinates (unit vector).
+    beta : scalar
+        Shape of the spot's radial profile ``1 + beta (2 rho^2 - 1)`` (rho = r/R): 0 a uniform
+        disk, > 0 a brighter rim, < 0 a brighter core (non-negative for |beta| <= 1). Aberrated
+        spots (spherical aberration on either side of focus) are of these kinds.
 
     Returns
     -------
@@ -98,10 +151,10 @@ def pixel_edge_profile(d, radius_px, nx, ny):
     b_safe = jnp.where(thin, 1.0, b)
 
     def H(t):
-        return R * R * disk_esf_integral2(t / R)
+        return R * R * ((1.0 - beta) * disk_esf_integral2(t / R) + beta * rim_esf_integral2(t / R))
 
     def G(t):
-        return R * disk_esf_integral(t / R)
+        return R * ((1.0 - beta) * disk_esf_integral(t / R) + beta * rim_esf_integral(t / R))
 
     two_box = (H(d + 0.5 * (a + b_safe)) - H(d + 0.5 * (a - b_safe)) - H(d - 0.5 * (a - b_safe))
                + H(d - 0.5 * (a + b_safe))) / (a * b_safe)

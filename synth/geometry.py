@@ -252,7 +252,12 @@ class CompoundLensCamera(ThinLensCamera):
         para = self.paraxial
         from_sensor = self.focus_distance_mm + (self.sensor_z_mm - para.entrance_pupil_z_mm)
         inv_paraxial = self.paraxial_inverse_focus_distance
+        from synth.lens import real_entrance_pupil_diameter
+
+        real_epd = real_entrance_pupil_diameter(self.stopped, para.entrance_pupil_z_mm - self.focus_distance_mm)
         return {"sensor_distance_mm": self.sensor_z_mm - para.exit_pupil_z_mm,
+                "real_ray_f_number": para.efl_mm / real_epd,
+                "real_entrance_pupil_diameter_mm": real_epd,
                 "focus_plane": self.focus_plane,
                 "paraxial_focus_distance_mm": 1.0 / inv_paraxial if inv_paraxial > 0 else None,
                 "paraxial_inverse_focus_distance_per_mm": inv_paraxial,

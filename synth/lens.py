@@ -395,3 +395,77 @@ def best_focus_image_z(rx: Prescription, object_z_mm: float, grid: int = BEST_FO
         num += np.mean((a - a.mean()) * (b - b.mean()))
         den += np.var(b)
     return float(-num / den)
+
+
+def axial_beam_clipped(rx: Prescription, object_z_mm: float, rings: int = 64, spokes: int = 16) -> float:
+    """Fraction of the axial beam through the paraxial entrance pupil that a clear aperture
+    other than the stop blocks (the stopped ``rx``; object at ``object_z_mm``, -inf: infinity):
+    0 when the stop alone limits the beam, as it should at any f-number a lens is made for."""
+    para = paraxial(rx)
+    r = 0.5 * para.entrance_pupil_diameter_mm * np.sqrt((np.arange(rings) + 0.5) / rings)
+    phi = np.arange(spokes) * (2 * math.pi / spokes)
+    R, F = np.meshgrid(r, phi)
+    tx, ty = (R * np.cos(F)).ravel(), (R * np.sin(F)).ravel()
+    z_ep = para.entrance_pupil_z_mm
+    if math.isinf(object_z_mm):
+        origin = (tx, ty, np.full_like(tx, min(0.0, z_ep) - 1.0))
+        direction = (np.zeros_like(tx), np.zeros_like(tx), np.ones_like(tx))
+    else:
+        dz = z_ep - object_z_mm
+        norm = np.sqrt(tx * tx + ty * ty + dz * dz)
+        origin = (np.zeros_like(tx), np.zeros_like(tx), np.full_like(tx, float(object_z_mm)))
+        direction = (tx / norm, ty / norm, np.full_like(tx, dz) / norm)
+    # Clear apertures opened wide except the others: what the stop alone passes vs all of them.
+    k = rx.stop_index
+    open_rx = replace(rx, surfaces=tuple(replace(s, semi_aperture_mm=1e9) if i != k else s
+                                         for i, s in enumerate(rx.surfaces)))
+    _, _, stop_only, _ = trace(open_rx, origin, direction)
+    _, _, passed, _ = trace(rx, origin, direction)
+    return float(1.0 - passed.sum() / max(stop_only.sum(), 1))
+
+
+def fastest_f_number(rx: Prescription, object_z_mm: float, tolerance: float = 0.01) -> float:
+    """The smallest f-number at which the clear apertures other than the stop block at most
+    ``tolerance`` of the axial beam from ``object_z_mm`` (bisection on log N, 1 % steps)."""
+    lo, hi = math.log(0.5), math.log(64.0)
+    if axial_beam_clipped(rx.with_f_number(math.exp(hi)), object_z_mm) > tolerance:
+        return math.inf
+    while hi - lo > 0.005:
+        mid = 0.5 * (lo + hi)
+        if axial_beam_clipped(rx.with_f_number(math.exp(mid)), object_z_mm) > tolerance:
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(hi)
+
+
+def real_entrance_pupil_diameter(rx: Prescription, object_z_mm: float) -> float:
+    """Diameter of the entrance pupil as real rays from the axial point at ``object_z_mm`` (-inf:
+    infinity) see it: twice the largest height on the paraxial entrance-pupil plane of a ray
+    that passes every clear aperture (bisection to 1e-9 relative).
+
+    Pupil spherical aberration makes it differ from the paraxial diameter by a per cent or more
+    at full aperture; the cone of light a defocused point spreads, and so the blur, follows the
+    real pupil: ``EFL / real_entrance_pupil_diameter`` is the f-number blur measures.
+    """
+    para = paraxial(rx)
+    z_ep = para.entrance_pupil_z_mm
+
+    def passes(h: float) -> bool:
+        if math.isinf(object_z_mm):
+            origin, direction = (np.zeros(1), np.array([h]), np.array([min(0.0, z_ep) - 1.0])), (
+                np.zeros(1), np.zeros(1), np.ones(1))
+        else:
+            dz = z_ep - object_z_mm
+            norm = math.hypot(h, dz)
+            origin = (np.zeros(1), np.zeros(1), np.array([float(object_z_mm)]))
+            direction = (np.zeros(1), np.array([h / norm]), np.array([dz / norm]))
+        return bool(trace(rx, origin, direction)[2][0])
+
+    lo, hi = 0.0, para.entrance_pupil_diameter_mm  # twice the paraxial radius: blocked
+    if passes(hi):
+        raise ValueError(f"{rx.name}: rays beyond twice the entrance pupil pass; no aperture limits the beam")
+    while hi - lo > 1e-9 * para.entrance_pupil_diameter_mm:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if passes(mid) else (lo, mid)
+    return 2.0 * lo

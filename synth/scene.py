@@ -226,6 +226,26 @@ def _prescription(lens: dict, path):
         raise SpecError(path, "lens.prescription", str(exc)) from None
 
 
+#: Share of the axial beam that clear apertures other than the stop may block before an
+#: f-number counts as faster than the lens opens.
+AXIAL_CLIPPING_LIMIT = 0.02
+
+
+def _check_opens(path, where: str, rx, N: float, D: float) -> None:
+    """Refuse an f-number the compound lens cannot open to: where other clear apertures than the
+    stop cut the axial beam, the stop no longer sets the f-number and the blur is not the lens's."""
+    from synth.lens import axial_beam_clipped, fastest_f_number, paraxial
+
+    stopped = rx.with_f_number(N)
+    z_obj = paraxial(stopped).entrance_pupil_z_mm - D
+    clipped = axial_beam_clipped(stopped, z_obj)
+    if clipped > AXIAL_CLIPPING_LIMIT:
+        fastest = fastest_f_number(rx, z_obj, AXIAL_CLIPPING_LIMIT)
+        raise SpecError(path, where, f"got {N:g}: {rx.name} does not open that far (its clear apertures block "
+                        f"{100 * clipped:.0f} % of the axial beam at this focus); use f/{math.ceil(fastest * 10) / 10:g} "
+                        "or slower")
+
+
 def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene:
     """Validate a scene given as a dict (as parsed from TOML) and resolve its shots."""
     validate(data, "scene", path)
@@ -292,6 +312,8 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
             raise SpecError(path, f"{where}.setting", f"got {label!r}: shot[{first}] has the same setting with "
                             f"f_number {setting_values[label][0]:g} and focus_distance_mm {setting_values[label][1]:g}; "
                             "shots sharing a setting label must share f-number and focus distance")
+        if rx is not None and label not in setting_values:
+            _check_opens(path, f"{where}.f_number" if "f_number" in sh else "lens.f_number", rx, N, D)
         setting_values.setdefault(label, (N, D, k))
         overrides = {}
         for j, pose in enumerate(sh.get("pose", [])):

@@ -68,6 +68,12 @@ def _edge(image, tasks):
     return measure(image, tasks)
 
 
+def _edge_disk(image, tasks):
+    from lensfit.estimators.edge import measure
+
+    return measure(image, tasks, second_moment=False)
+
+
 def _target(image, tasks):
     from lensfit.estimators.target import measure
 
@@ -76,7 +82,10 @@ def _target(image, tasks):
 
 #: Registry: name -> (measure function, one-line description).
 ESTIMATORS: dict[str, tuple[Estimator, str]] = {
-    "edge": (_edge, "slanted-edge ESF fit of a uniform disk (fast)"),
+    "edge": (_edge, "slanted-edge ESF: second-moment blur diameter (a uniform-disk fit, corrected by the "
+                    "profile's own second moment; right for aberrated spots; fast)"),
+    "edge-disk": (_edge_disk, "slanted-edge ESF fit of a uniform disk, its diameter (biased low on aberrated "
+                              "spots; the estimator before the second-moment correction)"),
     "target": (_target, "analysis by synthesis of the known target texture (slower, uses every pixel)"),
 }
 
