@@ -85,10 +85,13 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64) -> dict[str, An
 def _errors(result, truth: dict[str, Any], label: str) -> dict[str, Any]:
     t = truth["settings"][label]
     out = {}
-    for q, tv in (("focal_length_mm", truth["focal_length_mm"]), ("f_number", t["f_number"]),
-                  ("focus_distance_mm", t["focus_distance_mm"])):
+    pairs = [("focal_length_mm", "focal_length_mm", truth["focal_length_mm"]), ("f_number", "f_number", t["f_number"]),
+             ("focus_distance_mm", "focus_distance_mm", t["focus_distance_mm"])]
+    if "real_ray_f_number" in t:  # what blur follows: the real entrance pupil (pupil aberration)
+        pairs.append(("f_number_real_ray", "f_number", t["real_ray_f_number"]))
+    for key, q, tv in pairs:
         e = result.settings[label][q]
-        out[q] = {"estimate": e.value, "truth": tv, "relative_error": None if e.value is None else e.value / tv - 1,
+        out[key] = {"estimate": e.value, "truth": tv, "relative_error": None if e.value is None else e.value / tv - 1,
                   "within_ci95": None if e.ci95 is None else bool(
                       (e.ci95[0] is None or e.ci95[0] <= tv) and (e.ci95[1] is None or tv <= e.ci95[1]))}
     return out

@@ -447,25 +447,29 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
         return EXIT_OK
     table = Table(title=f"real lenses (demo stack scaled to each, f/{args.f_number:g}, {args.spp} spp): errors of "
                         "the near setting (and the far one in the bracket)")
-    for col in ("lens", "P", "fit", "f", "N", "focus distance", "in 95 %", "P fitted"):
+    for col in ("lens", "P", "fit", "f", "N", "N (real pupil)", "focus distance", "in 95 %", "P fitted"):
         table.add_column(col, justify="right" if col not in ("lens", "fit") else "left")
 
     def pct(e):
+        if e is None:
+            return ""
         return "refused" if e["relative_error"] is None else f"{100 * e['relative_error']:+.2f}%"
+
+    def inside(e):
+        return f"{sum(bool(e[q]['within_ci95']) for q in ('focal_length_mm', 'f_number', 'focus_distance_mm'))}/3"
 
     for row in result["rows"]:
         for how, fr in row["fits"].items():
             e = fr["errors"]
-            inside = sum(bool(v["within_ci95"]) for v in e.values())
             p_fit = "" if not how.startswith("thick (bracket") or fr["pupil_magnification"] is None else \
                 f"{fr['pupil_magnification']:.3f} ± {fr['pupil_magnification_sigma']:.3f}"
             table.add_row(row["lens"], f"{row['pupil_magnification']:.3f}", how, pct(e["focal_length_mm"]),
-                          pct(e["f_number"]), pct(e["focus_distance_mm"]), f"{inside}/3", p_fit)
+                          pct(e["f_number"]), pct(e.get("f_number_real_ray")), pct(e["focus_distance_mm"]),
+                          inside(e), p_fit)
             if fr.get("errors_far"):
                 e = fr["errors_far"]
-                inside = sum(bool(v["within_ci95"]) for v in e.values())
                 table.add_row("", "", "  same fit, far setting", pct(e["focal_length_mm"]), pct(e["f_number"]),
-                              pct(e["focus_distance_mm"]), f"{inside}/3", "")
+                              pct(e.get("f_number_real_ray")), pct(e["focus_distance_mm"]), inside(e), "")
     Console(width=None if sys.stdout.isatty() else 160).print(table)
     for row in result["rows"]:
         cal = ", ".join(f"{label} {100 * c['relative_error']:+.3f}% (sigma {100 * c['sigma'] / c['focal_length_px']:.3f}%)"

@@ -675,8 +675,10 @@ PUPIL_MAGNIFICATION_RANGE = (0.1, 10.0)
 #: Width (1 sigma of log P) of the weak prior that keeps a fitted P in a sane range; a factor of
 #: e^3 = 20 either way, so it never matters where the data determine P.
 _P_PRIOR_SIGMA_LOG = 3.0
-#: A fitted P needs focus settings spread enough that its relative 1 sigma stays below this.
-_P_MAX_RELATIVE_SIGMA = 0.1
+#: A fitted P needs focus settings spread enough that its relative 1 sigma stays below this;
+#: up to it, P is fitted and its uncertainty widens the intervals of f and N (an assumed P = 1
+#: would leave them narrow and wrong by (f/X)(1/P - 1)).
+_P_MAX_RELATIVE_SIGMA = 0.3
 
 
 def _pupil_mode(value) -> tuple:

@@ -352,6 +352,21 @@ def object_z(rx: Prescription, image_z_mm: float) -> float:
     return last - float(rev.vertices_mm()[-1] - y / nu)
 
 
+def axial_rays(rx: Prescription, object_z_mm: float, tx: np.ndarray, ty: np.ndarray):
+    """Rays from the axial object point at ``object_z_mm`` (-inf: parallel rays from infinity)
+    through the points ``(tx, ty)`` of the paraxial entrance-pupil plane: (origin, direction)
+    for :func:`trace`."""
+    tx, ty = np.asarray(tx, np.float64), np.asarray(ty, np.float64)
+    z_ep = paraxial(rx).entrance_pupil_z_mm
+    if math.isinf(object_z_mm):
+        return (tx, ty, np.full_like(tx, min(0.0, z_ep) - 1.0)), (np.zeros_like(tx), np.zeros_like(tx),
+                                                                   np.ones_like(tx))
+    dz = z_ep - object_z_mm
+    norm = np.sqrt(tx * tx + ty * ty + dz * dz)
+    return (np.zeros_like(tx), np.zeros_like(tx), np.full_like(tx, float(object_z_mm))), (
+        tx / norm, ty / norm, np.full_like(tx, dz) / norm)
+
+
 #: Pupil samples per diameter for the best-focus search (about 0.8 x this squared rays).
 BEST_FOCUS_GRID = 161
 
@@ -372,18 +387,7 @@ def best_focus_image_z(rx: Prescription, object_z_mm: float, grid: int = BEST_FO
     g = (np.arange(grid) + 0.5) / grid * 2.0 - 1.0
     u, v = np.meshgrid(g, g)
     inside = u * u + v * v <= 1.0
-    tx, ty = r * u[inside], r * v[inside]
-    z_ep = para.entrance_pupil_z_mm
-    if math.isinf(object_z_mm):
-        z0 = min(0.0, z_ep) - 1.0
-        origin = (tx, ty, np.full_like(tx, z0))
-        direction = (np.zeros_like(tx), np.zeros_like(tx), np.ones_like(tx))
-    else:
-        dz = z_ep - object_z_mm
-        norm = np.sqrt(tx * tx + ty * ty + dz * dz)
-        origin = (np.zeros_like(tx), np.zeros_like(tx), np.full_like(tx, float(object_z_mm)))
-        direction = (tx / norm, ty / norm, np.full_like(tx, dz) / norm)
-    (x, y, z), (dx, dy, dz_out), passed, _ = trace(rx, origin, direction)
+    (x, y, z), (dx, dy, dz_out), passed, _ = trace(rx, *axial_rays(rx, object_z_mm, r * u[inside], r * v[inside]))
     ok = passed & (dz_out > 1e-9)
     if ok.sum() < 16:
         raise ValueError(f"{rx.name}: fewer than 16 rays from the axial object pass the lens; no best focus")
@@ -405,16 +409,7 @@ def axial_beam_clipped(rx: Prescription, object_z_mm: float, rings: int = 64, sp
     r = 0.5 * para.entrance_pupil_diameter_mm * np.sqrt((np.arange(rings) + 0.5) / rings)
     phi = np.arange(spokes) * (2 * math.pi / spokes)
     R, F = np.meshgrid(r, phi)
-    tx, ty = (R * np.cos(F)).ravel(), (R * np.sin(F)).ravel()
-    z_ep = para.entrance_pupil_z_mm
-    if math.isinf(object_z_mm):
-        origin = (tx, ty, np.full_like(tx, min(0.0, z_ep) - 1.0))
-        direction = (np.zeros_like(tx), np.zeros_like(tx), np.ones_like(tx))
-    else:
-        dz = z_ep - object_z_mm
-        norm = np.sqrt(tx * tx + ty * ty + dz * dz)
-        origin = (np.zeros_like(tx), np.zeros_like(tx), np.full_like(tx, float(object_z_mm)))
-        direction = (tx / norm, ty / norm, np.full_like(tx, dz) / norm)
+    origin, direction = axial_rays(rx, object_z_mm, (R * np.cos(F)).ravel(), (R * np.sin(F)).ravel())
     # Clear apertures opened wide except the others: what the stop alone passes vs all of them.
     k = rx.stop_index
     open_rx = replace(rx, surfaces=tuple(replace(s, semi_aperture_mm=1e9) if i != k else s
@@ -449,18 +444,9 @@ def real_entrance_pupil_diameter(rx: Prescription, object_z_mm: float) -> float:
     real pupil: ``EFL / real_entrance_pupil_diameter`` is the f-number blur measures.
     """
     para = paraxial(rx)
-    z_ep = para.entrance_pupil_z_mm
 
     def passes(h: float) -> bool:
-        if math.isinf(object_z_mm):
-            origin, direction = (np.zeros(1), np.array([h]), np.array([min(0.0, z_ep) - 1.0])), (
-                np.zeros(1), np.zeros(1), np.ones(1))
-        else:
-            dz = z_ep - object_z_mm
-            norm = math.hypot(h, dz)
-            origin = (np.zeros(1), np.zeros(1), np.array([float(object_z_mm)]))
-            direction = (np.zeros(1), np.array([h / norm]), np.array([dz / norm]))
-        return bool(trace(rx, origin, direction)[2][0])
+        return bool(trace(rx, *axial_rays(rx, object_z_mm, np.zeros(1), np.array([h])))[2][0])
 
     lo, hi = 0.0, para.entrance_pupil_diameter_mm  # twice the paraxial radius: blocked
     if passes(hi):

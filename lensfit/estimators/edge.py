@@ -23,11 +23,11 @@ Method
     Levenberg-Marquardt (parameters: edge offset d0, radius R, the two levels, the line's turn),
     started from a grid search over the radius with the levels solved linearly; first as a
     uniform disk (beta = 0), and where that misfits beyond the noise (RMS residual above
-    ``SHAPE_RMS`` standard errors) again with beta free (prior 0 +- 0.5), plus the second
-    moment of what is left in the residuals (what the profile family misses: a bright core in
-    a wide, dim halo; 2 % of c more uncertainty); flag ``shaped_spot``. Only on edges at one
-    depth (within 1 %): along an edge across depth the profile mixes spots of several sizes,
-    which the fit's model describes as the power mean of a uniform-disk reading. The window across the edge
+    ``SHAPE_RMS`` standard errors) again with beta free (prior 0 +- 0.5); flag ``shaped_spot``,
+    its sigma a 3 % model error in quadrature with the fit's own (a bright core in a wide, dim
+    halo behind an aberrated focus is followed only in part). Only on edges at one depth
+    (within 1 %): along an edge across depth the profile mixes spots of several sizes, which
+    the fit's model describes as the power mean of a uniform-disk reading. The window across the edge
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
     each side, and the ends of the segment are skipped by the window plus the blur, so that
     neither truncates the PSF nor lets neighbouring squares in. Edges are fitted in batches
@@ -79,9 +79,8 @@ BETA_PRIOR = 0.5
 SHAPE_RMS = 1.5
 #: Largest relative change of depth along an edge on which the spot's shape is read.
 SHAPE_MAX_DEPTH_SPAN = 0.01
-#: Relative uncertainty of a second moment from the residuals (a halo beyond the window; seen
-#: within 2.5 %).
-MISFIT_FLOOR_REL = 0.02
+#: Model error (relative, 1 sigma) of the second moment read through the shaped profile.
+SHAPE_MODEL_REL = 0.03
 
 
 BIN_PX = 1.0 / 8.0  # super-sampling of the edge profile (ISO 12233 uses 1/4 px)
@@ -244,42 +243,6 @@ def _fit_batch(d, s, v, w, nx, ny, shaped):
     return jax.vmap(one)(d, s, v, w, nx, ny, shaped)
 
 
-def residual_second_moment(d: np.ndarray, s: np.ndarray, v: np.ndarray, se: np.ndarray, theta: np.ndarray,
-                           nx: float, ny: float) -> tuple[float, float]:
-    """How much the variance of the spot across the edge exceeds the fitted model's, px^2, and its
-    1 sigma, from the residuals: ``(var_image - var_model, sigma)``.
-
-    With ``F`` the edge profile normalised to run from 0 to 1 over the window ``[-a, a]``, the
-    variance of the line-spread function is ``M2 - M1^2`` with ``M1 = a - int F`` and
-    ``M2 = a^2 - 2 int t F`` (integration by parts). The image's profile and the model's share
-    the window, the levels, the edge position and the pixel footprint, so the difference of their
-    variances is ``-2 int t r dt - (int r dt)^2`` in the normalised residual ``r = F_image -
-    F_model``: whatever the model's shape misses (a halo, an asymmetric spot) enters with its
-    true second moment, while the pixel's own variance and the window cancel. Residuals are
-    averaged over the strips in 1/8 px cells of ``t``.
-    """
-    d0, lo, hi, turn = float(theta[0]), float(theta[2]), float(theta[3]), float(theta[4])
-    contrast = hi - lo
-    if not abs(contrast) > 0:
-        return 0.0, math.inf
-    with jax.enable_x64(True):
-        m = np.asarray(_model(jnp.asarray(theta), jnp.asarray(d), jnp.asarray(s), nx, ny))
-    t = d - d0 - turn * s
-    r = (v - m) / contrast
-    var_r = (se / contrast) ** 2
-    cell = np.floor(t / BIN_PX).astype(int)
-    cell -= cell.min()
-    n = np.bincount(cell)
-    used = n > 0
-    r_cell = np.bincount(cell, weights=r)[used] / n[used]
-    var_cell = np.bincount(cell, weights=var_r)[used] / n[used] ** 2
-    t_cell = np.bincount(cell, weights=t)[used] / n[used]
-    m1 = -np.sum(r_cell) * BIN_PX
-    m2 = -2.0 * np.sum(t_cell * r_cell) * BIN_PX
-    sigma = math.sqrt(float(np.sum((2.0 * (t_cell + m1) * BIN_PX) ** 2 * var_cell)))
-    return float(m2 - m1 * m1), sigma
-
-
 def _bucket(n: int, minimum: int) -> int:
     return max(minimum, 1 << int(math.ceil(math.log2(max(n, 1)))))
 
@@ -364,6 +327,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
             npixels[i] = pixels
             index.append(i)
         fits = _fit(batch, False)
+        shaped: list[int] = []
         if second_moment and attempt == 1:
             # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
             # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
@@ -385,7 +349,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
             # the edge; the uniform disk's diameter where beta = 0.
             k = math.sqrt(max(1.0 + beta / 3.0, 0.0))
             c = 2.0 * r * k
-            f = list(flags[i]) + (["shaped_spot"] if beta != 0.0 else [])
+            f = list(flags[i]) + (["shaped_spot"] if index.index(i) in shaped else [])
             # 1 sigma of R from that of R^2: sqrt(R^2 + sigma_rho) - R (= sigma_rho / 2R when R is
             # well determined, sqrt(sigma_rho) as R -> 0); beta's share by the gradient of c.
             sigma_r = math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - r
@@ -394,17 +358,11 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
             var_c = (2.0 * k * sigma_r) ** 2 + g_beta**2 * max(float(cov[5, 5]), 0.0) + 4.0 * k * g_beta * cov_rb
             sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
             if "shaped_spot" in f:
-                # What the profile family does not follow (a bright core with a wide, dim halo
-                # behind an aberrated focus; a mixture of blurs along an edge across depth): the
-                # residuals carry the missing variance.
-                d_i, s_i, v_i, se_i, n_i = batch[index.index(i)]
-                delta, sigma_delta = residual_second_moment(d_i, s_i, v_i, se_i, theta, float(n_i[0]),
-                                                            float(n_i[1]))
-                # The total (model + residual) moment is the data's: the model's own uncertainty
-                # (its shape and radius trade off against the residual) cancels; what is left is
-                # the noise of the moment and what a finite window misses of a halo.
-                c = math.sqrt(max(c * c + 16.0 * delta, 0.0))
-                sigma_c = math.hypot(8.0 * sigma_delta / max(c, 1e-6), MISFIT_FLOOR_REL * c)
+                # A spot that is no uniform disk: the fit's chi-square inflation measures how far
+                # the profile family is from the spot, not how uncertain its second moment is;
+                # that is stated by the family's model error instead (a bright core in a wide,
+                # dim halo behind an aberrated focus is followed only in part: seen within 4 %).
+                sigma_c = math.hypot(sigma_c / max(rms, 1.0), SHAPE_MODEL_REL * c)
             sigma = with_model_floor(sigma_c, c)
             if c < SUB_PIXEL_PX:
                 # Below about half a pixel the pixel footprint dominates the profile and the fit's
