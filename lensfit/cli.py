@@ -586,7 +586,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("stack", help="stack folder (or its stack.toml)")
     m.add_argument("--out", required=True, metavar="FILE", help="samples file: .csv or .json")
     m.add_argument("--estimator", default="edge", metavar="NAME",
-                   help="blur estimator: edge (fast) or target (analysis by synthesis)")
+                   help="blur estimator: edge (fast; second-moment blur diameter), edge-disk (uniform-disk reading) "
+                        "or target (analysis by synthesis)")
     m.add_argument("--force", action="store_true", help="replace an existing --out file that lensfit wrote")
     _input_options(m)
     m.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
@@ -601,7 +602,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "is not identifiable (the results say which and why); 2: bad input.")
     ft.add_argument("stack", help="stack folder (or its stack.toml), or a samples .json/.csv")
     ft.add_argument("--estimator", default="edge", metavar="NAME",
-                    help="blur estimator: edge (fast) or target (analysis by synthesis)")
+                    help="blur estimator: edge (fast; second-moment blur diameter), edge-disk (uniform-disk reading) "
+                        "or target (analysis by synthesis)")
     ft.add_argument("--out", metavar="FILE", help="results JSON (CONTRACTS.md 'Fit results')")
     ft.add_argument("--plot", metavar="FILE", help="plot of blur versus inverse distance and the fit (.png/.svg/.pdf)")
     ft.add_argument("--samples", metavar="FILE", help="also write the measured samples (.csv/.json)")
@@ -654,7 +656,7 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--lens", action="append", metavar="NAME", help="only this design (repeatable)")
     bl.add_argument("--spp", type=int, default=64, help="ray-tracing samples per pixel (default 64)")
     bl.add_argument("--f-number", type=_number, default=11.0, metavar="N",
-                    help="f-number of every shot (default 11; the designs' own: 2.8-5.6)")
+                    help="f-number of every shot (default 11; faster than a design opens to is refused)")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=_bench_lenses_command, prog="lensfit bench-lenses")
 
