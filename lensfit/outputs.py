@@ -399,15 +399,18 @@ def run_guarded(prog: str, body: Callable[[], int],
 
     from lensfit.errors import InputError, SpecError
 
+    interrupted = False
     try:
         with signals_as_exceptions():
             code = body()
             check_interrupted()
             return code
     except Interrupted as exc:
-        message, code = f"{exc}; temporary files removed, existing outputs unchanged", exc.exit_code
+        message, code, interrupted = (f"{exc}; temporary files removed, existing outputs unchanged", exc.exit_code,
+                                      True)
     except KeyboardInterrupt:
-        message, code = "interrupted (Ctrl-C); temporary files removed, existing outputs unchanged", 130
+        message, code, interrupted = ("interrupted (Ctrl-C); temporary files removed, existing outputs unchanged",
+                                      130, True)
     except Exception as exc:  # noqa: BLE001 - the one place where every failure becomes a message
         mapped = known(exc)
         if mapped is not None:
@@ -426,4 +429,11 @@ def run_guarded(prog: str, body: Callable[[], int],
             message, code = (f"internal error ({type(exc).__name__}: {exc}); please report it with the command "
                              "line (LENSFIT_TRACEBACK=1 shows the traceback)"), 70
     print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
+    if interrupted:
+        # Interrupted: the writers have already removed their temporary files and locks. Skip
+        # the interpreter's teardown, which can run beside an XLA computation still finishing on
+        # its own threads and crash there (seen: SIGSEGV instead of the exit status).
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
     return code
