@@ -14,7 +14,7 @@ What "blur diameter" means
     Variances of convolved blurs add, so this is the quantity the fit's model
     ``sqrt((A S |1/D - 1/d| / p)^2 + b^2)`` describes; far from focus it grows as the real
     entrance pupil's cone, and its V's vertex is the lens's best (least-RMS) focus. A
-    uniform-disk fit to an aberrated spot misses it by 2-10 % (``edge-disk`` keeps that
+    uniform-disk fit to an aberrated spot misses it by up to 10 % (``edge-disk`` keeps that
     estimator for comparison).
 Method
     Pixels near a straight target edge are projected onto the edge normal, which super-samples
@@ -233,10 +233,11 @@ def _fit_batch(d, s, v, w, nx, ny, shaped):
         n_eff = jnp.sum(w > 0)  # bins
         # Residuals are in units of each bin's own standard error; a reduced chi-square above 1
         # (model misfit) inflates the covariance, one below 1 does not shrink it.
-        chi2 = jnp.maximum(jnp.sum(r * r) / jnp.maximum(n_eff - 6, 1), 1.0)
+        dof = jnp.maximum(n_eff - 5 - shaped, 1)  # beta is a parameter only when shaped
+        chi2 = jnp.maximum(jnp.sum(r * r) / dof, 1.0)
         JTJ = J.T @ J
         cov = chi2 * jnp.linalg.pinv(JTJ, rtol=1e-14)
-        s2 = jnp.sum(r * r) / jnp.maximum(n_eff - 6, 1)
+        s2 = jnp.sum(r * r) / dof
         ok = sol.result == optx.RESULTS.successful
         return theta, cov, jnp.sqrt(s2), ok
 
