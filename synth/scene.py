@@ -241,6 +241,9 @@ def _check_opens(path, where: str, rx, N: float, D: float) -> None:
     clipped = axial_beam_clipped(stopped, z_obj)
     if clipped > AXIAL_CLIPPING_LIMIT:
         fastest = fastest_f_number(rx, z_obj, AXIAL_CLIPPING_LIMIT)
+        if not math.isfinite(fastest):
+            raise SpecError(path, where, f"got {N:g}: the clear apertures of {rx.name} block the axial beam at "
+                            "every f-number; check its semi_aperture_mm values")
         raise SpecError(path, where, f"got {N:g}: {rx.name} does not open that far (its clear apertures block "
                         f"{100 * clipped:.0f} % of the axial beam at this focus); use f/{math.ceil(fastest * 10) / 10:g} "
                         "or slower")
