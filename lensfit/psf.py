@@ -41,38 +41,44 @@ def disk_esf(x):
     return 0.5 + (xc * jnp.sqrt(1.0 - xc * xc) + jnp.arcsin(xc)) / jnp.pi
 
 
-@jax.custom_jvp
-def disk_esf_integral(x):
-    """G(x): antiderivative of :func:`disk_esf` with G(-inf) = 0 (exact, see module docstring)."""
-    inside = jnp.abs(x) < 1.0
-    xs = jnp.where(inside, x, 0.0)
+def _antiderivative(core, above, derivative, doc: str):
+    """A closed-form antiderivative of an edge-spread function of the unit disk: ``core(x)`` for
+    |x| < 1, ``above(x)`` for x >= 1, 0 below -1; its derivative given explicitly (``derivative``,
+    called lazily), so that gradients stay exact and finite at |x| = 1."""
+
+    @jax.custom_jvp
+    def f(x):
+        inside = jnp.abs(x) < 1.0
+        xs = jnp.where(inside, x, 0.0)
+        return jnp.where(inside, core(xs), jnp.where(x >= 1.0, above(x), 0.0))
+
+    @f.defjvp
+    def _jvp(primals, tangents):
+        (x,), (dx,) = primals, tangents
+        return f(x), derivative()(x) * dx
+
+    f.__doc__ = doc
+    return f
+
+
+def _disk_g(xs):
     one_minus = 1.0 - xs * xs
-    core = 0.5 * xs + (xs * jnp.arcsin(xs) + jnp.sqrt(one_minus) - one_minus * jnp.sqrt(one_minus) / 3.0) / jnp.pi
-    return jnp.where(inside, core, jnp.where(x >= 1.0, x, 0.0))
+    return 0.5 * xs + (xs * jnp.arcsin(xs) + jnp.sqrt(one_minus) - one_minus * jnp.sqrt(one_minus) / 3.0) / jnp.pi
 
 
-@disk_esf_integral.defjvp
-def _disk_esf_integral_jvp(primals, tangents):
-    (x,), (dx,) = primals, tangents
-    return disk_esf_integral(x), disk_esf(x) * dx
-
-
-@jax.custom_jvp
-def disk_esf_integral2(x):
-    """H(x): second antiderivative of :func:`disk_esf`, H(-inf) = 0 (exact, see the module docstring)."""
-    inside = jnp.abs(x) < 1.0
-    xs = jnp.where(inside, x, 0.0)
+def _disk_h(xs):
     x2 = xs * xs
     root = jnp.sqrt(1.0 - x2)
-    core = (0.25 * x2 + 1.0 / 16.0
+    return (0.25 * x2 + 1.0 / 16.0
             + ((4.0 * x2 + 1.0) / 8.0 * jnp.arcsin(xs) + 0.625 * xs * root - xs * (1.0 - x2) * root / 12.0) / jnp.pi)
-    return jnp.where(inside, core, jnp.where(x >= 1.0, 0.5 * x * x + 0.125, 0.0))
 
 
-@disk_esf_integral2.defjvp
-def _disk_esf_integral2_jvp(primals, tangents):
-    (x,), (dx,) = primals, tangents
-    return disk_esf_integral2(x), disk_esf_integral(x) * dx
+disk_esf_integral = _antiderivative(_disk_g, lambda x: x, lambda: disk_esf,
+                                    "G(x): antiderivative of :func:`disk_esf` with G(-inf) = 0 (exact, see module "
+                                    "docstring).")
+disk_esf_integral2 = _antiderivative(_disk_h, lambda x: 0.5 * x * x + 0.125, lambda: disk_esf_integral,
+                                     "H(x): second antiderivative of :func:`disk_esf`, H(-inf) = 0 (exact, see the "
+                                     "module docstring).")
 
 
 def rim_esf(x):
@@ -83,45 +89,22 @@ def rim_esf(x):
     return 0.5 + (xc * jnp.sqrt(1.0 - xc * xc) * (2.0 * xc * xc + 1.0) / 3.0 + jnp.arcsin(xc)) / jnp.pi
 
 
-@jax.custom_jvp
-def rim_esf_integral(x):
-    """Antiderivative of :func:`rim_esf`, 0 at -inf (x for x >= 1)."""
-    inside = jnp.abs(x) < 1.0
-    xs = jnp.where(inside, x, 0.0)
+def _rim_g(xs):
     x2 = xs * xs
-    root = jnp.sqrt(1.0 - x2)
-    core = ((4.0 * x2 * x2 + 2.0 * x2 + 24.0) * root + 30.0 * xs * jnp.arcsin(xs)) / (30.0 * jnp.pi) + 0.5 * xs
-    return jnp.where(inside, core, jnp.where(x >= 1.0, x, 0.0))
+    return ((4.0 * x2 * x2 + 2.0 * x2 + 24.0) * jnp.sqrt(1.0 - x2) + 30.0 * xs * jnp.arcsin(xs)) / (30.0 * jnp.pi) \
+        + 0.5 * xs
 
 
-@rim_esf_integral.defjvp
-def _rim_esf_integral_jvp(primals, tangents):
-    (x,), (dx,) = primals, tangents
-    return rim_esf_integral(x), rim_esf(x) * dx
-
-
-@jax.custom_jvp
-def rim_esf_integral2(x):
-    """Second antiderivative of :func:`rim_esf`, 0 at -inf (x^2/2 + 1/6 for x >= 1)."""
-    inside = jnp.abs(x) < 1.0
-    xs = jnp.where(inside, x, 0.0)
+def _rim_h(xs):
     x2 = xs * xs
-    root = jnp.sqrt(1.0 - x2)
-    core = (((4.0 * x2 * x2 + 2.0 * x2 + 114.0) * xs * root + (90.0 * x2 + 30.0) * jnp.arcsin(xs)) / (180.0 * jnp.pi)
-            + 0.25 * x2 + 1.0 / 12.0)
-    return jnp.where(inside, core, jnp.where(x >= 1.0, 0.5 * x * x + 1.0 / 6.0, 0.0))
+    return (((4.0 * x2 * x2 + 2.0 * x2 + 114.0) * xs * jnp.sqrt(1.0 - x2) + (90.0 * x2 + 30.0) * jnp.arcsin(xs))
+            / (180.0 * jnp.pi) + 0.25 * x2 + 1.0 / 12.0)
 
 
-@rim_esf_integral2.defjvp
-def _rim_esf_integral2_jvp(primals, tangents):
-    (x,), (dx,) = primals, tangents
-    return rim_esf_integral2(x), rim_esf_integral(x) * dx
-
-
-def second_moment_diameter(radius_px, beta):
-    """Diameter of the uniform disk with the second moment of the profile ``1 + beta (2 rho^2 - 1)``
-    of radius R: ``2 R sqrt(1 + beta / 3)`` (mean rho^2 = 1/2 + beta/6)."""
-    return 2.0 * radius_px * jnp.sqrt(jnp.maximum(1.0 + beta / 3.0, 0.0))
+rim_esf_integral = _antiderivative(_rim_g, lambda x: x, lambda: rim_esf,
+                                   "Antiderivative of :func:`rim_esf`, 0 at -inf (x for x >= 1).")
+rim_esf_integral2 = _antiderivative(_rim_h, lambda x: 0.5 * x * x + 1.0 / 6.0, lambda: rim_esf_integral,
+                                    "Second antiderivative of :func:`rim_esf`, 0 at -inf (x^2/2 + 1/6 for x >= 1).")
 
 
 def pixel_edge_profile(d, radius_px, nx, ny, beta=0.0):

@@ -336,7 +336,8 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
                       if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])]
             for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True)):
                 fits[j] = refit
-        for i, (theta, cov, rms, ok) in zip(index, fits):
+        is_shaped = set(shaped)
+        for j, (i, (theta, cov, rms, ok)) in enumerate(zip(index, fits)):
             rho = abs(float(theta[1]))
             r = math.sqrt(rho)
             beta = float(theta[5])
@@ -350,7 +351,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
             # the edge; the uniform disk's diameter where beta = 0.
             k = math.sqrt(max(1.0 + beta / 3.0, 0.0))
             c = 2.0 * r * k
-            f = list(flags[i]) + (["shaped_spot"] if index.index(i) in shaped else [])
+            f = list(flags[i]) + (["shaped_spot"] if j in is_shaped else [])
             # 1 sigma of R from that of R^2: sqrt(R^2 + sigma_rho) - R (= sigma_rho / 2R when R is
             # well determined, sqrt(sigma_rho) as R -> 0); beta's share by the gradient of c.
             sigma_r = math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - r
@@ -371,7 +372,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
                 sigma = max(sigma, SUB_PIXEL_SIGMA_PX)
                 f.append("sub_pixel_blur")
             contrast = abs(float(theta[3] - theta[2]))
-            if contrast < 10 * max(rms, 1e-12) * float(np.median(batch[index.index(i)][3])):
+            if contrast < 10 * max(rms, 1e-12) * float(np.median(batch[j][3])):
                 f.append("low_contrast")
             (q0, q1), n = lines[i]
             d0, turn = float(theta[0]), float(theta[4])
