@@ -352,12 +352,11 @@ def object_z(rx: Prescription, image_z_mm: float) -> float:
     return last - float(rev.vertices_mm()[-1] - y / nu)
 
 
-def axial_rays(rx: Prescription, object_z_mm: float, tx: np.ndarray, ty: np.ndarray):
+def axial_rays(z_ep: float, object_z_mm: float, tx: np.ndarray, ty: np.ndarray):
     """Rays from the axial object point at ``object_z_mm`` (-inf: parallel rays from infinity)
-    through the points ``(tx, ty)`` of the paraxial entrance-pupil plane: (origin, direction)
-    for :func:`trace`."""
+    through the points ``(tx, ty)`` of the entrance-pupil plane at ``z_ep`` (the paraxial
+    ``entrance_pupil_z_mm``): (origin, direction) for :func:`trace`."""
     tx, ty = np.asarray(tx, np.float64), np.asarray(ty, np.float64)
-    z_ep = paraxial(rx).entrance_pupil_z_mm
     if math.isinf(object_z_mm):
         return (tx, ty, np.full_like(tx, min(0.0, z_ep) - 1.0)), (np.zeros_like(tx), np.zeros_like(tx),
                                                                    np.ones_like(tx))
@@ -387,7 +386,8 @@ def best_focus_image_z(rx: Prescription, object_z_mm: float, grid: int = BEST_FO
     g = (np.arange(grid) + 0.5) / grid * 2.0 - 1.0
     u, v = np.meshgrid(g, g)
     inside = u * u + v * v <= 1.0
-    (x, y, z), (dx, dy, dz_out), passed, _ = trace(rx, *axial_rays(rx, object_z_mm, r * u[inside], r * v[inside]))
+    rays = axial_rays(para.entrance_pupil_z_mm, object_z_mm, r * u[inside], r * v[inside])
+    (x, y, z), (dx, dy, dz_out), passed, _ = trace(rx, *rays)
     ok = passed & (dz_out > 1e-9)
     if ok.sum() < 16:
         raise ValueError(f"{rx.name}: fewer than 16 rays from the axial object pass the lens; no best focus")
@@ -409,7 +409,8 @@ def axial_beam_clipped(rx: Prescription, object_z_mm: float, rings: int = 64, sp
     r = 0.5 * para.entrance_pupil_diameter_mm * np.sqrt((np.arange(rings) + 0.5) / rings)
     phi = np.arange(spokes) * (2 * math.pi / spokes)
     R, F = np.meshgrid(r, phi)
-    origin, direction = axial_rays(rx, object_z_mm, (R * np.cos(F)).ravel(), (R * np.sin(F)).ravel())
+    origin, direction = axial_rays(para.entrance_pupil_z_mm, object_z_mm, (R * np.cos(F)).ravel(),
+                                   (R * np.sin(F)).ravel())
     # Clear apertures opened wide except the others: what the stop alone passes vs all of them.
     k = rx.stop_index
     open_rx = replace(rx, surfaces=tuple(replace(s, semi_aperture_mm=1e9) if i != k else s
@@ -446,7 +447,7 @@ def real_entrance_pupil_diameter(rx: Prescription, object_z_mm: float) -> float:
     para = paraxial(rx)
 
     def passes(h: float) -> bool:
-        return bool(trace(rx, *axial_rays(rx, object_z_mm, np.zeros(1), np.array([h])))[2][0])
+        return bool(trace(rx, *axial_rays(para.entrance_pupil_z_mm, object_z_mm, np.zeros(1), np.array([h])))[2][0])
 
     lo, hi = 0.0, para.entrance_pupil_diameter_mm  # twice the paraxial radius: blocked
     if passes(hi):
