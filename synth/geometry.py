@@ -193,6 +193,23 @@ class CompoundLensCamera(ThinLensCamera):
 
     prescription: Any = None
     focus_plane: str = "best"
+    #: Spectral samples (nm) the image is rendered at (``synth.spectral``); () = the d line alone.
+    wavelengths_nm: tuple[float, ...] = ()
+
+    @property
+    def scene_origin_z_mm(self) -> float:
+        """z (lens coordinates) of the scene frame's origin: the entrance pupil, from which every
+        object distance is measured."""
+        return self.paraxial.entrance_pupil_z_mm
+
+    def spectral_cameras(self) -> list["SpectralCamera"]:
+        """One camera per wavelength of ``wavelengths_nm``: the same lens, stop and sensor with
+        the glasses' indices at that wavelength."""
+        return [SpectralCamera(focal_length_mm=self.focal_length_mm, f_number=self.f_number,
+                               focus_distance_mm=self.focus_distance_mm, pixel_pitch_mm=self.pixel_pitch_mm,
+                               width_px=self.width_px, height_px=self.height_px, prescription=self.prescription,
+                               focus_plane=self.focus_plane, wavelength_nm=float(w), reference=self)
+                for w in self.wavelengths_nm]
 
     @functools.cached_property
     def stopped(self):
@@ -268,4 +285,37 @@ class CompoundLensCamera(ThinLensCamera):
                          "distances_from": "entrance pupil", "sensor_z_mm": self.sensor_z_mm,
                          "paraxial_image_z_mm": self.paraxial_image_z_mm,
                          "best_focus_image_z_mm": self.best_focus_z_mm,
-                         "paraxial": para.to_json_dict()}}
+                         "paraxial": para.to_json_dict(),
+                         **({"spectral": self.spectral_truth()} if self.wavelengths_nm else {})}}
+
+    def spectral_truth(self) -> dict[str, Any]:
+        """Per wavelength: EFL, where the axial point at the focus distance comes to its best
+        focus (and how far that is from the sensor: longitudinal colour), the object distance
+        from the entrance pupil that is paraxially in focus, and the image height of an
+        off-axis point (lateral colour), see ``synth.spectral.spectral_truth``."""
+        from synth.spectral import spectral_truth
+
+        return spectral_truth(self)
+
+
+@dataclass(frozen=True)
+class SpectralCamera(CompoundLensCamera):
+    """A compound-lens camera at one wavelength: the reference camera's stop (its f-number set
+    at the d line) and sensor position, the glasses' indices at ``wavelength_nm``; object
+    distances stay measured from the reference entrance pupil. Focus, magnification and blur
+    follow from the trace: longitudinal and lateral colour are not added, they come out."""
+
+    wavelength_nm: float = 587.5618
+    reference: Any = None
+
+    @functools.cached_property
+    def stopped(self):
+        return self.reference.stopped.at_wavelength(self.wavelength_nm)
+
+    @functools.cached_property
+    def sensor_z_mm(self) -> float:  # type: ignore[override]
+        return self.reference.sensor_z_mm
+
+    @property
+    def scene_origin_z_mm(self) -> float:
+        return self.reference.scene_origin_z_mm

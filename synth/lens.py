@@ -12,10 +12,22 @@ thickness_mm   mm    axial distance to the next surface (the last one's is ignor
                      position follows from the focus)
 n                    refractive index after the surface at the d line (587.56 nm); 1 = air
 V                    Abbe number of that glass (dispersion; optional)
+glass                a glass of ``data_specs/glasses.toml`` (its Sellmeier dispersion; optional;
+                     n defaults to the glass's n_d)
 semi_aperture  mm    clear radius: rays outside it are blocked (this is where cat's-eye
 _mm                  vignetting comes from)
 stop                 the aperture stop (exactly one surface); its radius sets the f-number
 ============== ===== ========================================================================
+
+Dispersion (spectral rendering, ``[lens] wavelengths_nm``): a surface with ``glass`` follows
+that glass's Sellmeier equation, shifted so that its index at the d line is ``n``; one with only
+``V`` follows the two-term Cauchy law ``n(lambda) = a + b / lambda^2`` through ``n`` at the d line
+and ``n_F - n_C = (n - 1) / V`` (F 486.13 nm, C 656.27 nm): exact at d, F and C; from 420 to
+700 nm within 2e-4 of the catalogue's crowns but up to 4e-3 off dense flints (N-SF11: the
+Cauchy law misses their steep blue dispersion), so name the glass where it is known
+(tests/test_spectral.py measures this).
+A glass with neither cannot be traced at another wavelength. The table's n, and so the EFL,
+f-number and focus, are those of the d line, the reference wavelength of every spectral render.
 
 Coordinates: the optical axis is z, light travels towards +z (from the object to the sensor);
 the first surface's vertex is at z = 0. Distances the user sees (the object and focus
@@ -30,6 +42,7 @@ runs on NumPy (float64, for analysis and tests) and inside JAX (for rendering).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -38,6 +51,42 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import SpecError
+
+
+#: Fraunhofer lines (nm): d (helium, the reference of n and V), F and C (hydrogen).
+D_LINE_NM, F_LINE_NM, C_LINE_NM = 587.5618, 486.1327, 656.2725
+
+
+@dataclass(frozen=True)
+class Glass:
+    """An optical glass by its Sellmeier equation
+    ``n^2 = 1 + sum_i B_i lambda^2 / (lambda^2 - C_i)`` (lambda in micrometres, C_i in um^2),
+    the form glass makers publish (SCHOTT optical glass data sheets)."""
+
+    name: str
+    sellmeier_b: tuple[float, float, float]
+    sellmeier_c_um2: tuple[float, float, float]
+    source: str = ""
+
+    def index(self, wavelength_nm):
+        l2 = (np.asarray(wavelength_nm, np.float64) * 1e-3) ** 2
+        return np.sqrt(1.0 + sum(b * l2 / (l2 - c) for b, c in zip(self.sellmeier_b, self.sellmeier_c_um2)))
+
+    @property
+    def nd(self) -> float:
+        return float(self.index(D_LINE_NM))
+
+    @property
+    def abbe(self) -> float:
+        """V_d = (n_d - 1) / (n_F - n_C)."""
+        return (self.nd - 1.0) / float(self.index(F_LINE_NM) - self.index(C_LINE_NM))
+
+
+def abbe_index(nd: float, abbe: float, wavelength_nm):
+    """Index at ``wavelength_nm`` of a glass known by n_d and V_d: the two-term Cauchy law
+    ``a + b / lambda^2`` through n_d with ``n_F - n_C = (n_d - 1) / V_d``."""
+    b = (nd - 1.0) / abbe / (F_LINE_NM ** -2 - C_LINE_NM ** -2)
+    return nd + b * (np.asarray(wavelength_nm, np.float64) ** -2 - D_LINE_NM ** -2)
 
 
 @dataclass(frozen=True)
@@ -50,10 +99,26 @@ class Surface:
     semi_aperture_mm: float
     stop: bool = False
     abbe: float | None = None
+    glass: Glass | None = None
 
     @property
     def curvature_per_mm(self) -> float:
         return 0.0 if math.isinf(self.radius_mm) else 1.0 / self.radius_mm
+
+    @property
+    def dispersive(self) -> bool:
+        """Whether the index after this surface is known at every wavelength (air, a glass or V)."""
+        return self.n == 1.0 or self.glass is not None or self.abbe is not None
+
+    def index_at(self, wavelength_nm: float) -> float:
+        """Index after the surface at ``wavelength_nm`` (see the module notes: Dispersion)."""
+        if self.glass is not None:
+            return float(self.n + self.glass.index(wavelength_nm) - self.glass.index(D_LINE_NM))
+        if self.abbe is not None:
+            return float(abbe_index(self.n, self.abbe, wavelength_nm))
+        if self.n == 1.0:
+            return 1.0
+        raise ValueError(f"no dispersion (V or glass) for n = {self.n}")
 
 
 @dataclass(frozen=True)
@@ -64,6 +129,7 @@ class Prescription:
     surfaces: tuple[Surface, ...]
     source: str = ""
     design_f_number: float | None = None
+    wavelength_nm: float = D_LINE_NM
 
     @property
     def stop_index(self) -> int:
@@ -83,6 +149,26 @@ class Prescription:
         surfaces = list(self.surfaces)
         surfaces[i] = replace(surfaces[i], semi_aperture_mm=float(radius_mm))
         return replace(self, surfaces=tuple(surfaces))
+
+    def undispersed_surfaces(self) -> list[int]:
+        """Indices of glass surfaces whose dispersion is unknown (no V, no glass)."""
+        return [i for i, s in enumerate(self.surfaces) if not s.dispersive]
+
+    def at_wavelength(self, wavelength_nm: float) -> "Prescription":
+        """The same lens with every index at ``wavelength_nm`` (the table is at the d line).
+
+        Raises ValueError where a glass's dispersion is unknown (:meth:`undispersed_surfaces`)."""
+        if self.wavelength_nm != D_LINE_NM:
+            raise ValueError(f"{self.name} is already evaluated at {self.wavelength_nm} nm")
+        if wavelength_nm == D_LINE_NM:
+            return self
+        missing = self.undispersed_surfaces()
+        if missing:
+            raise ValueError(f"{self.name}: surface[{missing[0]}] (n = {self.surfaces[missing[0]].n}) has no V or "
+                             "glass, so its index at other wavelengths is unknown")
+        return replace(self, wavelength_nm=float(wavelength_nm),
+                       surfaces=tuple(replace(s, n=s.index_at(wavelength_nm), abbe=None, glass=None)
+                                      for s in self.surfaces))
 
     def with_f_number(self, f_number: float) -> "Prescription":
         """The stop opened or closed so that EFL / entrance-pupil diameter = ``f_number``.
@@ -192,7 +278,8 @@ def reverse(rx: Prescription) -> Prescription:
     out = []
     for i in range(len(s) - 1, -1, -1):
         out.append(Surface(-s[i].radius_mm, s[i - 1].thickness_mm if i > 0 else 0.0, float(n_before[i]),
-                           s[i].semi_aperture_mm, s[i].stop, s[i - 1].abbe if i > 0 else None))
+                           s[i].semi_aperture_mm, s[i].stop, s[i - 1].abbe if i > 0 else None,
+                           s[i - 1].glass if i > 0 else None))
     return replace(rx, surfaces=tuple(out))
 
 
@@ -280,10 +367,20 @@ def prescription_from_dict(data: dict[str, Any], path: str | Path = "<lens>") ->
         where = f"surface[{i}]"
         if not isinstance(r, dict):
             raise SpecError(path, where, "must be a table with radius_mm, thickness_mm, n, semi_aperture_mm")
-        unknown = set(r) - {"radius_mm", "thickness_mm", "n", "V", "semi_aperture_mm", "stop"}
+        unknown = set(r) - {"radius_mm", "thickness_mm", "n", "V", "glass", "semi_aperture_mm", "stop"}
         if unknown:
             raise SpecError(path, f"{where}.{sorted(unknown)[0]}", "unknown field; valid: radius_mm, thickness_mm, "
-                            "n, V, semi_aperture_mm, stop")
+                            "n, V, glass, semi_aperture_mm, stop")
+        glass = None
+        if "glass" in r:
+            glass = _glass(r["glass"], path, f"{where}.glass")
+            if "V" in r:
+                raise SpecError(path, f"{where}.V", "conflicts with glass (whose dispersion it is); remove one")
+            if "n" not in r:
+                r = {**r, "n": round(glass.nd, 6)}
+            elif isinstance(r["n"], (int, float)) and abs(r["n"] - glass.nd) > 1e-3:
+                raise SpecError(path, f"{where}.n", f"got {r['n']}: {glass.name} has n_d {glass.nd:.5f}; give that "
+                                "index or drop n")
         for name in ("radius_mm", "thickness_mm", "n", "semi_aperture_mm"):
             if name not in r:
                 raise SpecError(path, f"{where}.{name}", "is required but missing")
@@ -303,7 +400,7 @@ def prescription_from_dict(data: dict[str, Any], path: str | Path = "<lens>") ->
         if abbe is not None and not (isinstance(abbe, (int, float)) and 10 <= abbe <= 120):
             raise SpecError(path, f"{where}.V", f"got {abbe!r}: an Abbe number from 10 to 120")
         surfaces.append(Surface(float(radius), float(r["thickness_mm"]), float(r["n"]), float(r["semi_aperture_mm"]),
-                                bool(r.get("stop", False)), None if abbe is None else float(abbe)))
+                                bool(r.get("stop", False)), None if abbe is None else float(abbe), glass))
     stops = [i for i, s in enumerate(surfaces) if s.stop]
     if len(stops) != 1:
         raise SpecError(path, "surface", f"exactly one surface must have stop = true, found {len(stops)}")
@@ -316,6 +413,27 @@ def prescription_from_dict(data: dict[str, Any], path: str | Path = "<lens>") ->
         raise SpecError(path, "surface", f"the lens has no positive focal length (EFL {para.efl_mm:.4g} mm); "
                         "check the signs of the radii (> 0: centre of curvature behind the surface)")
     return rx
+
+
+@functools.cache
+def glass_catalogue() -> dict[str, Glass]:
+    """The glasses of ``data_specs/glasses.toml`` by name."""
+    from lensfit.specs import load_toml, specs_dir
+
+    return {name: Glass(name, tuple(g["B"]), tuple(g["C_um2"]), "SCHOTT Zemax catalogue 2017-01-20b")
+            for name, g in load_toml(specs_dir() / "glasses.toml")["glass"].items()}
+
+
+def _glass(name, path, where: str) -> Glass:
+    catalogue = glass_catalogue()
+    if not isinstance(name, str) or name not in catalogue:
+        import difflib
+
+        close = difflib.get_close_matches(str(name).upper(), list(catalogue), n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise SpecError(path, where, f"got {name!r}: not in data_specs/glasses.toml; {hint}known: "
+                        f"{', '.join(sorted(catalogue))} (or give n and V)")
+    return catalogue[name]
 
 
 def load_prescription(name: str | Path) -> Prescription:

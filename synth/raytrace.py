@@ -286,7 +286,7 @@ def compound_camera_values(cam) -> list[float]:
                             (tx / norm, ty / norm, -dz / norm))
     scale = COMPOUND_WHITE / max(float(passed.mean()), 1e-6)
     return [cx, cy, cam.pixel_pitch_mm, cam.inverse_focus_distance, cam.aperture_diameter_mm, cam.sensor_z_mm,
-            para.entrance_pupil_z_mm, para.exit_pupil_z_mm, r_s, scale, z_last]
+            cam.scene_origin_z_mm, para.exit_pupil_z_mm, r_s, scale, z_last]
 
 
 #: Working memory per lens sample inside one compiled tile (rays, weights, hits; float32).

@@ -175,7 +175,13 @@ def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[t
     pixels = W * H
     ca = fx.chromatic_aberration
     renders = 3 if ca is not None and ca.longitudinal else 1  # channels the lens treats alike share a render
-    out = [(f"defocus ({method}{', x3 channels' if renders == 3 else ''})", geometric_s * renders)]
+    waves = getattr(cam, "wavelengths_nm", ())
+    if waves:
+        renders = len(waves)
+        detail = f", x{renders} wavelengths {'/'.join(f'{w:g}' for w in waves)} nm -> {'RGB' if C == 3 else 'grey'}"
+    else:
+        detail = ", x3 channels" if renders == 3 else ""
+    out = [(f"defocus ({method}{detail})", geometric_s * renders)]
     if "aperture" in fx.names:
         a = fx.aperture
         detail = {"polygon": f"{a.blades} blades, {a.rotation_deg:g} deg", "anamorphic": f"squeeze {a.squeeze:g}",
@@ -382,7 +388,11 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
     cam = shot.camera
     extra: dict[str, Any] = {}
     ca = fx.chromatic_aberration
-    cameras = ca.channel_cameras(cam) if ca is not None and ca.longitudinal else [cam] * fx.channels
+    waves = getattr(cam, "wavelengths_nm", ())
+    if waves:  # one render per wavelength, mixed into grey or colour below (synth.spectral)
+        cameras = cam.spectral_cameras()
+    else:
+        cameras = ca.channel_cameras(cam) if ca is not None and ca.longitudinal else [cam] * fx.channels
     stop = fx.vignetting.front_stop() if fx.vignetting is not None else None
     kwargs_rt = {}
     if fx.aperture.shape != "circle":
@@ -411,7 +421,12 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
                                   **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}))
             rows(cam.height_px)
         planes.append(img)
-    image = planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
+    if waves:
+        from synth.spectral import combine
+
+        image = combine(planes, waves, fx.channels)
+    else:
+        image = planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
     lap("defocus")
     if fx.diffraction is not None:
         from synth.effects import diffraction

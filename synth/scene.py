@@ -207,6 +207,16 @@ _TRACED_EFFECTS = ("distortion", "chromatic_aberration", "vignetting")
 
 def _prescription(lens: dict, path):
     """The compound lens a scene's [lens] names, or None for a thin lens."""
+    from synth.lens import load_prescription, prescription_from_dict
+
+    if "surface" in lens:  # an inline surface table
+        if "prescription" in lens or "focal_length_mm" in lens:
+            raise SpecError(path, "lens.surface", "conflicts with lens." + ("prescription" if "prescription" in lens
+                            else "focal_length_mm") + " (the surface table is the lens); remove one")
+        try:
+            return prescription_from_dict({"name": "inline", "surface": lens["surface"]}, path)
+        except SpecError as exc:
+            raise SpecError(path, "lens", str(exc)) from None
     if "prescription" not in lens:
         if "focal_length_mm" not in lens:
             raise SpecError(path, "lens.focal_length_mm", "is required but missing (or give lens.prescription, a "
@@ -215,7 +225,6 @@ def _prescription(lens: dict, path):
     if "focal_length_mm" in lens:
         raise SpecError(path, "lens.focal_length_mm", "conflicts with lens.prescription, whose EFL is the focal "
                         "length; remove one")
-    from synth.lens import load_prescription
 
     name = lens["prescription"]
     if name.endswith(".toml") and not Path(name).is_absolute():
@@ -224,6 +233,38 @@ def _prescription(lens: dict, path):
         return load_prescription(name)
     except SpecError as exc:
         raise SpecError(path, "lens.prescription", str(exc)) from None
+
+
+def _wavelengths(lens: dict, path, rx, effects) -> tuple[float, ...]:
+    """The spectral samples of ``[lens] wavelengths_nm`` (``synth.spectral``), checked."""
+    from synth import spectral
+
+    if "wavelengths_nm" not in lens:
+        if lens.get("colour"):
+            raise SpecError(path, "lens.colour", "asks for colour from spectral samples: give lens.wavelengths_nm "
+                            "too (e.g. [465, 550, 610])")
+        if effects.channels == 3:
+            raise SpecError(path, "render.effects", "three colour channels of a compound lens need spectral samples "
+                            "(each channel focuses differently through the glass): give lens.wavelengths_nm")
+        return ()
+    waves = tuple(float(w) for w in lens["wavelengths_nm"])
+    lo, hi = spectral.WAVELENGTH_RANGE_NM
+    for i, w in enumerate(waves):
+        if not lo <= w <= hi:
+            raise SpecError(path, f"lens.wavelengths_nm[{i}]", f"got {w:g}: a visible wavelength from {lo:g} to {hi:g} nm")
+    if len(set(waves)) != len(waves):
+        raise SpecError(path, "lens.wavelengths_nm", f"got {list(waves)}: each wavelength once")
+    missing = rx.undispersed_surfaces()
+    if missing:
+        raise SpecError(path, "lens.wavelengths_nm", f"{rx.name}'s surface[{missing[0]}] (n = "
+                        f"{rx.surfaces[missing[0]].n:g}) has no V or glass, so its index at other wavelengths is "
+                        "unknown; give the lens's glasses, or remove wavelengths_nm")
+    if effects.channels == 3:
+        gap = spectral.uncovered_channel(waves)
+        if gap is not None:
+            raise SpecError(path, "lens.wavelengths_nm", f"got {list(waves)}: no wavelength for the {gap} channel "
+                            f"of a colour image; add one within {2 * spectral.CHANNEL_SIGMA_NM:g} nm of it")
+    return waves
 
 
 #: Share of the axial beam that clear apertures other than the stop may block before an
@@ -274,9 +315,15 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
         if aperture.get("shape", "circle") != "circle":
             raise SpecError(path, "lens.aperture", "a compound lens's stop is round; polygon and anamorphic "
                             "apertures are for the thin lens")
-    elif "focus_plane" in lens:
-        raise SpecError(path, "lens.focus_plane", "applies to a compound lens (lens.prescription) only: a thin "
-                        "lens has no aberration, its best and paraxial focus coincide; remove it")
+    else:
+        for key, why in (("focus_plane", "a thin lens has no aberration, its best and paraxial focus coincide"),
+                         ("wavelengths_nm", "a thin lens has no glass; its colour errors are the "
+                          "chromatic_aberration effect"),
+                         ("colour", "it asks for colour from the spectral samples of lens.wavelengths_nm")):
+            if key in lens:
+                raise SpecError(path, f"lens.{key}", f"applies to a compound lens (lens.prescription) only: {why}; "
+                                "remove it")
+    wavelengths = _wavelengths(lens, path, rx, effects) if rx is not None else ()
     fmt = render.get("format", "dng" if effects.mosaic is not None else DEFAULTS["format"])
     problem = effects.format_problem(fmt)
     if problem is not None:
@@ -344,7 +391,8 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
         else:
             camera = CompoundLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
                                         width_px=int(cam["width_px"]), height_px=int(cam["height_px"]),
-                                        prescription=rx, focus_plane=lens.get("focus_plane", "best"))
+                                        prescription=rx, focus_plane=lens.get("focus_plane", "best"),
+                                        wavelengths_nm=wavelengths)
         if ("shutter_s" in sh or "iso" in sh) and effects.exposure is None:
             raise SpecError(path, f"{where}.{'shutter_s' if 'shutter_s' in sh else 'iso'}",
                             "is an exposure setting, but 'exposure' is not in render.effects; add it or remove this")

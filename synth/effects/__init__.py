@@ -12,7 +12,8 @@ nothing. The pipeline, in the order light meets them:
     -> exposure (electrons) -> mosaic (CFA) -> noise -> readout (DN)  |  quantise (16-bit)
 
 A scene renders three channels (red, green, blue) only when an effect makes them differ:
-chromatic aberration, or diffraction with three wavelengths (given, or implied by a mosaic).
+chromatic aberration, or diffraction with three wavelengths (given, or implied by a mosaic),
+or when a spectral compound lens is asked for colour (``[lens] colour``, ``synth.spectral``).
 """
 
 from __future__ import annotations
@@ -54,11 +55,13 @@ class Effects:
     sensor: Sensor | None = None
     noise: Noise | None = None
     mosaic: Mosaic | None = None
+    #: The scene asks for colour from spectral samples (``[lens] colour``, ``synth.spectral``).
+    colour: bool = False
 
     @property
     def channels(self) -> int:
-        """1, or 3 when an effect makes the colour channels differ."""
-        if self.chromatic_aberration is not None:
+        """1, or 3 when an effect makes the colour channels differ or the scene asks for colour."""
+        if self.colour or self.chromatic_aberration is not None:
             return 3
         if self.diffraction is not None and len(self.diffraction.wavelength_nm) == 3:
             return 3
@@ -136,7 +139,10 @@ def parse(data: dict[str, Any], path: str | Path, names: tuple[str, ...], apertu
         out["chromatic_aberration"] = ChromaticAberration(
             focal_shift_mm=_triple(t.get("focal_shift_mm", [0, 0, 0]), path, "chromatic_aberration.focal_shift_mm", 0.0),
             magnification=_triple(t.get("magnification", [1, 1, 1]), path, "chromatic_aberration.magnification", 1.0))
-    colour = "chromatic_aberration" in names or "mosaic" in names
+    spectral_colour = bool(data.get("lens", {}).get("colour", False))
+    if spectral_colour:
+        out["colour"] = True
+    colour = "chromatic_aberration" in names or "mosaic" in names or spectral_colour
     if "diffraction" in names:
         t = data.get("diffraction", {})
         w = t.get("wavelength_nm", list(DEFAULT_RGB_NM) if colour else DEFAULT_WAVELENGTH_NM)
