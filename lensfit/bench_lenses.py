@@ -54,10 +54,12 @@ def _scale_lengths(node: Any, k: float) -> Any:
 NEAR_FRACTION = 1.0 / 3.0
 
 
-def lens_scene(name: str, f_number: float = 11.0, spp: int = 64) -> dict[str, Any]:
+def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
+               wavelengths_nm: tuple[float, ...] = ()) -> dict[str, Any]:
     """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f) and the
     same scene at a third of the distances with boards a third the size (setting "near": focus
-    X / 3; the same pictures in pinhole terms, three times the blur), unit focusing."""
+    X / 3; the same pictures in pinhole terms, three times the blur), unit focusing; rendered
+    grey from ``wavelengths_nm`` through the glasses' dispersion where given."""
     from synth.lens import load_prescription, paraxial
 
     efl = paraxial(load_prescription(name)).efl_mm
@@ -67,6 +69,8 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64) -> dict[str, An
     scene["camera"].update(width_px=600, height_px=400, pixel_pitch_mm=2 * demo["camera"]["pixel_pitch_mm"] * k)
     focus = scene["lens"]["focus_distance_mm"]
     scene["lens"] = {"prescription": name, "f_number": f_number, "focus_distance_mm": focus}
+    if wavelengths_nm:
+        scene["lens"]["wavelengths_nm"] = [float(w) for w in wavelengths_nm]
     scene["render"] = {"effects": ["defocus"], "method": "raytrace", "samples_per_pixel": spp, "seed": 0}
     near = _scale_lengths({"object": scene["object"], "shot": scene["shot"]}, NEAR_FRACTION)
     for obj in near["object"]:
@@ -97,9 +101,17 @@ def _errors(result, truth: dict[str, Any], label: str) -> dict[str, Any]:
     return out
 
 
+def spectral_designs() -> list[str]:
+    """The shipped designs whose glasses have a dispersion (the ones a spectral render accepts)."""
+    from synth.lens import list_prescriptions, load_prescription
+
+    return [n for n in list_prescriptions() if not load_prescription(n).undispersed_surfaces()]
+
+
 def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
-        progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Render, measure and fit every lens; returns rows of errors and seconds."""
+        progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = ()) -> dict[str, Any]:
+    """Render, measure and fit every lens (with ``wavelengths_nm``: every lens with dispersion,
+    rendered grey through those wavelengths); returns rows of errors and seconds."""
     import json
 
     from synth.lens import list_prescriptions
@@ -110,10 +122,11 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
     say = progress or (lambda msg: None)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lensfit-bench-lenses-") as tmp:
-        for name in names or list_prescriptions():
+        for name in names or (spectral_designs() if wavelengths_nm else list_prescriptions()):
             say(f"{name}: rendering 24 shots")
             t0 = time.perf_counter()
-            scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp), f"<{name} bracket>")
+            scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp, wavelengths_nm=wavelengths_nm),
+                                    f"<{name} bracket>")
             folder = write_stack(render(scene), Path(tmp) / name)
             t_render = time.perf_counter() - t0
             truth = json.loads((folder / "truth.json").read_text())
@@ -139,4 +152,4 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
                                     "pupil_magnification": res.pupil_magnification.value,
                                     "pupil_magnification_sigma": res.pupil_magnification.sigma}
             rows.append(row)
-    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number}
+    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "wavelengths_nm": list(wavelengths_nm)}

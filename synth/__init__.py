@@ -16,9 +16,12 @@ __all__ = ["__version__", "render", "plan", "load_scene", "write_stack"]
 
 def __getattr__(name):  # lazy: importing synth does not import JAX
     if name in ("render", "plan"):
-        from synth import render as _render
+        import importlib
 
-        return getattr(_render, name)
+        # synth.render is also the module's name; importing it makes the attribute the module,
+        # which is callable (synth/render.py) so that synth.render(...) works either way.
+        module = importlib.import_module("synth.render")
+        return module if name == "render" else module.plan
     if name == "load_scene":
         from synth.scene import load_scene
 

@@ -179,8 +179,8 @@ class CompoundLensCamera(ThinLensCamera):
     """A camera with a real compound lens (``synth.lens.Prescription``), focused by moving the
     whole lens (unit focusing) so that the focus distance is imaged on the sensor: at the lens's
     best focus for it (``focus_plane = "best"``: the smallest RMS spot of the axial point, where a
-    camera's autofocus puts it; spherical aberration moves it from the paraxial image) or at its
-    paraxial image (``"paraxial"``).
+    camera's autofocus puts it; spherical aberration moves it from the paraxial image; over all
+    of ``wavelengths_nm`` when given) or at its paraxial image (``"paraxial"``, d line).
 
     ``focal_length_mm`` is the prescription's EFL; ``f_number`` = EFL / entrance-pupil diameter
     (the stop is scaled to it); ``focus_distance_mm`` and every object distance are measured
@@ -237,10 +237,14 @@ class CompoundLensCamera(ThinLensCamera):
 
     @functools.cached_property
     def best_focus_z_mm(self) -> float:
-        """z where the real rays from the axial point at the focus distance have the smallest RMS spot."""
-        from synth.lens import best_focus_image_z
+        """z where the real rays from the axial point at the focus distance have the smallest RMS
+        spot; with ``wavelengths_nm``, the rays of every wavelength together (equal weights: the
+        grey image autofocus sees; the d line sets the entrance pupil the distance is from)."""
+        from synth.lens import polychromatic_best_focus_image_z
 
-        return best_focus_image_z(self.stopped, self.paraxial.entrance_pupil_z_mm - self.focus_distance_mm)
+        z_obj = self.paraxial.entrance_pupil_z_mm - self.focus_distance_mm
+        rxs = [c.stopped for c in self.spectral_cameras()] if self.wavelengths_nm else [self.stopped]
+        return polychromatic_best_focus_image_z(rxs, z_obj)
 
     @functools.cached_property
     def paraxial_inverse_focus_distance(self) -> float:
@@ -301,7 +305,7 @@ class CompoundLensCamera(ThinLensCamera):
 @dataclass(frozen=True)
 class SpectralCamera(CompoundLensCamera):
     """A compound-lens camera at one wavelength: the reference camera's stop (its f-number set
-    at the d line) and sensor position, the glasses' indices at ``wavelength_nm``; object
+    at the d line) and sensor position (the grey image's best focus), the glasses' indices at ``wavelength_nm``; object
     distances stay measured from the reference entrance pupil. Focus, magnification and blur
     follow from the trace: longitudinal and lateral colour are not added, they come out."""
 

@@ -499,24 +499,38 @@ def best_focus_image_z(rx: Prescription, object_z_mm: float, grid: int = BEST_FO
     z: the minimum is closed-form. This is also the vertex of the asymptotes of the second-moment
     blur diameter versus defocus, the V a blur-versus-depth fit finds.
     """
-    para = paraxial(rx)
-    r = 0.5 * para.entrance_pupil_diameter_mm * 1.25
-    g = (np.arange(grid) + 0.5) / grid * 2.0 - 1.0
-    u, v = np.meshgrid(g, g)
-    inside = u * u + v * v <= 1.0
-    rays = axial_rays(para.entrance_pupil_z_mm, object_z_mm, r * u[inside], r * v[inside])
-    (x, y, z), (dx, dy, dz_out), passed, _ = trace(rx, *rays)
-    ok = passed & (dz_out > 1e-9)
-    if ok.sum() < 16:
-        raise ValueError(f"{rx.name}: fewer than 16 rays from the axial object pass the lens; no best focus")
-    x, y, z, dx, dy, dz_out = (q[ok] for q in (x, y, z, dx, dy, dz_out))
-    num = den = 0.0
-    for h, d in ((x, dx), (y, dy)):
-        b = d / dz_out          # height at plane Z: (h - b z) + b Z
-        a = h - b * z
-        num += np.mean((a - a.mean()) * (b - b.mean()))
-        den += np.var(b)
-    return float(-num / den)
+    return polychromatic_best_focus_image_z([rx], object_z_mm, grid)
+
+
+def polychromatic_best_focus_image_z(rxs: list[Prescription], object_z_mm: float,
+                                     grid: int = BEST_FOCUS_GRID) -> float:
+    """:func:`best_focus_image_z` of the light of several wavelengths together (``rxs``: the
+    lens at each, :meth:`Prescription.at_wavelength`), each wavelength weighted equally: the
+    plane where the grey image of the axial point is smallest, where autofocus on a grey image
+    puts the sensor."""
+    heights, slopes, weights = [], [], []
+    for rx in rxs:
+        para = paraxial(rx)
+        r = 0.5 * para.entrance_pupil_diameter_mm * 1.25
+        g = (np.arange(grid) + 0.5) / grid * 2.0 - 1.0
+        u, v = np.meshgrid(g, g)
+        inside = u * u + v * v <= 1.0
+        rays = axial_rays(para.entrance_pupil_z_mm, object_z_mm, r * u[inside], r * v[inside])
+        (x, y, z), (dx, dy, dz_out), passed, _ = trace(rx, *rays)
+        ok = passed & (dz_out > 1e-9)
+        if ok.sum() < 16:
+            raise ValueError(f"{rx.name}: fewer than 16 rays from the axial object pass the lens; no best focus")
+        x, y, z, dx, dy, dz_out = (q[ok] for q in (x, y, z, dx, dy, dz_out))
+        for h, d in ((x, dx), (y, dy)):
+            b = d / dz_out          # height at plane Z: (h - b z) + b Z
+            heights.append(h - b * z)
+            slopes.append(b)
+            weights.append(np.full(b.shape, 1.0 / b.size))
+    a, b, w = np.concatenate(heights), np.concatenate(slopes), np.concatenate(weights)
+    w = w / w.sum()
+    # Mean square spot radius at Z: sum w (a + b Z)^2 (the axial point's spot is centred on the
+    # axis by symmetry): minimal at Z = -sum(w a b) / sum(w b^2).
+    return float(-np.sum(w * a * b) / np.sum(w * b * b))
 
 
 def axial_beam_clipped(rx: Prescription, object_z_mm: float, rings: int = 64, spokes: int = 16) -> float:

@@ -10,6 +10,8 @@ nothing and changes nothing.
 from __future__ import annotations
 
 import math
+import sys
+import types
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -628,3 +630,14 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str],
         if ids and len(listed) > 1:  # with one target there is nothing to say
             entry["targets"] = ids
     return {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}
+
+
+class _CallableModule(types.ModuleType):
+    """``synth.render`` names both this module and its main function: once the module is imported
+    the package attribute is the module, so calling it renders (``synth.render(scene, ...)``)."""
+
+    def __call__(self, scene, **kwargs) -> RenderResult:
+        return render(scene, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

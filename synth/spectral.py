@@ -3,8 +3,9 @@ magnify differently (longitudinal and lateral chromatic aberration come out of t
 
 A scene asks for it with ``[lens] wavelengths_nm = [...]`` (a compound lens whose glasses have a
 dispersion: ``glass`` or ``V`` in its table, see ``synth.lens``). Each wavelength is ray traced
-with the same stop and sensor (the f-number and focus are set at the d line, 587.56 nm, the
-wavelength the table's indices are given at); the stored image is
+with the same stop and sensor (the f-number is set at the d line, 587.56 nm, the wavelength the
+table's indices are given at; the sensor at the best focus of all wavelengths together, the
+grey image's); the stored image is
 
 * grey (the default): the plain mean over the wavelengths, a sensor with a flat response
   seeing a flat (equal-energy) spectrum at those samples;

@@ -144,3 +144,18 @@ def test_dask_executor_on_a_local_cluster(tmp_path):
     doc = json.loads((out / "results.json").read_text())
     assert len(doc["cases"]) == 1 and doc["provenance"]["executor"] == "dask"
     assert abs(doc["cases"][0]["settings"]["a"]["focus_distance_mm"]["value"] / 800.0 - 1) < 0.05
+
+
+def test_a_case_outside_the_tolerances_makes_the_exit_status_non_zero(tmp_path, capsys):
+    """FAIL rows in the report are a failed run (exit 4) unless --allow-fail says otherwise."""
+    suite = Path(load_suite("quick").path).read_text()
+    small = (suite.split("\n# Effects sets")[0].replace("seeds = [0, 1]", "seeds = [3]")
+             .replace('[[render]]\nmethod = "raytrace"\nsamples_per_pixel = 64\n', "")
+             .replace('[[noise]]\nname = "iso1600"\nfull_well_e = 2000.0\nread_noise_e = 3.0\n', "")
+             .replace("focus_distance_mm = 0.02\n", "focus_distance_mm = 1e-9\n", 1))
+    (tmp_path / "bench_calibration.toml").write_text(Path(load_suite("quick").scenes[0]).read_text())
+    path = tmp_path / "strict.toml"
+    path.write_text(small)
+    assert main(["bench", "--suite", str(path), "--out", str(tmp_path / "a")]) == 4
+    assert "outside the suite's tolerances" in capsys.readouterr().err
+    assert main(["bench", "--suite", str(path), "--out", str(tmp_path / "a"), "--resume", "--allow-fail"]) == 0

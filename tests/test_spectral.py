@@ -94,8 +94,11 @@ def test_efl_per_wavelength_matches_optiland_with_catalogue_glass(design):
         assert paraxial(rx.at_wavelength(w)).efl_mm == pytest.approx(float(lens.paraxial.f2()), rel=1e-8), w
 
 
-def singlet_scene(waves, *, offset_x_mm=0.0, colour=None, target=None, spp=512, width=200, height=24):
-    lens = {"surface": SINGLET, "f_number": 16.0, "focus_distance_mm": 1000.0}
+def singlet_scene(waves, *, offset_x_mm=0.0, colour=None, target=None, spp=512, width=200, height=24,
+                  focus_plane="best"):
+    """``focus_plane = "paraxial"`` puts the sensor at the d line's paraxial image whatever the
+    wavelengths, so that scenes with different wavelengths share a camera."""
+    lens = {"surface": SINGLET, "f_number": 16.0, "focus_distance_mm": 1000.0, "focus_plane": focus_plane}
     if waves is not None:
         lens["wavelengths_nm"] = list(waves)
     if colour is not None:
@@ -106,7 +109,7 @@ def singlet_scene(waves, *, offset_x_mm=0.0, colour=None, target=None, spp=512, 
                             "lens": lens, "render": {"samples_per_pixel": spp, "seed": 3}, "object": [obj]})
 
 
-def landing_px(cam, rx, point, n=200_000, seed=0):
+def landing_px(cam, rx, point, n=200_000, seed=0, sensor_shift_mm=0.0):
     """Stored-image x (px) where the rays from ``point`` (x, y, depth from the entrance pupil)
     that pass ``rx`` land on the camera's sensor: a forward float64 trace."""
     z_ep = cam.scene_origin_z_mm
@@ -118,22 +121,22 @@ def landing_px(cam, rx, point, n=200_000, seed=0):
     d /= np.linalg.norm(d, axis=0)
     start = src[:, None] + ((-1.0 - src[2]) / d[2]) * d
     (x, _, z), (dx, _, dz), passed, _ = trace(rx, tuple(start), tuple(d))
-    x_sensor = (x + (cam.sensor_z_mm - z) / dz * dx)[passed]
+    x_sensor = (x + (cam.sensor_z_mm + sensor_shift_mm - z) / dz * dx)[passed]
     return cam.principal_point_px[0] - x_sensor / cam.pixel_pitch_mm  # the stored image is re-inverted
 
 
 def test_each_wavelength_images_an_edge_where_and_as_blurred_as_its_rays_land():
-    """A vertical edge 100 px off axis, at the distance the d line focuses on, rendered at F, d
-    and C alone: each image's edge profile is the cumulative distribution of where that
+    """A vertical edge 100 px off axis, at the distance the d line focuses on (paraxially),
+    rendered at F, d and C alone: each image's edge profile is the cumulative distribution of where that
     wavelength's rays from the edge land (absolute position: lateral colour; spread:
     longitudinal colour), with no fitted shift."""
     rows = slice(2, 18)
-    probe = singlet_scene([D_LINE_NM])
+    probe = singlet_scene([D_LINE_NM], focus_plane="paraxial")
     cam0 = probe.shots[0].camera
     offset = 100.0 * cam0.pixel_pitch_mm * 1000.0 / cam0.sensor_distance_mm
     widths = {}
     for w in WAVES:
-        scene = singlet_scene([w], offset_x_mm=offset, width=280, height=48, spp=1024)
+        scene = singlet_scene([w], offset_x_mm=offset, width=280, height=48, spp=1024, focus_plane="paraxial")
         cam = scene.shots[0].camera
         img = render(scene).images["shot_000.png"].astype(np.float64)[rows].mean(axis=0)
         row = 0.5 * (rows.start + rows.stop - 1)
@@ -162,8 +165,9 @@ def test_truth_records_the_colour_the_trace_gives():
     for w, efl in zip(WAVES, t["efl_mm"]):
         n = n_d + float(glass.index(w) - glass.index(D_LINE_NM))
         assert efl == pytest.approx(25.84 / (n - 1.0), rel=1e-9)
-    assert t["focus_shift_mm"][1] == pytest.approx(0.0, abs=1e-9)
-    assert t["focus_shift_mm"][0] < -0.3 and t["focus_shift_mm"][2] > 0.1  # blue focuses short, red long
+    shift = t["focus_shift_mm"]
+    assert shift[0] < shift[1] < shift[2] and shift[2] - shift[0] > 0.7  # blue focuses short, red long
+    assert cam.truth()["lens"]["best_focus_image_z_mm"] == pytest.approx(cam.sensor_z_mm)
     # Lateral colour: the centroid of the traced spot of a point at the recorded field height.
     field_px = t["lateral_field_height_px"]
     point = (field_px * cam.pixel_pitch_mm * 1000.0 / cam.sensor_distance_mm, 0.0, 1000.0)
@@ -174,6 +178,21 @@ def test_truth_records_the_colour_the_trace_gives():
         assert t["lateral_colour_px"][k] == pytest.approx(means[k] - means[1], abs=0.03)
 
 
+def test_a_spectral_camera_focuses_the_grey_image():
+    """Autofocus on a grey image: the sensor sits where the spots of all wavelengths together
+    (equal weights) are smallest, not at the d line's focus; a step either way blurs them."""
+    cam = singlet_scene(WAVES).shots[0].camera
+
+    def grey_spread(shift):
+        return sum(np.var(landing_px(cam, c.stopped, (0.0, 0.0, 1000.0), n=100_000, sensor_shift_mm=shift))
+                   for c in cam.spectral_cameras())
+
+    at = grey_spread(0.0)
+    assert grey_spread(-0.02) > at and grey_spread(0.02) > at
+    d_line = cam.truth()["lens"]["spectral"]["focus_shift_mm"][1]
+    assert abs(d_line) > 0.05 and grey_spread(d_line) > 1.05 * at
+
+
 def test_the_reference_wavelength_alone_is_the_monochrome_render_and_grey_is_the_mean():
     """Only what is called for: wavelengths_nm = [d line] renders bit for bit what no
     wavelengths_nm does; three wavelengths give the mean of the three single renders."""
@@ -181,8 +200,9 @@ def test_the_reference_wavelength_alone_is_the_monochrome_render_and_grey_is_the
     ref = render(singlet_scene([D_LINE_NM], spp=16)).images["shot_000.png"]
     np.testing.assert_array_equal(plain, ref)
     assert "spectral" not in singlet_scene(None).shots[0].camera.truth()["lens"]
-    singles = [render(singlet_scene([w], spp=16)).images["shot_000.png"].astype(np.float64) for w in WAVES]
-    grey = render(singlet_scene(WAVES, spp=16)).images["shot_000.png"].astype(np.float64)
+    singles = [render(singlet_scene([w], spp=16, focus_plane="paraxial")).images["shot_000.png"].astype(np.float64)
+               for w in WAVES]
+    grey = render(singlet_scene(WAVES, spp=16, focus_plane="paraxial")).images["shot_000.png"].astype(np.float64)
     np.testing.assert_allclose(grey, np.mean(singles, axis=0), atol=1e-6)
 
 
