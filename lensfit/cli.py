@@ -347,6 +347,9 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     source = Path(args.stack)
     console = Console(stderr=True)
     truth = None
+    if source.suffix.lower() in (".csv", ".json") and not source.exists():
+        raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
+                       "or a stack folder")
     if source.is_file() and source.suffix.lower() in (".csv", ".json"):
         from lensfit.jaxcache import enable_compilation_cache
         from lensfit.measure import SampleTable
@@ -614,7 +617,7 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--estimator", default="edge", metavar="NAME",
                     help="blur estimator: edge (fast; second-moment blur diameter), edge-disk (uniform-disk reading) "
                         "or target (analysis by synthesis)")
-    ft.add_argument("--out", metavar="FILE", help="results JSON (CONTRACTS.md 'Fit results')")
+    ft.add_argument("--out", metavar="FILE", help="results JSON (data_specs/schemas/results.schema.json)")
     ft.add_argument("--plot", metavar="FILE", help="plot of blur versus inverse distance and the fit (.png/.svg/.pdf)")
     ft.add_argument("--samples", metavar="FILE", help="also write the measured samples (.csv/.json)")
     ft.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"],

@@ -28,7 +28,7 @@ Why this form:
 - The floor is fitted per setting with a weak prior ``b_k ~ 0 +- 1 px`` (a regulariser that
   matters only when no sample lies near the focus plane), or fixed by the caller.
 
-Thick lenses (DOMAIN notes, "Real lenses"): with ``A`` the entrance-pupil diameter, ``P`` the
+Thick lenses (README, "Compound (real) lenses"; data_specs/CONVENTIONS.md): with ``A`` the entrance-pupil diameter, ``P`` the
 exit/entrance pupil ratio and ``s_x`` the exit pupil's distance from the sensor, the blur is
 ``(A s_x / P) |1/D - 1/d|`` and a pinhole calibration centred on the entrance pupil measures
 ``S = s_x / P``: the V is ``A S |1/D - 1/d|`` whatever ``P`` is, and only the mapping from ``S``
@@ -50,7 +50,7 @@ default, Cauchy for heavy contamination). The covariance is ``(J^T W J)^-1`` at 
 scaled by the reduced chi-square when that exceeds 1, and propagated to every derived quantity
 by the delta method (log space for positive quantities, so intervals stay positive).
 
-Identifiability (DOMAIN.md): blur at one setting fixes only ``K`` and ``D``; the calibrated
+Identifiability: blur at one setting fixes only ``K`` and ``D``; the calibrated
 ``f_px`` supplies ``s``, hence ``f`` and ``N``. A parameter the data cannot determine (one
 distance, blur all below a pixel, no focal length in px, a vertex extrapolated far from the
 samples, a relative uncertainty over 20 %) is reported with value ``None`` and the reason and
@@ -221,7 +221,7 @@ class FitResult:
         return _model_np(self._full, len(self.samples.labels), k, nodes, self.samples.pixel_pitch_mm)
 
     def to_json_dict(self) -> dict[str, Any]:
-        """The results file (CONTRACTS.md "Fit results"); finite numbers or null throughout."""
+        """The results file (data_specs/schemas/results.schema.json); finite numbers or null throughout."""
         names = self.parameter_names
         corr = {names[i]: {names[j]: _finite(self.correlations[i, j]) for j in range(len(names))}
                 for i in range(len(names))}
@@ -398,7 +398,7 @@ def _size(m: int) -> int:
 def _pinhole_distance(xp, f, x, P):
     """``S = 1 / (1/f - x/P)``: the distance a pinhole calibration centred on the entrance pupil
     measures (``f_px * p``), for focus at inverse distance ``x`` (1/mm) from the entrance pupil
-    (paraxial thick lens, DOMAIN "Real lenses"; ``s`` of the thin lens at ``P = 1``). Focus
+    (paraxial thick lens, module notes; ``s`` of the thin lens at ``P = 1``). Focus
     nearer than the lens can image is clamped."""
     return 1.0 / xp.maximum(1.0 / f - x / P, 1e-6 / f)
 
@@ -1254,7 +1254,7 @@ def results_document(result: FitResult, command: Iterable[str] | None = None,
 
 def compare_with_truth(result: FitResult, truth: dict[str, Any]) -> list[dict[str, Any]]:
     """Rows (setting, quantity, estimate, sigma, truth, relative error, within 95 %) for the
-    quantities ``truth.json`` states (CONTRACTS.md ground truth)."""
+    quantities ``truth.json`` states (data_specs/schemas/truth.schema.json)."""
     rows = []
     true_f = truth.get("focal_length_mm")
     for label, qs in result.settings.items():

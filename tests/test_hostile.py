@@ -422,6 +422,15 @@ def test_broken_files_are_one_line_refusals(tmp_path, capsys, name, content):
     assert not (tmp_path / "s.csv").exists()
 
 
+@pytest.mark.parametrize("name", ["samples.json", "samples.csv"])
+def test_a_missing_samples_file_is_named_as_such(tmp_path, capsys, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run_cli(capsys, lensfit_main, "fit", name)
+    assert code == 2
+    one_line_error(err, name)
+    assert "no such samples file" in err and "stack.toml" not in err
+
+
 # --------------------------------------------------------------------------- numbers
 
 

@@ -120,7 +120,7 @@ def test_reversed_trace_retraces_the_ray(name):
 
 
 def test_pupil_magnification_of_the_shipped_designs():
-    """Telephotos have P < 1, retrofocus wide angles P > 1, a double Gauss about 1 (DOMAIN notes)."""
+    """Telephotos have P < 1, retrofocus wide angles P > 1, a near-symmetric double Gauss about 1."""
     P = {name: paraxial(load_prescription(name)).pupil_magnification for name in DESIGNS}
     assert P["telephoto-250"] < 0.9 and P["retrofocus-24"] > 1.2 and 0.8 < P["double-gauss-50"] < 1.25
 

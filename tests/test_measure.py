@@ -244,7 +244,7 @@ def test_saturated_target_is_refused(tmp_path):
 
 def write_grey_dng(path, linear, black=512, white=16383):
     """A minimal CFA DNG (RGGB, identity colour matrix, neutral white balance) of a grey image,
-    written with tifffile as rawpy/LibRaw expects it (see ../shared/DOMAIN.md)."""
+    written with tifffile as rawpy/LibRaw expects it (DNG 1.4: CFA tags, black and white levels)."""
     import tifffile
 
     cfa = np.round(black + np.clip(linear, 0, 1) * (white - black)).astype(np.uint16)
