@@ -166,13 +166,14 @@ def test_defocus_blur_follows_the_real_ray_f_number(name, N):
 
 
 @pytest.mark.parametrize("name,N,k", [("cooke-triplet-50", 5.0, 0.75), ("telephoto-250", 5.6, 0.9),
-                                      ("retrofocus-24", 5.6, 0.6), ("retrofocus-24", 5.6, 1.15)])
+                                      ("retrofocus-24", 5.6, 0.6), ("retrofocus-24", 5.6, 1.15),
+                                      ("retrofocus-24", 5.6, 1.5)])
 def test_edge_estimator_measures_the_second_moment_of_aberrated_spots(name, N, k):
     """A slanted edge blurred by the real-ray spot of a compound lens (traced here, no renderer),
     at distances k X where the spot is far from a uniform disk (a rim; a core in a halo): the
-    edge estimator reports the spot's second-moment diameter 4 sigma within 1.5 % in front of
-    focus and 4 % behind it (the core-and-halo spot the rim/core profile follows only in part),
-    where a uniform-disk fit (``edge-disk``) misses it by 4-10 %."""
+    edge estimator (two concentric disks) reports the spot's second-moment diameter 4 sigma
+    within 1.5 % on both sides of focus (noise-free; measured: within 1 %), where a uniform-disk
+    fit (``edge-disk``) misses it by 3-10 %."""
     from lensfit.estimators import EdgeTask
     from lensfit.estimators.edge import measure
 
@@ -193,6 +194,6 @@ def test_edge_estimator_measures_the_second_moment_of_aberrated_spots(name, N, k
     task = EdgeTask(np.array([size / 2] * 2) - 50 * t, np.array([size / 2] * 2) + 50 * t, 75.0, 75.0)
     moment = measure(img, [task])[0]
     disk = measure(img, [task], second_moment=False)[0]
-    assert moment.coc_diameter_px == pytest.approx(c_eq, rel=0.015 if k < 1 else 0.04), (moment, c_eq)
+    assert moment.coc_diameter_px == pytest.approx(c_eq, rel=0.015), (moment, c_eq)
     assert "shaped_spot" in moment.flags and abs(moment.coc_diameter_px - c_eq) <= 2.0 * moment.sigma_px
     assert abs(disk.coc_diameter_px / c_eq - 1) > 0.03

@@ -1,31 +1,34 @@
 """``edge``: the slanted-edge method, reporting the blur's second-moment diameter.
 
 PSF model
-    A disk of radius R with the radial profile ``1 + beta (2 rho^2 - 1)`` (rho = r/R): beta = 0
-    is the uniform disk of a thin lens (the circle of confusion), beta > 0 a brighter rim,
-    beta < 0 a brighter core, as spherical aberration makes a real lens's spot on either side
-    of focus. Integrated over square pixels with 100 % fill factor in closed form
+    The uniform disk of radius R of a thin lens (the circle of confusion), or where the spot is
+    visibly no uniform disk, two concentric uniform disks: a share ``a`` of the light in a disk
+    of radius ``t R`` (0 < t < 1) and ``1 - a`` in one of radius R. ``a > 0`` is a bright core in
+    a halo, ``a < 0`` (down to ``-t^2 / (1 - t^2)``, where the centre's intensity reaches 0) a
+    bright rim: the two faces of spherical aberration on either side of a real lens's focus.
+    Both integrated over square pixels with 100 % fill factor in closed form
     (``lensfit.psf.pixel_edge_profile``). No Gaussian stand-in: a Gaussian fitted to a disk is
     biased.
 What "blur diameter" means
     The second-moment diameter ``c = 4 sigma``, sigma the spot's standard deviation across the
     edge: for a uniform disk exactly its diameter, for any other spot the diameter of the
-    uniform disk with the same variance (``c = 2 R sqrt(1 + beta/3)`` for the profile above).
+    uniform disk with the same variance (``c = 2 R sqrt(1 - a (1 - t^2))`` for two disks).
     Variances of convolved blurs add, so this is the quantity the fit's model
     ``sqrt((A S |1/D - 1/d| / p)^2 + b^2)`` describes; far from focus it grows as the real
     entrance pupil's cone, and its V's vertex is the lens's best (least-RMS) focus. A
-    uniform-disk fit to an aberrated spot misses it by up to 10 % (``edge-disk`` keeps that
-    estimator for comparison).
+    uniform-disk fit to an aberrated spot misses it by up to 10 %, a one-parameter rim/core
+    profile ``1 + beta (2 rho^2 - 1)`` (tried) by up to 8 % on a bright core in a wide halo;
+    two disks follow both within 0.5 % noise-free (``edge-disk`` keeps the uniform disk).
 Method
     Pixels near a straight target edge are projected onto the edge normal, which super-samples
     the edge profile (ISO 12233 / MTF Mapper practice). The model
-    ``lo + (hi - lo) * ESF_pixel(d - d0; R, beta)`` is fitted in float64 with optimistix
+    ``lo + (hi - lo) * ESF_pixel(d - d0; R, a, t)`` is fitted in float64 with optimistix
     Levenberg-Marquardt (parameters: edge offset d0, radius R, the two levels, the line's turn),
     started from a grid search over the radius with the levels solved linearly; first as a
-    uniform disk (beta = 0), and where that misfits beyond the noise (RMS residual above
-    ``SHAPE_RMS`` standard errors) again with beta free (prior 0 +- 0.5); flag ``shaped_spot``,
-    its sigma a 3 % model error in quadrature with the fit's own (a bright core in a wide, dim
-    halo behind an aberrated focus is followed only in part). Only on edges at one depth
+    uniform disk (a = 0), and where that misfits beyond the noise (RMS residual above
+    ``SHAPE_RMS`` standard errors) again as two disks (a and t free, priors a ~ 0 +- 1 and
+    logit t ~ 0 +- 2), from two starts (a core, a rim), the better kept; flag ``shaped_spot``,
+    its sigma a 3 % model error in quadrature with the fit's own. Only on edges at one depth
     (within 1 %): along an edge across depth the profile mixes spots of several sizes, which
     the fit's model describes as the power mean of a uniform-disk reading. The window across the edge
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
@@ -72,8 +75,13 @@ MODEL_FLOOR_INTENSITY = 3e-4
 SUB_PIXEL_PX = 0.5
 SUB_PIXEL_SIGMA_PX = 0.2
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
-#: Prior 1 sigma of the profile shape beta (about 0): |beta| <= 1 keeps the profile non-negative.
-BETA_PRIOR = 0.5
+#: Prior 1 sigma of the inner disk's share of the light, a (about 0), and of logit t, the inner
+#: radius over the outer one (about 0: t = 1/2); weak, they hold the shape where the blur is too
+#: small to show one.
+SHARE_PRIOR = 1.0
+RATIO_PRIOR = 2.0
+#: Starts of the two-disk fit (a, logit t): a bright core in a halo, and a bright rim.
+SHAPE_STARTS = ((0.3, -0.5), (-0.5, 1.5))
 #: RMS residual (in standard errors of the profile bins) of the uniform-disk fit above which the
 #: profile's shape is fitted too.
 SHAPE_RMS = 1.5
@@ -183,21 +191,26 @@ def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, floa
 
 
 def _model(theta, d, s, nx, ny):
-    # theta = (d0, rho = R^2, lo, hi, turn, beta): the squared radius keeps the model smooth and
+    # theta = (d0, rho = R^2, lo, hi, turn, a, u): the squared radius keeps the model smooth and
     # well-conditioned as the blur vanishes (the profile depends on R only to second order
     # there); `turn` rotates the edge line (radians) about the window's middle, so that the
-    # line's own uncertainty is part of the covariance; `beta` shapes the spot's radial profile
-    # (0 uniform, > 0 bright rim, < 0 bright core).
-    d0, rho, lo, hi, turn, beta = theta[0], theta[1], theta[2], theta[3], theta[4], theta[5]
-    return lo + (hi - lo) * pixel_edge_profile(d - d0 - turn * s, jnp.sqrt(jnp.abs(rho) + 1e-12), nx, ny, beta)
+    # line's own uncertainty is part of the covariance; `a` is the inner disk's share of the
+    # light and t = sigmoid(u) its radius over R (a = 0: the uniform disk).
+    d0, rho, lo, hi, turn, a, u = (theta[i] for i in range(7))
+    R = jnp.sqrt(jnp.abs(rho) + 1e-12)
+    x = d - d0 - turn * s
+    outer = pixel_edge_profile(x, R, nx, ny)
+    inner = pixel_edge_profile(x, R * jax.nn.sigmoid(u), nx, ny)
+    return lo + (hi - lo) * (outer + a * (inner - outer))
 
 
 def _residuals(theta, args):
     d, s, v, w, nx, ny, shaped = args  # w = 1 / standard error of the bin mean; 0 for padding
-    # shaped = 0: the uniform disk (beta does not enter the model). The shape has a weak prior
-    # beta ~ 0 +- BETA_PRIOR, which holds it where the blur is too small to show a shape.
+    # shaped = 0: the uniform disk (a does not enter the model). The shape has weak priors that
+    # hold it where the blur is too small to show one.
     theta = theta.at[5].multiply(shaped)
-    return jnp.concatenate([w * (v - _model(theta, d, s, nx, ny)), theta[5:6] / BETA_PRIOR])
+    return jnp.concatenate([w * (v - _model(theta, d, s, nx, ny)),
+                            jnp.stack([theta[5] / SHARE_PRIOR, theta[6] / RATIO_PRIOR])])
 
 
 def _grid_start(d, s, v, w, nx, ny):
@@ -214,34 +227,44 @@ def _grid_start(d, s, v, w, nx, ny):
 
     costs, coefs = jax.vmap(rss)(radii, offsets)
     k = jnp.argmin(costs)
-    return jnp.stack([offsets[k], radii[k] ** 2, coefs[k][0], coefs[k][1], 0.0, 0.0])
+    return jnp.stack([offsets[k], radii[k] ** 2, coefs[k][0], coefs[k][1], 0.0, 0.0, 0.0])
 
 
-@partial(jax.jit)
-def _fit_batch(d, s, v, w, nx, ny, shaped):
+@partial(jax.jit, static_argnames=("shaped",))
+def _fit_batch(d, s, v, w, nx, ny, shaped: bool):
     import optimistix as optx
 
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
+    shape = 1.0 if shaped else 0.0
 
-    def one(d, s, v, w, nx, ny, shaped):
-        args = (d, s, v, w, nx, ny, shaped)
+    def one(d, s, v, w, nx, ny):
+        args = (d, s, v, w, nx, ny, shape)
         y0 = _grid_start(d, s, v, w, nx, ny)
-        sol = optx.least_squares(_residuals, solver, y0, args=args, max_steps=400, throw=False)
-        theta = sol.value
+
+        def solve(start):
+            sol = optx.least_squares(_residuals, solver, start, args=args, max_steps=400, throw=False)
+            r = _residuals(sol.value, args)
+            return sol.value, jnp.sum(r * r), sol.result == optx.RESULTS.successful
+
+        # Two disks have more than one local minimum: start from a core and from a rim, keep the
+        # better; the uniform disk has one start.
+        runs = [solve(y0.at[5].set(a).at[6].set(u)) for a, u in SHAPE_STARTS] if shaped else [solve(y0)]
+        best = jnp.argmin(jnp.stack([c for _, c, _ in runs]))
+        theta = jnp.stack([t for t, _, _ in runs])[best]
+        ok = jnp.stack([o for _, _, o in runs])[best]
         J = jax.jacfwd(_residuals)(theta, args)
-        r = _residuals(theta, args)[:-1]
+        r = _residuals(theta, args)[:-2]
         n_eff = jnp.sum(w > 0)  # bins
         # Residuals are in units of each bin's own standard error; a reduced chi-square above 1
         # (model misfit) inflates the covariance, one below 1 does not shrink it.
-        dof = jnp.maximum(n_eff - 5 - shaped, 1)  # beta is a parameter only when shaped
+        dof = jnp.maximum(n_eff - 5 - 2 * shape, 1)  # a and t are parameters only when shaped
         chi2 = jnp.maximum(jnp.sum(r * r) / dof, 1.0)
         JTJ = J.T @ J
         cov = chi2 * jnp.linalg.pinv(JTJ, rtol=1e-14)
         s2 = jnp.sum(r * r) / dof
-        ok = sol.result == optx.RESULTS.successful
         return theta, cov, jnp.sqrt(s2), ok
 
-    return jax.vmap(one)(d, s, v, w, nx, ny, shaped)
+    return jax.vmap(one)(d, s, v, w, nx, ny)
 
 
 def _bucket(n: int, minimum: int) -> int:
@@ -269,7 +292,7 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
             sl = slice(k, k + BATCH)
             parts.append([np.asarray(x) for x in _fit_batch(jnp.asarray(D[sl]), jnp.asarray(S[sl]), jnp.asarray(V[sl]),
                                                             jnp.asarray(W[sl]), jnp.asarray(NX[sl]),
-                                                            jnp.asarray(NY[sl]), jnp.full(BATCH, float(shaped)))])
+                                                            jnp.asarray(NY[sl]), shaped=shaped)])
     theta, cov, rms, ok = (np.concatenate([p[j] for p in parts]) for j in range(4))
     return [(theta[i], cov[i], float(rms[i]), bool(ok[i])) for i in range(len(samples))]
 
@@ -340,30 +363,34 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
         for j, (i, (theta, cov, rms, ok)) in enumerate(zip(index, fits)):
             rho = abs(float(theta[1]))
             r = math.sqrt(rho)
-            beta = float(theta[5])
+            a = float(theta[5]) if j in is_shaped else 0.0
+            t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
+            m = 1.0 - a * (1.0 - t * t)  # variance of two disks over that of the outer one
             var_rho = float(cov[1, 1])
-            if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(beta)):
+            if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > 0.05):
                 results[i] = BlurEstimate(None, None, tuple(flags[i]) + ("fit_failed",), npixels[i])
                 radius[i] = None
                 continue
-            radius[i] = r * math.sqrt(max(1.0 + abs(beta) / 3.0, 1.0))  # the spot's reach, for the window
-            # The second-moment diameter c = 2 R sqrt(1 + beta/3): 16 x the spot's variance across
-            # the edge; the uniform disk's diameter where beta = 0.
-            k = math.sqrt(max(1.0 + beta / 3.0, 0.0))
+            radius[i] = r  # the outer disk: the spot's reach, for the window
+            # The second-moment diameter c = 2 R sqrt(1 - a (1 - t^2)): 16 x the spot's variance
+            # across the edge; the uniform disk's diameter where a = 0.
+            k = math.sqrt(m)
             c = 2.0 * r * k
             f = list(flags[i]) + (["shaped_spot"] if j in is_shaped else [])
             # 1 sigma of R from that of R^2: sqrt(R^2 + sigma_rho) - R (= sigma_rho / 2R when R is
-            # well determined, sqrt(sigma_rho) as R -> 0); beta's share by the gradient of c.
+            # well determined, sqrt(sigma_rho) as R -> 0); the shape's share by the gradient of c
+            # in (a, logit t), with its covariance with R^2.
             sigma_r = math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - r
-            g_beta = r / (3.0 * max(k, 1e-6))
-            cov_rb = float(cov[1, 5]) / (2.0 * max(r, 1e-6))
-            var_c = (2.0 * k * sigma_r) ** 2 + g_beta**2 * max(float(cov[5, 5]), 0.0) + 4.0 * k * g_beta * cov_rb
+            var_c = (2.0 * k * sigma_r) ** 2
+            if j in is_shaped:
+                g = np.array([-r * (1.0 - t * t) / k, 2.0 * r * a * t * t * (1.0 - t) / k])
+                C = np.asarray(cov[5:7, 5:7], np.float64)
+                var_c += float(g @ C @ g) + 2.0 * (k / max(r, 1e-6)) * float(g @ np.asarray(cov[1, 5:7]))
             sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
             if "shaped_spot" in f:
                 # A spot that is no uniform disk: the fit's chi-square inflation measures how far
                 # the profile family is from the spot, not how uncertain its second moment is;
-                # that is stated by the family's model error instead (a bright core in a wide,
-                # dim halo behind an aberrated focus is followed only in part: seen within 4 %).
+                # that is stated by the family's model error instead.
                 sigma_c = math.hypot(sigma_c / max(rms, 1.0), SHAPE_MODEL_REL * c)
             sigma = with_model_floor(sigma_c, c)
             if c < SUB_PIXEL_PX:
