@@ -628,9 +628,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
                          "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
                          "fitted from two or more focus settings, else 1 (thin lens) with a warning")
-    ft.add_argument("--pixel-pitch", type=_number, metavar="MM", help="pixel pitch, mm (for a samples CSV)")
+    ft.add_argument("--pixel-pitch", type=_number, metavar="MM",
+                    help="pixel pitch, mm (for samples without it, e.g. a CSV of your own)")
     ft.add_argument("--focal-length-px", type=_number, metavar="PX",
-                    help="calibrated focal length in px (for a samples CSV, which has no intrinsics)")
+                    help="calibrated focal length in px (overrides the samples file's; for samples without one)")
     ft.add_argument("--json", action="store_true", help="print the results JSON instead of tables")
     ft.add_argument("--force", action="store_true", help="replace existing output files that lensfit wrote")
     _input_options(ft)

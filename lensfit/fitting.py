@@ -1204,7 +1204,8 @@ def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
 
 
 def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
-    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px")
+    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
+               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
     rows = []
     with path.open(newline="") as fh:
         reader = csv.DictReader(fh)
@@ -1221,6 +1222,9 @@ def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
                         row[c] = float(v) if v else None
                     except ValueError:
                         raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a number") from None
+                    if row[c] is not None and not math.isfinite(row[c]):
+                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a finite number; leave the cell "
+                                        "empty where an edge has no measurement")
             rows.append(row)
     return rows
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,7 +23,7 @@ import numpy as np
 from lensfit import __version__
 from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, project
 from lensfit.errors import SpecError
-from lensfit.outputs import SAMPLES_CSV_COLUMNS
+from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.stack import Stack, load_stack
 from lensfit.targets import Detection, Target
@@ -96,7 +97,8 @@ class SampleTable:
     @classmethod
     def read(cls, path: str | Path) -> "SampleTable":
         """A table written by :meth:`write`. JSON keeps the intrinsics and pixel pitch; a CSV
-        holds only the samples (give the pitch and focal length in px to the fit)."""
+        repeats its setting's focal length in px (and 1 sigma) and the pixel pitch on every row
+        (CSVs from before that hold only the samples: give the pitch and focal length to the fit)."""
         path = Path(path)
         if not path.is_file():
             raise SpecError(path, "", "no such file; write samples with lensfit measure --out")
@@ -104,7 +106,7 @@ class SampleTable:
             from lensfit.fitting import read_samples_csv
 
             rows = read_samples_csv(path)
-            doc: dict[str, Any] = {"samples": rows}
+            doc: dict[str, Any] = {"samples": rows, **_csv_calibration(path, rows)}
         else:
             try:
                 doc = json.loads(path.read_text())
@@ -157,13 +159,42 @@ class SampleTable:
             path.write_text(json.dumps(self.to_json_dict(), indent=1, allow_nan=False))
             return
         with path.open("w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=self.COLUMNS)
+            writer = csv.DictWriter(fh, fieldnames=self.COLUMNS + SAMPLES_CSV_CALIBRATION)
             writer.writeheader()
             for row in self.rows():
                 row = dict(row)
                 row["start_px"] = f"{row['start_px'][0]:.3f} {row['start_px'][1]:.3f}"
                 row["end_px"] = f"{row['end_px'][0]:.3f} {row['end_px'][1]:.3f}"
+                k = self.intrinsics.get(row["setting"])
+                pitch = self.pixel_pitch_mm if math.isfinite(self.pixel_pitch_mm) else None
+                row.update(pixel_pitch_mm=None if pitch is None else repr(pitch),
+                           focal_length_px=None if k is None else repr(k.focal_length_px),
+                           focal_length_sigma_px=None if k is None else repr(k.focal_length_sigma_px))
                 writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
+
+
+def _csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The pixel pitch and per-setting focal lengths a samples CSV repeats on its rows (empty
+    where the columns are absent); rows of one setting must agree."""
+    out: dict[str, Any] = {}
+    pitches = {r["pixel_pitch_mm"] for r in rows if r.get("pixel_pitch_mm") is not None}
+    if len(pitches) > 1:
+        raise SpecError(path, "pixel_pitch_mm", f"rows disagree ({sorted(pitches)[:2]}); one stack has one pitch")
+    if pitches:
+        out["pixel_pitch_mm"] = pitches.pop()
+    intrinsics: dict[str, dict[str, float]] = {}
+    for i, r in enumerate(rows, start=2):
+        if r.get("focal_length_px") is None:
+            continue
+        entry = {"focal_length_px": r["focal_length_px"], "focal_length_sigma_px": r.get("focal_length_sigma_px") or 0.0,
+                 "source": "samples CSV"}
+        first = intrinsics.setdefault(str(r["setting"]), entry)
+        if first["focal_length_px"] != entry["focal_length_px"]:
+            raise SpecError(path, f"line {i}: focal_length_px", f"{entry['focal_length_px']} differs from the earlier "
+                            f"{first['focal_length_px']} of setting {r['setting']!r}; a setting has one calibration")
+    if intrinsics:
+        out["intrinsics"] = intrinsics
+    return out
 
 
 def _check_saturation(stack: Stack, index: int, image: np.ndarray, det: Detection) -> None:

@@ -49,6 +49,9 @@ PROGRAMS = ("lensfit", "synth")
 SAMPLES_CSV_COLUMNS = ("image", "setting", "target", "edge", "distance_mm", "coc_diameter_px", "sigma_px",
                        "estimator", "flags", "distance_start_mm", "distance_end_mm", "start_px", "end_px",
                        "distance_source")
+#: The calibration columns after them (each row repeats its setting's calibration, so that a
+#: refit from the CSV alone equals the fit from the stack).
+SAMPLES_CSV_CALIBRATION = ("pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
 
 _SNIFF_BYTES = 1 << 16
 
@@ -100,7 +103,9 @@ def written_by(path: str | Path) -> str | None:
         return _program_of(prov.get("program")) or _program_of(prov.get("command"))
     if suffix == ".csv":
         first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
-        return "lensfit" if next(csv.reader([first]), None) == list(SAMPLES_CSV_COLUMNS) else None
+        header = next(csv.reader([first]), None)
+        known = (list(SAMPLES_CSV_COLUMNS), list(SAMPLES_CSV_COLUMNS + SAMPLES_CSV_CALIBRATION))
+        return "lensfit" if header in known else None
     if suffix == ".png":
         return _png_software(head)
     if suffix == ".svg":

@@ -7,6 +7,7 @@ import json
 import math
 import subprocess
 import sys
+import re
 
 import imageio.v3 as iio
 import jsonschema
@@ -222,6 +223,35 @@ def test_property_fit_of_render_recovers_the_lens(tmp_path_factory, f, N, D_over
     # Ray-traced 64-spp stacks of 20 short edges: the blur estimates carry about 1-2 % of
     # systematic error here (see README), so 3 %; the sample-level tests check tighter.
     assert_recovered_or_refused(r, {"focal_length_mm": f, "f_number": N, "focus_distance_mm": D}, 0.03)
+
+
+@pytest.mark.parametrize("suffix", [".json", ".csv"])
+def test_refit_from_a_samples_file_equals_the_fit_from_the_stack(calibration_samples, tmp_path, capsys, suffix):
+    """Measure-then-refit: the samples file carries the calibration (and its sigma), so the fit
+    from it has the stack fit's values and sigmas, through the API and the CLI."""
+    from lensfit.cli import main
+
+    path = tmp_path / f"samples{suffix}"
+    calibration_samples.write(path)
+    direct, again = fit(calibration_samples), fit(SampleTable.read(path))
+    for q in ("focal_length_mm", "f_number", "focus_distance_mm"):
+        a = getattr(direct, q) if q == "focal_length_mm" else direct.settings["a"][q]
+        b = getattr(again, q) if q == "focal_length_mm" else again.settings["a"][q]
+        assert b.value == pytest.approx(a.value, rel=1e-9) and b.sigma == pytest.approx(a.sigma, rel=1e-6), q
+    assert main(["fit", str(path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["focal_length_mm"]["sigma"] == pytest.approx(direct.focal_length_mm.sigma, rel=1e-6)
+
+
+def test_a_non_finite_number_in_a_samples_csv_is_refused(calibration_samples, tmp_path):
+    path = tmp_path / "samples.csv"
+    calibration_samples.write(path)
+    lines = path.read_text().splitlines()
+    cells = lines[1].split(",")
+    cells[5] = "nan"  # coc_diameter_px
+    path.write_text("\n".join([lines[0], ",".join(cells), *lines[2:]]) + "\n")
+    with pytest.raises(Exception, match=re.escape("line 2: coc_diameter_px")):
+        SampleTable.read(path)
 
 
 def test_measure_and_fit_are_reproducible(calibration_stack, calibration_samples):
