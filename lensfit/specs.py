@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import re
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -74,6 +75,25 @@ def _first_non_finite(data: Any, parts: tuple = ()) -> tuple[tuple, float] | Non
     return None
 
 
+def _unknown_key(error, field: str, schema_name: str) -> tuple[str, str]:
+    """(field, message) for a key the schema does not know: its full name, the nearest valid
+    one ("did you mean"), and the valid keys."""
+    import difflib
+
+    known = sorted(error.schema.get("properties", {}))
+    allowed = set(known)
+    patterns = list(error.schema.get("patternProperties", {}))
+    unknown = [k for k in (error.instance or {}) if k not in allowed
+               and not any(re.match(p, k) for p in patterns)]
+    key = unknown[0] if unknown else "?"
+    where = f"{field}.{key}" if field else key
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    extra = "; your own fields may start with x_" if patterns else ""
+    return where, (f"unknown key; {hint}valid here: {', '.join(known)}{extra} "
+                   f"(data_specs/schemas/{schema_name}.schema.json)")
+
+
 def validate(data: Any, schema_name: str, path: str | Path) -> None:
     """Validate ``data`` against a schema; the first (most relevant) problem raises SpecError.
 
@@ -99,6 +119,8 @@ def validate(data: Any, schema_name: str, path: str | Path) -> None:
         missing = error.message.split("'")[1] if "'" in error.message else error.message
         raise SpecError(path, _field_path([*error.absolute_path, missing]), "is required but missing")
     if error.validator == "additionalProperties":
-        raise SpecError(path, field or "(top level)", f"{error.message}; check the spelling against "
-                        f"data_specs/schemas/{schema_name}.schema.json")
+        raise SpecError(path, *_unknown_key(error, field, schema_name))
+    if error.validator in ("anyOf", "oneOf") and all(set(sub) == {"required"} for sub in error.validator_value):
+        options = " or ".join("+".join(sub["required"]) for sub in error.validator_value)
+        raise SpecError(path, field or "(top level)", f"needs {options}; none is given")
     raise SpecError(path, field or "(top level)", f"got {error.instance!r}: {error.message}")

@@ -553,3 +553,26 @@ def test_hostile_samples_files_are_one_line_refusals(tmp_path, capsys, name, con
     code, _, err = run_cli(capsys, lensfit_main, "fit", path, "--pixel-pitch", 0.006, "--focal-length-px", 8000)
     assert code == 2, err
     one_line_error(err)
+
+
+@pytest.mark.parametrize("edit,field,says", [
+    (lambda t: t.replace('setting = "a"', 'setings = "a"', 1), "image[0].setings", "did you mean 'setting'"),
+    (lambda t: t.replace("[camera]\n", "[camera]\ndistance_m = 3\n", 1), "camera.distance_m", "valid here"),
+    (lambda t: t.replace("pixel_pitch_mm", "x_pitch", 1), "camera", "needs pixel_pitch_mm or sensor_width_mm"),
+])
+def test_stack_toml_typos_are_refused_naming_the_key(calibration_stack, tmp_path, edit, field, says):
+    """Unknown keys in stack.toml are refused (a typo of an optional key would otherwise be
+    silently ignored), with the nearest valid key; your own fields may start with x_."""
+    import shutil
+
+    from lensfit.stack import load_stack
+
+    folder = tmp_path / "stack"
+    shutil.copytree(calibration_stack, folder)
+    manifest = folder / "stack.toml"
+    manifest.write_text(manifest.read_text().replace("[camera]\n", "[camera]\nx_note = \"mine\"\n", 1))
+    load_stack(folder)  # x_ fields are the user's own
+    manifest.write_text(edit(manifest.read_text()))
+    with pytest.raises(SpecError) as err:
+        load_stack(folder)
+    assert f"{field}:" in str(err.value) and says in str(err.value), str(err.value)
