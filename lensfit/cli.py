@@ -446,7 +446,8 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
         result = run(args.lens or None, spp=args.spp, f_number=args.f_number,
-                     progress=lambda m: status.update(f"benchmarking: {m}"), wavelengths_nm=tuple(args.wavelengths or ()))
+                     progress=lambda m: status.update(f"benchmarking: {m}"),
+                     wavelengths_nm=tuple(args.wavelengths or ()))
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK

@@ -28,8 +28,9 @@ Why this form:
 - The floor is fitted per setting with a weak prior ``b_k ~ 0 +- 1 px`` (a regulariser that
   matters only when no sample lies near the focus plane), or fixed by the caller.
 
-Thick lenses (README, "Compound (real) lenses"; data_specs/CONVENTIONS.md): with ``A`` the entrance-pupil diameter, ``P`` the
-exit/entrance pupil ratio and ``s_x`` the exit pupil's distance from the sensor, the blur is
+Thick lenses (README, "Compound (real) lenses"; data_specs/CONVENTIONS.md): with ``A`` the
+entrance-pupil diameter, ``P`` the exit/entrance pupil ratio and ``s_x`` the exit pupil's
+distance from the sensor, the blur is
 ``(A s_x / P) |1/D - 1/d|`` and a pinhole calibration centred on the entrance pupil measures
 ``S = s_x / P``: the V is ``A S |1/D - 1/d|`` whatever ``P`` is, and only the mapping from ``S``
 to ``f`` carries ``P``: ``1/f = 1/S + 1/(P D)``. Two or more focus settings that share ``f`` and

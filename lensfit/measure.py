@@ -186,8 +186,8 @@ def _csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
     for i, r in enumerate(rows, start=2):
         if r.get("focal_length_px") is None:
             continue
-        entry = {"focal_length_px": r["focal_length_px"], "focal_length_sigma_px": r.get("focal_length_sigma_px") or 0.0,
-                 "source": "samples CSV"}
+        entry = {"focal_length_px": r["focal_length_px"], "source": "samples CSV",
+                 "focal_length_sigma_px": r.get("focal_length_sigma_px") or 0.0}
         first = intrinsics.setdefault(str(r["setting"]), entry)
         if first["focal_length_px"] != entry["focal_length_px"]:
             raise SpecError(path, f"line {i}: focal_length_px", f"{entry['focal_length_px']} differs from the earlier "

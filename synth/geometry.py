@@ -305,8 +305,8 @@ class CompoundLensCamera(ThinLensCamera):
 @dataclass(frozen=True)
 class SpectralCamera(CompoundLensCamera):
     """A compound-lens camera at one wavelength: the reference camera's stop (its f-number set
-    at the d line) and sensor position (the grey image's best focus), the glasses' indices at ``wavelength_nm``; object
-    distances stay measured from the reference entrance pupil. Focus, magnification and blur
+    at the d line) and sensor position (the grey image's best focus), the glasses' indices at
+    ``wavelength_nm``; object distances stay measured from the reference entrance pupil. Focus, magnification and blur
     follow from the trace: longitudinal and lateral colour are not added, they come out."""
 
     wavelength_nm: float = 587.5618

@@ -251,7 +251,8 @@ def _wavelengths(lens: dict, path, rx, effects) -> tuple[float, ...]:
     lo, hi = spectral.WAVELENGTH_RANGE_NM
     for i, w in enumerate(waves):
         if not lo <= w <= hi:
-            raise SpecError(path, f"lens.wavelengths_nm[{i}]", f"got {w:g}: a visible wavelength from {lo:g} to {hi:g} nm")
+            raise SpecError(path, f"lens.wavelengths_nm[{i}]",
+                            f"got {w:g}: a visible wavelength from {lo:g} to {hi:g} nm")
     if len(set(waves)) != len(waves):
         raise SpecError(path, "lens.wavelengths_nm", f"got {list(waves)}: each wavelength once")
     missing = rx.undispersed_surfaces()
