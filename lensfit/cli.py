@@ -533,6 +533,37 @@ def _bench_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------- target
+
+_TARGET_OPTIONS = {"paper": "--paper", "squares": "--squares", "square_mm": "--square-mm",
+                   "marker_mm": "--marker-mm", "dictionary": "--dictionary", "dpi": "--dpi"}
+
+
+def _target_command(args: argparse.Namespace) -> int:
+    from lensfit.outputs import claimed, write_all
+    from lensfit.printable import charuco_page, target_toml, write_page
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".pdf"):
+        raise CliError(f"--out {out}: give a .pdf or .png file name")
+    try:
+        board = charuco_page(args.paper, tuple(args.squares), args.square_mm, args.marker_mm, args.dictionary,
+                             args.dpi, args.id)
+    except InputError as exc:
+        raise _fail_input(exc, _TARGET_OPTIONS) from None
+    with claimed([("--out", out)], force=args.force):
+        write_all([(out, lambda tmp: write_page(board, tmp))], force=args.force)
+    e = board.entry
+    print(f"# {out}: {e['squares'][0]} x {e['squares'][1]} squares of {e['square_mm']:g} mm "
+          f"({e['squares'][0] * e['square_mm']:g} x {e['squares'][1] * e['square_mm']:g} mm) on "
+          f"{board.page_mm[0]:g} x {board.page_mm[1]:g} mm, {board.dpi:.1f} dpi.")
+    print("# Print at 100 % (actual size), mount it flat, measure a square: where it is not "
+          f"{e['square_mm']:g} mm, scale square_mm and marker_mm below by the measured ratio.")
+    print("# stack.toml entry:")
+    print(target_toml(e), end="")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -592,6 +623,24 @@ def build_parser() -> argparse.ArgumentParser:
                      help="pixel pitch, mm, to express the CoC in pixels (default: from --sensor when known)")
     dof.add_argument("--json", action="store_true", help="print a JSON object instead of a table")
     dof.set_defaults(func=_dof_command, prog="lensfit dof")
+
+    tg = sub.add_parser("target", help="write a printable ChArUco board (PDF/PNG) and its stack.toml entry",
+                        description="Lay out a ChArUco board at its true size on a sheet of paper (PDF or PNG, "
+                                    "by --out's suffix) and print the [[target]] entry of stack.toml that "
+                                    "describes it. Print at 100 % and measure a square before use.")
+    tg.add_argument("--out", required=True, metavar="FILE", help="board.pdf or board.png")
+    tg.add_argument("--paper", default="a4-landscape", metavar="SIZE",
+                    help="a4, a3, a2, letter, tabloid (+ -landscape) or WxH in mm (default a4-landscape)")
+    tg.add_argument("--squares", type=int, nargs=2, default=(9, 6), metavar=("COLS", "ROWS"),
+                    help="squares across and down (default 9 6)")
+    tg.add_argument("--square-mm", type=_number, metavar="MM", help="square side (default: the largest that fits)")
+    tg.add_argument("--marker-mm", type=_number, metavar="MM", help="marker side (default 0.75 x the square)")
+    tg.add_argument("--dictionary", default="DICT_5X5_100", metavar="NAME",
+                    help="OpenCV ArUco dictionary (default DICT_5X5_100)")
+    tg.add_argument("--dpi", type=_number, default=300.0, help="at least this resolution (default 300)")
+    tg.add_argument("--id", default="board", help="the target's id in stack.toml (default board)")
+    tg.add_argument("--force", action="store_true", help="replace an existing board this program wrote")
+    tg.set_defaults(func=_target_command, prog="lensfit target")
 
     m = sub.add_parser(
         "measure", help="measure blur diameter versus distance on the targets of an image stack",

@@ -115,8 +115,10 @@ def written_by(path: str | Path) -> str | None:
         return None
     if suffix == ".pdf":
         for program in PROGRAMS:
-            if f"/Creator ({program} ".encode() in tail or f"/Creator ({program} ".encode() in head:
-                return program
+            # Plain (matplotlib) or UTF-16 with a byte-order mark (Pillow)
+            for tag in (f"/Creator ({program} ".encode(), b"/Creator (\xfe\xff" + f"{program} ".encode("utf-16-be")):
+                if tag in tail or tag in head:
+                    return program
         return None
     return None
 

@@ -1,0 +1,67 @@
+"""``lensfit target``: a printable ChArUco board at its true size, and its stack.toml entry.
+
+Checked independently of the drawing code: OpenCV's detector finds every inner corner on the
+written page, and their spacing, converted with the file's own resolution, is the square side
+the entry states; the PDF page is the paper's size.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from lensfit.cli import main
+from lensfit.targets import Target
+
+
+def test_png_board_detects_with_the_stated_geometry(tmp_path, capsys):
+    out = tmp_path / "board.png"
+    assert main(["target", "--out", str(out), "--paper", "a4-landscape", "--dpi", "150"]) == 0
+    text = capsys.readouterr().out
+    entry = dict(re.findall(r"^(\w+) = (.+)$", text, flags=re.M))
+    square_mm = float(entry["square_mm"])
+    cols, rows = (int(v) for v in re.findall(r"\d+", entry["squares"]))
+    img = Image.open(out)
+    dpi = img.info["dpi"][0]
+    page = np.asarray(img, np.float64) / 255.0
+    assert page.shape[1] / dpi * 25.4 == pytest.approx(297.0, abs=0.2)  # the page is A4 landscape
+    spec = {"id": "board", "kind": "charuco", "squares": [cols, rows], "square_mm": square_mm,
+            "marker_mm": float(entry["marker_mm"]), "dictionary": entry["dictionary"].strip('"')}
+    det = Target(spec).detect(page)
+    assert det is not None and len(det.ids) == (cols - 1) * (rows - 1)
+    # Corner spacing in the file, at its resolution, is the square side in mm.
+    order = np.argsort(det.ids)
+    pts = det.image_points_px[order].reshape(rows - 1, cols - 1, 2)
+    step_px = np.mean(np.hypot(*np.diff(pts, axis=1).reshape(-1, 2).T))
+    assert step_px / dpi * 25.4 == pytest.approx(square_mm, rel=2e-3)
+    assert cols * square_mm <= 297.0 - 24.0 and rows * square_mm <= 210.0 - 24.0
+
+
+def test_pdf_page_is_the_paper_size(tmp_path, capsys):
+    out = tmp_path / "board.pdf"
+    assert main(["target", "--out", str(out), "--paper", "letter", "--dpi", "100"]) == 0
+    box = re.search(rb"/MediaBox \[ *0 0 ([\d.]+) ([\d.]+) *\]", out.read_bytes())
+    assert box is not None
+    assert float(box.group(1)) / 72 * 25.4 == pytest.approx(215.9, abs=0.05)
+    assert float(box.group(2)) / 72 * 25.4 == pytest.approx(279.4, abs=0.05)
+    # A second run does not replace it silently; with --force it does (lensfit wrote it).
+    assert main(["target", "--out", str(out), "--paper", "letter", "--dpi", "100"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["target", "--out", str(out), "--paper", "letter", "--dpi", "100", "--force"]) == 0
+
+
+@pytest.mark.parametrize("args,says", [
+    (["--square-mm", "50"], "--square-mm"),
+    (["--squares", "30", "20"], "DICT_5X5_250"),
+    (["--paper", "napkin"], "--paper"),
+    (["--dictionary", "DICT_9X9_1"], "--dictionary"),
+])
+def test_impossible_boards_are_refused_naming_the_option(tmp_path, capsys, args, says):
+    out = tmp_path / "board.png"
+    assert main(["target", "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err
+    assert says in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
