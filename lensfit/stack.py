@@ -1,9 +1,11 @@
 """Reading an image stack: ``stack.toml`` and its images, as linear float64 intensities.
 
-Formats: PNG and TIFF (8/16-bit integer or float), DNG and camera RAW (through rawpy, decoded
-linearly: no gamma, no auto-brightening, 16-bit, no rotation). Colour images are reduced to
-luminance-weighted grey (Rec. 709 weights) in linear light. sRGB-encoded images are
-linearised when the manifest says ``encoding = "srgb"``.
+Formats: PNG and TIFF (8/16-bit integer or float), JPEG (8-bit), DNG and camera RAW (through
+rawpy, decoded linearly: no gamma, no auto-brightening, 16-bit, no rotation). Colour images are
+reduced to luminance-weighted grey (Rec. 709 weights) in linear light. sRGB-encoded images are
+linearised when the manifest says ``encoding = "srgb"``, which is the default for JPEG (a
+camera's JPEG is sRGB-encoded; its in-camera sharpening, noise reduction and tone curve still
+bias blur measurement: prefer RAW where the camera writes it).
 
 Every refusal is a :class:`lensfit.errors.SpecError` naming the file (and the manifest field
 where one is involved): unreadable or truncated files, images of inconsistent size, NaN in
@@ -24,7 +26,9 @@ from lensfit.specs import load_toml, validate
 
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".raw", ".nrw",
                 ".3fr", ".iiq", ".erf", ".kdc", ".mrw", ".x3f"}
-RASTER_SUFFIXES = {".png", ".tif", ".tiff"}
+RASTER_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg"}
+#: JPEG files: 8-bit, sRGB-encoded unless the manifest says otherwise.
+JPEG_SUFFIXES = {".jpg", ".jpeg"}
 
 
 @dataclass(frozen=True)
@@ -123,6 +127,13 @@ def image_size(path: str | Path) -> tuple[int, int]:
                 raw.close()
         if suffix == ".png":
             return _png_header(path)
+        if suffix in JPEG_SUFFIXES:
+            from PIL import Image
+
+            with Image.open(path) as im:  # reads the header only
+                if im.format != "JPEG":
+                    raise SpecError(path, "", f"is not a JPEG file (it holds {im.format}); is it misnamed?")
+                return int(im.size[1]), int(im.size[0])
         if suffix in (".tif", ".tiff"):
             import tifffile
 
@@ -135,7 +146,19 @@ def image_size(path: str | Path) -> tuple[int, int]:
         raise
     except Exception as exc:  # decoders raise many types for corrupt or truncated headers
         raise SpecError(path, "", f"cannot be read ({type(exc).__name__}: {exc})") from None
-    raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, DNG or a camera RAW file")
+    raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, JPEG, DNG or a camera RAW "
+                    "file")
+
+
+def _decode_jpeg(path: Path) -> np.ndarray:
+    """An 8-bit JPEG (grey or colour) as stored (its size was checked from the header)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im.load()
+        if im.mode not in ("L", "RGB"):
+            im = im.convert("RGB")
+        return np.asarray(im)
 
 
 def _decode_png(path: Path) -> np.ndarray:
@@ -183,7 +206,9 @@ def read_raster(path: Path, black_level: float | None = None, white_level: float
 
     check_image_size(path, *image_size(path), max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6))
     try:
-        img = _decode_tiff(path) if path.suffix.lower() in (".tif", ".tiff") else _decode_png(path)
+        suffix = path.suffix.lower()
+        img = (_decode_tiff(path) if suffix in (".tif", ".tiff") else
+               _decode_jpeg(path) if suffix in JPEG_SUFFIXES else _decode_png(path))
     except FileNotFoundError:
         raise SpecError(path, "", "file not found") from None
     except SpecError:
@@ -252,7 +277,8 @@ def read_image(path: str | Path, encoding: str = "linear", *, black_level: float
     if suffix in RAW_SUFFIXES:
         return read_raw(path, max_pixels=max_pixels)
     if suffix not in RASTER_SUFFIXES:
-        raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, DNG or a camera RAW file")
+        raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, JPEG, DNG or a camera RAW "
+                        "file")
     img = read_raster(path, black_level, white_level, max_pixels=max_pixels)
     return srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
 
@@ -313,7 +339,8 @@ def load_stack(path: str | Path, *, max_pixels: int | None = None, allow_outside
         elif size != shape:
             raise SpecError(file, "", f"is {size[1]} x {size[0]} px but {images[0].file.name} is "
                             f"{shape[1]} x {shape[0]}; every image of a stack must have the same size")
-        images.append(ImageEntry(index=i, file=file, encoding=entry.get("encoding", "linear"),
+        default_encoding = "srgb" if file.suffix.lower() in JPEG_SUFFIXES else "linear"
+        images.append(ImageEntry(index=i, file=file, encoding=entry.get("encoding", default_encoding),
                                  setting=entry.get("setting", "a"), distance_mm=entry.get("distance_mm"),
                                  black_level=entry.get("black_level"), white_level=entry.get("white_level"),
                                  targets=tuple(entry["targets"]) if "targets" in entry else None))
