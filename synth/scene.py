@@ -243,10 +243,7 @@ def _wavelengths(lens: dict, path, rx, effects) -> tuple[float, ...]:
         if lens.get("colour"):
             raise SpecError(path, "lens.colour", "asks for colour from spectral samples: give lens.wavelengths_nm "
                             "too (e.g. [465, 550, 610])")
-        if effects.channels == 3:
-            raise SpecError(path, "render.effects", "three colour channels of a compound lens need spectral samples "
-                            "(each channel focuses differently through the glass): give lens.wavelengths_nm")
-        return ()
+        return ()  # colour channels (a mosaic, say) then all see the lens at the d line
     waves = tuple(float(w) for w in lens["wavelengths_nm"])
     lo, hi = spectral.WAVELENGTH_RANGE_NM
     for i, w in enumerate(waves):

@@ -239,3 +239,13 @@ def test_spectral_mistakes_are_refused_naming_the_field(lens, field, says):
     with pytest.raises(SpecError) as err:
         scene_from_dict(data)
     assert field in str(err.value) and says in str(err.value), str(err.value)
+
+
+def test_colour_channels_without_wavelengths_see_the_lens_at_the_d_line():
+    """A mosaic or three-wavelength diffraction on a compound lens does not call for a spectral
+    render: without wavelengths_nm every channel sees the lens at the d line, as before."""
+    scene = scene_from_dict({**SCENE, "lens": {"prescription": "double-gauss-50", "f_number": 8.0,
+                                               "focus_distance_mm": 1000.0},
+                             "render": {"effects": ["defocus", "diffraction"]},
+                             "diffraction": {"wavelength_nm": [610.0, 550.0, 465.0]}})
+    assert scene.effects.channels == 3 and scene.shots[0].camera.wavelengths_nm == ()
