@@ -81,33 +81,7 @@ disk_esf_integral2 = _antiderivative(_disk_h, lambda x: 0.5 * x * x + 0.125, lam
                                      "module docstring).")
 
 
-def rim_esf(x):
-    """Edge-spread function of the unit disk with intensity 2 rho^2 (a bright rim, dark centre;
-    the same light as the uniform disk) at x = t/R; its line-spread function is
-    ``4/(3 pi) sqrt(1 - x^2) (1 + 2 x^2)``, variance 1/3 (the uniform disk's: 1/4)."""
-    xc = jnp.clip(x, -1.0, 1.0)
-    return 0.5 + (xc * jnp.sqrt(1.0 - xc * xc) * (2.0 * xc * xc + 1.0) / 3.0 + jnp.arcsin(xc)) / jnp.pi
-
-
-def _rim_g(xs):
-    x2 = xs * xs
-    return ((4.0 * x2 * x2 + 2.0 * x2 + 24.0) * jnp.sqrt(1.0 - x2) + 30.0 * xs * jnp.arcsin(xs)) / (30.0 * jnp.pi) \
-        + 0.5 * xs
-
-
-def _rim_h(xs):
-    x2 = xs * xs
-    return (((4.0 * x2 * x2 + 2.0 * x2 + 114.0) * xs * jnp.sqrt(1.0 - x2) + (90.0 * x2 + 30.0) * jnp.arcsin(xs))
-            / (180.0 * jnp.pi) + 0.25 * x2 + 1.0 / 12.0)
-
-
-rim_esf_integral = _antiderivative(_rim_g, lambda x: x, lambda: rim_esf,
-                                   "Antiderivative of :func:`rim_esf`, 0 at -inf (x for x >= 1).")
-rim_esf_integral2 = _antiderivative(_rim_h, lambda x: 0.5 * x * x + 1.0 / 6.0, lambda: rim_esf_integral,
-                                    "Second antiderivative of :func:`rim_esf`, 0 at -inf (x^2/2 + 1/6 for x >= 1).")
-
-
-def pixel_edge_profile(d, radius_px, nx, ny, beta=0.0):
+def pixel_edge_profile(d, radius_px, nx, ny):
     """Mean over a unit pixel of a disk-blurred step rising towards +d (exact, closed form).
 
     Parameters
@@ -118,10 +92,6 @@ def pixel_edge_profile(d, radius_px, nx, ny, beta=0.0):
         Blur-disk radius R = c/2 in pixels (>= 0; 0 gives a sharp step).
     nx, ny : scalars
         Components of the edge normal in image coordinates (unit vector).
-    beta : scalar
-        Shape of the spot's radial profile ``1 + beta (2 rho^2 - 1)`` (rho = r/R): 0 a uniform
-        disk, > 0 a brighter rim, < 0 a brighter core (non-negative for |beta| <= 1). Aberrated
-        spots (spherical aberration on either side of focus) are of these kinds.
 
     Returns
     -------
@@ -134,10 +104,10 @@ def pixel_edge_profile(d, radius_px, nx, ny, beta=0.0):
     b_safe = jnp.where(thin, 1.0, b)
 
     def H(t):
-        return R * R * ((1.0 - beta) * disk_esf_integral2(t / R) + beta * rim_esf_integral2(t / R))
+        return R * R * disk_esf_integral2(t / R)
 
     def G(t):
-        return R * ((1.0 - beta) * disk_esf_integral(t / R) + beta * rim_esf_integral(t / R))
+        return R * disk_esf_integral(t / R)
 
     two_box = (H(d + 0.5 * (a + b_safe)) - H(d + 0.5 * (a - b_safe)) - H(d - 0.5 * (a - b_safe))
                + H(d - 0.5 * (a + b_safe))) / (a * b_safe)
