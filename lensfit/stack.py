@@ -146,8 +146,11 @@ def image_size(path: str | Path) -> tuple[int, int]:
         raise
     except Exception as exc:  # decoders raise many types for corrupt or truncated headers
         raise SpecError(path, "", f"cannot be read ({type(exc).__name__}: {exc})") from None
-    raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, JPEG, DNG or a camera RAW "
-                    "file")
+    raise _unsupported(path, suffix)
+
+
+def _unsupported(path: Path, suffix: str) -> SpecError:
+    return SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, JPEG, DNG or a camera RAW file")
 
 
 def _decode_jpeg(path: Path) -> np.ndarray:
@@ -277,8 +280,7 @@ def read_image(path: str | Path, encoding: str = "linear", *, black_level: float
     if suffix in RAW_SUFFIXES:
         return read_raw(path, max_pixels=max_pixels)
     if suffix not in RASTER_SUFFIXES:
-        raise SpecError(path, "", f"unsupported file type {suffix!r}; use PNG, TIFF, JPEG, DNG or a camera RAW "
-                        "file")
+        raise _unsupported(path, suffix)
     img = read_raster(path, black_level, white_level, max_pixels=max_pixels)
     return srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
 

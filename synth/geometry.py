@@ -204,12 +204,18 @@ class CompoundLensCamera(ThinLensCamera):
 
     def spectral_cameras(self) -> list["SpectralCamera"]:
         """One camera per wavelength of ``wavelengths_nm``: the same lens, stop and sensor with
-        the glasses' indices at that wavelength."""
-        return [SpectralCamera(focal_length_mm=self.focal_length_mm, f_number=self.f_number,
-                               focus_distance_mm=self.focus_distance_mm, pixel_pitch_mm=self.pixel_pitch_mm,
-                               width_px=self.width_px, height_px=self.height_px, prescription=self.prescription,
-                               focus_plane=self.focus_plane, wavelength_nm=float(w), reference=self)
-                for w in self.wavelengths_nm]
+        the glasses' indices at that wavelength (made once per camera: focus, truth and render
+        share them and their paraxial data)."""
+        return list(self._spectral_cameras)
+
+    @functools.cached_property
+    def _spectral_cameras(self) -> tuple["SpectralCamera", ...]:
+        return tuple(SpectralCamera(focal_length_mm=self.focal_length_mm, f_number=self.f_number,
+                                    focus_distance_mm=self.focus_distance_mm, pixel_pitch_mm=self.pixel_pitch_mm,
+                                    width_px=self.width_px, height_px=self.height_px,
+                                    prescription=self.prescription, focus_plane=self.focus_plane,
+                                    wavelength_nm=float(w), reference=self)
+                     for w in self.wavelengths_nm)
 
     @functools.cached_property
     def stopped(self):

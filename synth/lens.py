@@ -484,6 +484,15 @@ def axial_rays(z_ep: float, object_z_mm: float, tx: np.ndarray, ty: np.ndarray):
         tx / norm, ty / norm, np.full_like(tx, dz) / norm)
 
 
+def disk_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) of the centres of an n x n grid over [-1, 1]^2 that lie in the unit disk: pupil
+    samples, scaled by the caller to the pupil's radius."""
+    g = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+    u, v = np.meshgrid(g, g)
+    inside = u * u + v * v <= 1.0
+    return u[inside], v[inside]
+
+
 #: Pupil samples per diameter for the best-focus search (about 0.8 x this squared rays).
 BEST_FOCUS_GRID = 161
 
@@ -509,13 +518,11 @@ def polychromatic_best_focus_image_z(rxs: list[Prescription], object_z_mm: float
     plane where the grey image of the axial point is smallest, where autofocus on a grey image
     puts the sensor."""
     heights, slopes, weights = [], [], []
+    u, v = disk_grid(grid)
     for rx in rxs:
         para = paraxial(rx)
         r = 0.5 * para.entrance_pupil_diameter_mm * 1.25
-        g = (np.arange(grid) + 0.5) / grid * 2.0 - 1.0
-        u, v = np.meshgrid(g, g)
-        inside = u * u + v * v <= 1.0
-        rays = axial_rays(para.entrance_pupil_z_mm, object_z_mm, r * u[inside], r * v[inside])
+        rays = axial_rays(para.entrance_pupil_z_mm, object_z_mm, r * u, r * v)
         (x, y, z), (dx, dy, dz_out), passed, _ = trace(rx, *rays)
         ok = passed & (dz_out > 1e-9)
         if ok.sum() < 16:

@@ -268,17 +268,14 @@ def compound_camera_values(cam) -> list[float]:
     """The kernel's numbers for a ``CompoundLensCamera`` (see :func:`compound_lens_ray`); the
     brightness scale puts an unvignetted image point at ``COMPOUND_WHITE`` times the scene's
     radiance: that over the fraction of sampled rays that pass on the axis (float64 trace)."""
-    from synth.lens import reverse, trace
+    from synth.lens import disk_grid, reverse, trace
 
     para = cam.paraxial
     cx, cy = cam.principal_point_px
     r_s = PUPIL_SAMPLING_MARGIN * 0.5 * para.exit_pupil_diameter_mm
     z_last = float(cam.stopped.vertices_mm()[-1])
-    n = 256
-    u = (np.arange(n) + 0.5) / n
-    gx, gy = np.meshgrid(2 * u - 1, 2 * u - 1)
-    inside = gx**2 + gy**2 <= 1
-    tx, ty = r_s * gx[inside], r_s * gy[inside]
+    gx, gy = disk_grid(256)
+    tx, ty = r_s * gx, r_s * gy
     dz = para.exit_pupil_z_mm - cam.sensor_z_mm
     norm = np.sqrt(tx**2 + ty**2 + dz**2)
     z0 = np.full(tx.shape, z_last - cam.sensor_z_mm)

@@ -74,12 +74,10 @@ def spot_centroid_mm(rx, object_point_mm, pupil_z_mm: float, pupil_radius_mm: fl
     """Centroid (x, y) on the plane ``sensor_z_mm`` of the real rays from ``object_point_mm``
     (lens coordinates) that pass ``rx``, aimed over a square grid on the plane ``pupil_z_mm``
     out to ``pupil_radius_mm`` (overfilled: the apertures decide what passes); and how many passed."""
-    from synth.lens import trace
+    from synth.lens import disk_grid, trace
 
-    g = (np.arange(grid) + 0.5) / grid * 2.0 - 1.0
-    u, v = np.meshgrid(g, g)
-    inside = u * u + v * v <= 1.0
-    px, py = pupil_radius_mm * u[inside], pupil_radius_mm * v[inside]
+    u, v = disk_grid(grid)
+    px, py = pupil_radius_mm * u, pupil_radius_mm * v
     ox, oy, oz = (float(c) for c in object_point_mm)
     ddx, ddy, ddz = px - ox, py - oy, np.full_like(px, pupil_z_mm - oz)
     norm = np.sqrt(ddx**2 + ddy**2 + ddz**2)
