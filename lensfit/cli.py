@@ -551,8 +551,15 @@ def _target_command(args: argparse.Namespace) -> int:
                              args.dpi, args.id)
     except InputError as exc:
         raise _fail_input(exc, _TARGET_OPTIONS) from None
-    with claimed([("--out", out)], force=args.force):
-        write_all([(out, lambda tmp: write_page(board, tmp))], force=args.force)
+    outputs = [("--out", out)] + ([("--entry", Path(args.entry))] if args.entry else [])
+    if args.entry and Path(args.entry).suffix.lower() != ".toml":
+        raise CliError(f"--entry {args.entry}: give a .toml file name (e.g. board.toml)")
+    entry_text = (f"# Written by lensfit target: the [[target]] entry of stack.toml for {out.name} "
+                  "(lensfit init --target reads it).\n" + target_toml(board.entry))
+    with claimed(outputs, force=args.force):
+        write_all([(out, lambda tmp: write_page(board, tmp))]
+                  + ([(Path(args.entry), lambda tmp: tmp.write_text(entry_text))] if args.entry else []),
+                  force=args.force)
     e = board.entry
     print(f"# {out}: {e['squares'][0]} x {e['squares'][1]} squares of {e['square_mm']:g} mm "
           f"({e['squares'][0] * e['square_mm']:g} x {e['squares'][1] * e['square_mm']:g} mm) on "
@@ -561,6 +568,42 @@ def _target_command(args: argparse.Namespace) -> int:
           f"{e['square_mm']:g} mm, scale square_mm and marker_mm below by the measured ratio.")
     print("# stack.toml entry:")
     print(target_toml(e), end="")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- init
+
+_INIT_OPTIONS = {"pixel_pitch_mm": "--pixel-pitch", "sensor_width_mm": "--sensor-width", "sensor": "--sensor",
+                 "settings": "--settings", "prefer": "--prefer", "photos": "PHOTOS_DIR"}
+
+
+def _init_command(args: argparse.Namespace) -> int:
+    from lensfit.manifest import draft_manifest
+    from lensfit.outputs import claimed, write_text
+
+    folder = Path(args.photos)
+    out = Path(args.out) if args.out else folder / "stack.toml"
+    if out.suffix.lower() != ".toml":
+        raise CliError(f"--out {out}: give a .toml file name (lensfit reads stack.toml)")
+    try:
+        with claimed([("--out", out)], force=args.force):
+            draft = draft_manifest(folder, target_file=args.target, pixel_pitch_mm=args.pixel_pitch,
+                                   sensor=args.sensor, sensor_width_mm=args.sensor_width, grouping=args.settings,
+                                   prefer=args.prefer, max_pixels=int(args.max_megapixels * 1e6))
+            write_text(out, draft.text, force=args.force)
+    except InputError as exc:
+        raise _fail_input(exc, _INIT_OPTIONS) from None
+    print(f"wrote {out}: {len(draft.rows)} image(s), {len({r['setting'] for r in draft.rows})} setting(s)")
+    print(f"{'file':<28} {'setting':>7} {'f (mm)':>8} {'N':>6} {'focus (mm)':>11}")
+    for r in draft.rows:
+        def show(x, spec):
+            return "-" if x is None else ("inf" if math.isinf(x) else format(x, spec))
+        print(f"{r['file'][:28]:<28} {r['setting']:>7} {show(r['focal_length_mm'], '8.4g'):>8} "
+              f"{show(r['f_number'], '6.3g'):>6} {show(r['focus_distance_mm'], '11.5g'):>11}")
+    for note in draft.notes:
+        print(f"note: {note}")
+    dest = out.parent if out.name == "stack.toml" else out
+    print(f"next: check the setting labels and the target in {out}, then: lensfit fit {dest}")
     return EXIT_OK
 
 
@@ -585,15 +628,16 @@ def _pupil(text: str) -> float | tuple[float, float]:
         raise argparse.ArgumentTypeError(f"expected a number or LO:HI, got {text!r}") from None
 
 
-def _input_options(p: argparse.ArgumentParser) -> None:
+def _input_options(p: argparse.ArgumentParser, outside: bool = True) -> None:
     """Options on reading a stack: the pixel budget and reading outside the stack folder."""
     from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
 
     p.add_argument("--max-megapixels", type=_number, default=DEFAULT_MAX_MEGAPIXELS, metavar="MP",
                    help=f"refuse images larger than this, checked from the file header before decoding "
                         f"(default {DEFAULT_MAX_MEGAPIXELS:g})")
-    p.add_argument("--allow-outside-stack", action="store_true",
-                   help="read image files that stack.toml names outside the stack folder (refused by default)")
+    if outside:
+        p.add_argument("--allow-outside-stack", action="store_true",
+                       help="read image files that stack.toml names outside the stack folder (refused by default)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -639,8 +683,33 @@ def build_parser() -> argparse.ArgumentParser:
                     help="OpenCV ArUco dictionary (default DICT_5X5_100)")
     tg.add_argument("--dpi", type=_number, default=300.0, help="at least this resolution (default 300)")
     tg.add_argument("--id", default="board", help="the target's id in stack.toml (default board)")
+    tg.add_argument("--entry", metavar="FILE.toml",
+                    help="also write the [[target]] entry to this file (for lensfit init --target)")
     tg.add_argument("--force", action="store_true", help="replace an existing board this program wrote")
     tg.set_defaults(func=_target_command, prog="lensfit target")
+
+    it = sub.add_parser("init", help="write stack.toml for a folder of photos from their EXIF",
+                        description="Draft PHOTOS_DIR/stack.toml from the photos' EXIF: the images (RAW preferred "
+                                    "over the JPEG of a RAW + JPEG pair), setting labels grouped by f-number and "
+                                    "focus distance, the pixel pitch (EXIF FocalPlaneXResolution, or the camera in "
+                                    "data_specs/cameras.toml) and the target (--target). Reads the photos' headers "
+                                    "only; check the draft before fitting.")
+    it.add_argument("photos", metavar="PHOTOS_DIR", help="folder holding the photos of the target")
+    it.add_argument("--target", metavar="FILE.toml",
+                    help="[[target]] entry of the printed board (lensfit target --entry FILE; or a stack.toml); "
+                         "default: the board lensfit target draws by default, noted as assumed")
+    it.add_argument("--pixel-pitch", type=_number, metavar="MM", help="sensor pixel pitch, mm (overrides the EXIF)")
+    it.add_argument("--sensor-width", type=_number, metavar="MM",
+                    help="sensor active width, mm (the pitch is this / image width)")
+    it.add_argument("--sensor", metavar="NAME", help="a sensor format of data_specs/sensor_formats.toml")
+    it.add_argument("--settings", default="exif", choices=["exif", "per-image", "one"],
+                    help="setting labels: by the EXIF f-number and focus distance (default), one per image, or one")
+    it.add_argument("--prefer", default="raw", choices=["raw", "jpeg"],
+                    help="which file of a RAW + JPEG pair to list (default raw: linear, no tone curve)")
+    it.add_argument("--out", metavar="FILE", help="manifest to write (default PHOTOS_DIR/stack.toml)")
+    it.add_argument("--force", action="store_true", help="replace a stack.toml lensfit init wrote")
+    _input_options(it, outside=False)
+    it.set_defaults(func=_init_command, prog="lensfit init")
 
     m = sub.add_parser(
         "measure", help="measure blur diameter versus distance on the targets of an image stack",

@@ -15,6 +15,8 @@ Rules
   samples CSV               the exact header line ``lensfit measure`` writes
   plot / preview PNG        the PNG text chunk ``Software`` = ``lensfit ...`` or ``synth ...``
   plot SVG / PDF            the creator field the plot writer sets (``lensfit ...``)
+  stack.toml (drafted)      its first line ``# Written by lensfit init`` (or ``# Written by synth``)
+  HTML report               ``<meta name="generator" content="lensfit ...">`` in its head
   stack folder              its ``stack.toml`` written by synth and a ``truth.json`` that lists
                             every file the folder holds (anything else in it: refused)
   ========================  =====================================================================
@@ -108,6 +110,17 @@ def written_by(path: str | Path) -> str | None:
         return "lensfit" if header in known else None
     if suffix == ".png":
         return _png_software(head)
+    if suffix == ".toml":  # a stack.toml drafted by lensfit init, or written by synth
+        first = head.split(b"\n", 1)[0].decode("utf-8", "replace")
+        for program in PROGRAMS:
+            if first.startswith(f"# Written by {program} "):
+                return program
+        return None
+    if suffix in (".html", ".htm"):
+        for program in PROGRAMS:
+            if f'<meta name="generator" content="{program} '.encode() in head:
+                return program
+        return None
     if suffix == ".svg":
         for program in PROGRAMS:
             if f"<dc:title>{program} ".encode() in head:

@@ -185,8 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, metavar="DIR", help="output stack folder (new or empty)")
     r.add_argument("--seed", type=int, metavar="N", help="random seed (default: the scene's render.seed)")
     r.add_argument("--supersampling", type=int, metavar="S", help="convolve: sub-pixels per axis (default 4)")
-    r.add_argument("--format", choices=["png", "tiff", "float-tiff", "dng"],
-                   help="image files (default png, 16-bit; dng with the mosaic effect, which requires it)")
+    r.add_argument("--format", choices=["png", "tiff", "float-tiff", "dng", "jpeg"],
+                   help="image files (default png, 16-bit linear; dng with the mosaic effect, which requires it; "
+                        "jpeg: 8-bit sRGB with EXIF, as a camera's JPEG)")
     r.add_argument("--preview", metavar="PNG", help="also write a contact sheet of the shots (sRGB, to look at)")
     r.add_argument("--force", action="store_true", help="replace a stack folder (and --preview file) that synth wrote; never other files")
     r.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")

@@ -327,6 +327,11 @@ def _target_truth(obj, shot: Shot, distortion=None) -> dict[str, Any]:
     return entry
 
 
+#: Image file formats synth writes: 16-bit linear PNG/TIFF, float32 TIFF, DNG (Bayer mosaic, raw
+#: DN) and JPEG (8-bit sRGB, as a camera's JPEG; quality ``render.jpeg_quality``).
+IMAGE_FORMATS = ("png", "tiff", "float-tiff", "dng", "jpeg")
+
+
 @dataclass
 class RenderResult:
     """Everything a stack holds, in memory.
@@ -337,11 +342,12 @@ class RenderResult:
     maps : dict of file name -> {"depth_mm": float32 (H, W), "coc_diameter_px": float32 (H, W)}
     truth : the truth.json object
     manifest : the stack.toml object (only what a photographer would know)
-    image_format : "png", "tiff", "float-tiff" or "dng" (how ``synth.stack.write_stack`` stores images)
+    image_format : one of ``IMAGE_FORMATS`` (how ``synth.stack.write_stack`` stores images)
     raw : dict of file name -> uint16 (H, W) sensor values (DN), for scenes with ``exposure`` or
         ``mosaic``: what the files hold (``images`` keeps the linear radiance before the sensor)
     levels : dict of file name -> {"black_level", "white_level"} of the raw values
-    exif : dict of file name -> focal length, f-number, exposure time and ISO (for DNG files)
+    exif : dict of file name -> what a camera records (focal length, f-number, focus distance,
+        pixel pitch, exposure time and ISO); DNG and JPEG files carry it as EXIF
     stage_seconds : dict of file name -> {stage: wall seconds} as measured in this render
         (kept out of truth.json, which stays reproducible)
     """
@@ -351,6 +357,7 @@ class RenderResult:
     truth: dict[str, Any] = field(default_factory=dict)
     manifest: dict[str, Any] = field(default_factory=dict)
     image_format: str = "png"
+    jpeg_quality: int = 95
     raw: dict[str, np.ndarray] = field(default_factory=dict)
     levels: dict[str, dict[str, int]] = field(default_factory=dict)
     exif: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -367,7 +374,7 @@ def _shot_seed(seed: int, k: int) -> int:
 
 
 def image_extension(fmt: str) -> str:
-    return {"png": ".png", "dng": ".dng"}.get(fmt, ".tiff")
+    return {"png": ".png", "dng": ".dng", "jpeg": ".jpg"}.get(fmt, ".tiff")
 
 
 def working_f_number(camera) -> float:
@@ -504,7 +511,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     ----------
     scene : Scene or path to a scene TOML file.
     method, samples_per_pixel, seed, supersampling, image_format : optional overrides of ``[render]``
-        (``image_format`` overrides ``render.format``: png, tiff, float-tiff or dng).
+        (``image_format`` overrides ``render.format``: one of ``IMAGE_FORMATS``).
     progress : callable(shot_name, done_rows, total_rows), optional; called as rows finish.
 
     Returns
@@ -514,15 +521,15 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     check_overrides(samples_per_pixel=samples_per_pixel, supersampling=supersampling, seed=seed)
-    if image_format is not None and image_format not in ("png", "tiff", "float-tiff", "dng"):
-        raise InputError("image_format", image_format, "one of png, tiff, float-tiff, dng")
+    if image_format is not None and image_format not in IMAGE_FORMATS:
+        raise InputError("image_format", image_format, "one of " + ", ".join(IMAGE_FORMATS))
     problem = scene.effects.format_problem(image_format) if image_format is not None else None
     if problem is not None:
         raise InputError("image_format", image_format, *problem)
     scene = scene.with_render(method=method, samples_per_pixel=samples_per_pixel, seed=seed,
                               supersampling=supersampling, format=image_format)
     r = scene.render
-    result = RenderResult(image_format=r.format)
+    result = RenderResult(image_format=r.format, jpeg_quality=r.jpeg_quality)
     images_truth, settings = [], {}
     methods_used = set()
     plans = plan(scene)
@@ -545,9 +552,14 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             sensor = scene.effects.sensor
             result.levels[name] = ({"black_level": sensor.black_level_dn, "white_level": sensor.white_level_dn}
                                    if sensor is not None else {"black_level": 0, "white_level": 65535})
-            result.exif[name] = {"focal_length_mm": cam.focal_length_mm, "f_number": cam.f_number,
-                                 **({"exposure_time_s": extra["exposure"]["shutter_s"], "iso": extra["exposure"]["iso"]}
-                                    if "exposure" in extra else {})}
+        # What a camera writes into its files (DNG and JPEG carry it as EXIF): nominal values, as
+        # a camera reports them (focus distance in whole centimetres, as Canon's maker notes do).
+        result.exif[name] = {"focal_length_mm": cam.focal_length_mm, "f_number": cam.f_number,
+                             "pixel_pitch_mm": cam.pixel_pitch_mm, "width_px": cam.width_px,
+                             **({"focus_distance_mm": round(cam.focus_distance_mm, -1)}
+                                if math.isfinite(cam.focus_distance_mm) else {}),
+                             **({"exposure_time_s": extra["exposure"]["shutter_s"], "iso": extra["exposure"]["iso"]}
+                                if "exposure" in extra else {})}
         depth = chief_ray_depth(shot, scene.effects.distortion)
         coc = np.asarray(cam.coc_diameter_px(depth))
         map_file = f"truth/{shot.name}_maps.npz"
@@ -598,7 +610,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     }
     result.manifest = stack_manifest(scene, [i["file"] for i in images_truth], [i["setting"] for i in images_truth],
                                      [[o.target.id for o in sp.shot.objects] for sp in plans])
-    if r.format != "dng":
+    if r.format not in ("dng", "jpeg"):  # JPEGs hold the levels applied
         for entry in result.manifest["image"]:
             entry.update(result.levels.get(entry["file"], {}))
     return result
@@ -623,7 +635,8 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str],
         if t.target == "slanted-edge":
             entry.update(edge_mm=p["edge_mm"])
         targets.append(entry)
-    images = [{"file": f, "encoding": "linear", "setting": s} for f, s in zip(files, settings)]
+    encoding = "srgb" if scene.render.format == "jpeg" else "linear"
+    images = [{"file": f, "encoding": encoding, "setting": s} for f, s in zip(files, settings)]
     listed = {t["id"] for t in targets}
     for entry, ids in zip(images, shown or []):
         ids = [i for i in ids if i in listed]

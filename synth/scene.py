@@ -27,6 +27,7 @@ DEFAULTS = {
     "supersampling": 4,
     "seed": 0,
     "format": "png",
+    "jpeg_quality": 95,
     "background": 0.2,
 }
 
@@ -71,6 +72,7 @@ class RenderSettings:
     supersampling: int
     seed: int
     format: str
+    jpeg_quality: int = 95
 
 
 @dataclass(frozen=True)
@@ -172,7 +174,10 @@ def _target(i: int, obj: dict, path, focal_length_mm: float) -> TargetSpec:
             file = Path(path).parent / file
         if not file.is_file():
             raise SpecError(path, f"{where}.file", f"got {obj['file']!r}: no such file (relative to the scene file)")
-        p.update(file=str(file), encoding=obj.get("encoding", "srgb"))
+        # dark/light: reflectance of the file's black and white (a print's ink and paper); the
+        # file's values as they are unless given
+        p.update(file=str(file), encoding=obj.get("encoding", "srgb"), dark=float(obj.get("dark", 0.0)),
+                 light=float(obj.get("light", 1.0)))
     elif kind == "uniform":
         size = need("size_mm")
         p.update(value=float(obj.get("value", 0.5)))
@@ -330,7 +335,8 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
         effects=names, method=render.get("method", DEFAULTS["method"]),
         samples_per_pixel=int(render.get("samples_per_pixel", DEFAULTS["samples_per_pixel"])),
         supersampling=int(render.get("supersampling", DEFAULTS["supersampling"])),
-        seed=int(render.get("seed", DEFAULTS["seed"])), format=fmt)
+        seed=int(render.get("seed", DEFAULTS["seed"])), format=fmt,
+        jpeg_quality=int(render.get("jpeg_quality", DEFAULTS["jpeg_quality"])))
 
     targets = [_target(i, o, path, f) for i, o in enumerate(data["object"])]
     ids = [t.id for t in targets]

@@ -42,6 +42,28 @@ def _write_image(path: Path, image: np.ndarray, image_format: str) -> None:
         tifffile.imwrite(path, data, photometric="rgb" if data.ndim == 3 else "minisblack")
 
 
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function (IEC 61966-2-1) of linear values in [0, 1]."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def _write_jpeg(path: Path, image: np.ndarray, raw: np.ndarray | None, levels: dict | None, exif: dict,
+                quality: int) -> None:
+    """An 8-bit sRGB JPEG with the camera record as EXIF, as a camera's JPEG (without its
+    sharpening, noise reduction or tone curve). Sensor DN (exposure effect) are scaled by their
+    black and white levels first."""
+    from PIL import Image
+
+    from synth.exif import pillow_exif
+
+    if raw is not None and levels is not None:
+        image = (raw.astype(np.float64) - levels["black_level"]) / (levels["white_level"] - levels["black_level"])
+    data = np.round(255.0 * linear_to_srgb(np.asarray(image, np.float64))).astype(np.uint8)
+    Image.fromarray(data, mode="RGB" if data.ndim == 3 else "L").save(
+        path, "JPEG", quality=int(quality), exif=pillow_exif(exif))
+
+
 def manifest_toml(manifest: dict) -> str:
     """stack.toml text: [camera], then one [[target]] and one [[image]] table per entry."""
     import tomli_w
@@ -80,11 +102,11 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
             if image_format == "dng":
                 from synth.effects.mosaic import write_dng
 
-                exif = result.exif[name]
                 write_dng(tmp / name, result.raw[name], result.truth["effect_parameters"]["mosaic"]["pattern"],
-                          result.levels[name]["black_level"], result.levels[name]["white_level"],
-                          focal_length_mm=exif["focal_length_mm"], f_number=exif["f_number"],
-                          exposure_time_s=exif.get("exposure_time_s"), iso=exif.get("iso"))
+                          result.levels[name]["black_level"], result.levels[name]["white_level"], result.exif[name])
+            elif image_format == "jpeg":
+                _write_jpeg(tmp / name, image, result.raw.get(name), result.levels.get(name), result.exif[name],
+                            result.jpeg_quality)
             else:
                 _write_image(tmp / name, result.raw.get(name, image), image_format)
         (tmp / "truth").mkdir()
@@ -92,8 +114,9 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
             np.savez_compressed(tmp / name, **maps)
         truth = dict(result.truth)
         truth["image_format"] = {"png": "16-bit linear PNG", "tiff": "16-bit linear TIFF",
-                                 "float-tiff": "float32 linear TIFF", "dng": "DNG (Bayer CFA, raw DN)"}[image_format]
-        if result.raw and image_format != "dng":
+                                 "float-tiff": "float32 linear TIFF", "dng": "DNG (Bayer CFA, raw DN)",
+                                 "jpeg": f"8-bit sRGB JPEG, quality {result.jpeg_quality}"}[image_format]
+        if result.raw and image_format not in ("dng", "jpeg"):
             truth["image_format"] += "; sensor DN with the black and white levels in stack.toml"
         (tmp / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
         (tmp / "stack.toml").write_text(manifest_toml(result.manifest))

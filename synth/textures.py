@@ -66,6 +66,8 @@ def _image_raster(p: dict) -> np.ndarray:
         from lensfit.stack import srgb_to_linear
 
         v = srgb_to_linear(v)
+    if (p.get("dark", 0.0), p.get("light", 1.0)) != (0.0, 1.0):
+        v = p["dark"] + (p["light"] - p["dark"]) * v
     return v.astype(np.float32)
 
 

@@ -16,8 +16,8 @@ Reference: Bayer, US patent 3,971,065 (1976); Adobe *Digital Negative Specificat
 from __future__ import annotations
 
 from dataclasses import dataclass
-from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,16 +48,13 @@ def apply(image: np.ndarray, params: Mosaic) -> np.ndarray:
     return np.take_along_axis(image, idx[..., None], axis=-1)[..., 0]
 
 
-def _rational(x: float, max_den: int = 1_000_000) -> tuple[int, int]:
-    f = Fraction(x).limit_denominator(max_den)
-    return f.numerator, f.denominator
-
-
-def write_dng(path: str | Path, raw: np.ndarray, pattern: str, black_level: int, white_level: int, *,
-              focal_length_mm: float, f_number: float, exposure_time_s: float | None = None,
-              iso: float | None = None, model: str = "lensfit synth") -> None:
-    """Write a uint16 CFA frame as DNG (uncompressed)."""
+def write_dng(path: str | Path, raw: np.ndarray, pattern: str, black_level: int, white_level: int,
+              exif: dict[str, Any], *, model: str = "lensfit synth") -> None:
+    """Write a uint16 CFA frame as DNG (uncompressed), with the camera record ``exif``
+    (``synth.render.RenderResult.exif``; tags from ``synth.exif``)."""
     import tifffile
+
+    from synth.exif import tiff_extratags
 
     cfa = tuple(_INDEX[c] for c in pattern)
     identity = []
@@ -78,14 +75,6 @@ def write_dng(path: str | Path, raw: np.ndarray, pattern: str, black_level: int,
         (50721, "2i", 9, tuple(identity), False),    # ColorMatrix1 (identity: camera = XYZ)
         (50778, "H", 1, 21, False),                  # CalibrationIlluminant1: D65
         (50728, "2I", 3, (1, 1, 1, 1, 1, 1), False),  # AsShotNeutral: grey
-        (271, "s", 0, "lensfit", False),             # Make
-        (272, "s", 0, model, False),                 # Model
-        (33437, "2I", 1, _rational(f_number), False),          # FNumber
-        (37386, "2I", 1, _rational(focal_length_mm), False),   # FocalLength
-    ]
-    if exposure_time_s is not None:
-        tags.append((33434, "2I", 1, _rational(exposure_time_s), False))  # ExposureTime
-    if iso is not None:
-        tags.append((34855, "H", 1, int(round(iso)), False))               # ISOSpeedRatings
+    ] + tiff_extratags(exif, model)                  # Make, Model, FNumber, FocalLength, ...
     tifffile.imwrite(path, np.ascontiguousarray(raw, np.uint16), photometric=32803, compression=None,
                      extratags=tags, metadata=None)

@@ -1,0 +1,294 @@
+"""Drafting ``stack.toml`` from a folder of photos (``lensfit init``).
+
+What it needs and where it comes from:
+
+- **images**: every PNG, TIFF, JPEG, DNG and camera RAW file directly in the folder, in name
+  order. Where a camera wrote RAW + JPEG pairs (same name stem) the RAW file is listed (linear,
+  no tone curve) unless ``prefer="jpeg"``.
+- **settings** (images with one label share focus distance and f-number): by default the
+  distinct (focal length, f-number, focus distance) the EXIF records, labelled ``a``, ``b``, ...
+  in order of first appearance. Without a focus distance in the EXIF (most cameras write
+  none; ``SubjectDistance`` or Canon's maker note where they do) photos refocused between
+  shots cannot be told apart: the draft says so and the labels must be checked.
+  ``grouping="per-image"`` gives every image its own label; ``"one"`` one label for all.
+- **pixel pitch**: an explicit value, sensor width or sensor format first; then the EXIF
+  ``FocalPlaneXResolution`` (scaled to the image's width where the file was resized); then the
+  camera body in ``data_specs/cameras.toml`` (sensor width / image width). Otherwise refused.
+- **targets**: ``[[target]]`` tables from a TOML file (what ``lensfit target --entry`` writes,
+  or another stack.toml); without one, the board ``lensfit target`` draws by default, noted
+  as an assumption.
+
+The EXIF values are kept beside each image as ``x_exif`` (never read by the fit: they are
+nominal values, never the answer). Nothing is written here: :func:`draft_manifest` returns
+the text, the CLI writes it.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import string
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lensfit.errors import InputError, SpecError
+from lensfit.exif import CameraRecord, read_camera_record
+from lensfit.stack import JPEG_SUFFIXES, RASTER_SUFFIXES, RAW_SUFFIXES, image_size
+
+GROUPINGS = ("exif", "per-image", "one")
+#: A resized copy (web export) changes the width FocalPlaneXResolution refers to; a RAW
+#: decoder's crop of a few pixels does not.
+_RESIZED = 0.02
+#: First line of a drafted stack.toml (``lensfit.outputs.written_by`` recognises it).
+HEADER = "# Written by lensfit init"
+
+
+@dataclass
+class Draft:
+    """A drafted manifest: ``text`` (stack.toml), ``manifest`` (the same as a dict), one row
+    per image for a table (``rows``) and ``notes`` (what was assumed and what to check)."""
+
+    text: str
+    manifest: dict[str, Any]
+    rows: list[dict[str, Any]]
+    notes: list[str] = field(default_factory=list)
+
+
+@functools.cache
+def known_cameras() -> list[dict[str, Any]]:
+    """``data_specs/cameras.toml``, validated."""
+    from lensfit.specs import load_toml, specs_dir, validate
+
+    path = specs_dir() / "cameras.toml"
+    data = load_toml(path)
+    validate(data, "cameras", path)
+    return data["camera"]
+
+
+def camera_sensor(record: CameraRecord) -> dict[str, Any] | None:
+    """The entry of ``data_specs/cameras.toml`` for a photo's Make and Model, or None."""
+    if not record.model:
+        return None
+    make = (record.make or "").strip().lower()
+    model = record.model.strip().lower()
+    for entry in known_cameras():
+        emake = entry["make"].lower()
+        if make and not make.startswith(emake):
+            continue
+        bare = model.removeprefix(emake).strip()
+        names = [entry["model"].lower(), *(a.lower() for a in entry.get("aliases", []))]
+        if bare in names or model in names:
+            return entry
+    return None
+
+
+def photo_files(folder: Path, prefer: str = "raw") -> tuple[list[Path], list[str]]:
+    """Image files directly in ``folder`` (name order) and the names left out as the other half
+    of a RAW + JPEG pair."""
+    if prefer not in ("raw", "jpeg"):
+        raise InputError("prefer", prefer, "raw or jpeg")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")
+                   and p.suffix.lower() in RAW_SUFFIXES | RASTER_SUFFIXES)
+    by_stem: dict[str, list[Path]] = {}
+    for p in files:
+        by_stem.setdefault(p.stem, []).append(p)
+    keep, skipped = [], []
+    for p in files:
+        group = by_stem[p.stem]
+        raws = [q for q in group if q.suffix.lower() in RAW_SUFFIXES]
+        jpegs = [q for q in group if q.suffix.lower() in JPEG_SUFFIXES]
+        if raws and jpegs and p in (jpegs if prefer == "raw" else raws):
+            skipped.append(p.name)
+            continue
+        keep.append(p)
+    return keep, skipped
+
+
+def _label(i: int) -> str:
+    letters = string.ascii_lowercase
+    return letters[i] if i < 26 else letters[i // 26 - 1] + letters[i % 26]
+
+
+def _round(x: float | None, digits: int = 4) -> float | None:
+    return None if x is None else float(f"{x:.{digits}g}")
+
+
+def _pitch(records: list[CameraRecord], width_px: int, pixel_pitch_mm: float | None, sensor: str | None,
+           sensor_width_mm: float | None, folder: Path) -> tuple[dict[str, Any], str]:
+    """stack.toml's [camera] table and where its pitch comes from."""
+    given = {k: v for k, v in (("pixel_pitch_mm", pixel_pitch_mm), ("sensor", sensor),
+                               ("sensor_width_mm", sensor_width_mm)) if v is not None}
+    if len(given) > 1:
+        first, second = list(given)[:2]
+        raise InputError(second, given[second], f"given alone (also got {first})",
+                         "give one of pixel pitch, sensor format or sensor width")
+    if pixel_pitch_mm is not None:
+        return {"pixel_pitch_mm": float(pixel_pitch_mm)}, "given"
+    if sensor_width_mm is not None:
+        return {"sensor_width_mm": float(sensor_width_mm)}, "given"
+    if sensor is not None:
+        from lensfit.sensors import sensor_format
+
+        return {"sensor": sensor_format(sensor).name}, "given"
+    pitches = []
+    for r in records:
+        if r.focal_plane_pitch_mm is None:
+            continue
+        p = r.focal_plane_pitch_mm
+        if r.reference_width_px and abs(r.reference_width_px / width_px - 1) > _RESIZED:
+            p *= r.reference_width_px / width_px  # a resized copy: the same sensor, fewer pixels
+        pitches.append(p)
+    if pitches:
+        pitches.sort()
+        p = pitches[len(pitches) // 2]
+        return {"pixel_pitch_mm": float(f"{p:.6g}")}, "EXIF FocalPlaneXResolution"
+    for r in records:
+        entry = camera_sensor(r)
+        if entry is not None:
+            return ({"sensor_width_mm": float(entry["sensor_width_mm"])},
+                    f"{r.camera} in data_specs/cameras.toml ({entry['sensor_width_mm']:g} mm wide)")
+    cams = sorted({r.camera for r in records if r.camera})
+    raise InputError("pixel_pitch_mm", None, "known",
+                     f"the photos in {folder} do not record it (no EXIF FocalPlaneXResolution) and the camera "
+                     f"({', '.join(cams) or 'not named in the EXIF'}) is not in data_specs/cameras.toml; "
+                     "pass --pixel-pitch MM, --sensor-width MM or --sensor NAME")
+
+
+def _targets(target_file: Path | None) -> tuple[list[dict[str, Any]], str | None]:
+    if target_file is None:
+        from lensfit.printable import charuco_page
+
+        entry = charuco_page().entry  # what `lensfit target --out board.pdf` draws
+        return [entry], ("no --target given: assumed the board `lensfit target` draws by default "
+                         f"({entry['squares'][0]} x {entry['squares'][1]} squares of {entry['square_mm']:g} mm on "
+                         "A4 landscape); measure a printed square and correct square_mm and marker_mm")
+    from lensfit.specs import load_toml
+
+    data = load_toml(target_file)
+    targets = data.get("target")
+    if not isinstance(targets, list) or not targets:
+        raise SpecError(target_file, "target", "no [[target]] tables; give the entry `lensfit target --entry FILE` "
+                        "wrote (or a stack.toml with one)")
+    return targets, None
+
+
+def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
+                   pixel_pitch_mm: float | None = None, sensor: str | None = None,
+                   sensor_width_mm: float | None = None, grouping: str = "exif", prefer: str = "raw",
+                   max_pixels: int | None = None) -> Draft:
+    """Draft stack.toml for the photos in ``folder`` (see the module notes).
+
+    Raises
+    ------
+    InputError
+        No images, images of different sizes or focal lengths, no way to know the pixel pitch.
+    SpecError
+        A bad target file, or a draft that does not validate (a bug: reported, not written).
+    """
+    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS, check_image_size
+    from lensfit.specs import validate
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("photos", str(folder), "a folder of photos", "give the folder that holds the images")
+    if grouping not in GROUPINGS:
+        raise InputError("settings", grouping, "one of " + ", ".join(GROUPINGS))
+    files, skipped = photo_files(folder, prefer)
+    if not files:
+        raise InputError("photos", str(folder), "a folder holding PNG, TIFF, JPEG, DNG or camera RAW files",
+                         "copy the photos of the target into it")
+    max_pixels = max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6)
+    sizes = {}
+    for p in files:
+        sizes[p] = image_size(p)
+        check_image_size(p, *sizes[p], max_pixels)
+    shapes = sorted(set(sizes.values()))
+    if len(shapes) > 1:
+        odd = next(p for p in files if sizes[p] != sizes[files[0]])
+        raise InputError("photos", str(folder), "images of one size (one camera, one crop)",
+                         f"{files[0].name} is {sizes[files[0]][1]} x {sizes[files[0]][0]} px but {odd.name} is "
+                         f"{sizes[odd][1]} x {sizes[odd][0]}; move the odd ones to another folder")
+    height, width = shapes[0]
+    records = [read_camera_record(p) for p in files]
+    focals = sorted({_round(r.focal_length_mm, 3) for r in records if r.focal_length_mm})
+    if len(focals) > 1:
+        by = {f: [p.name for p, r in zip(files, records) if _round(r.focal_length_mm, 3) == f] for f in focals}
+        raise InputError("photos", str(folder), "one focal length (a stack fits one lens: a zoom at two focal "
+                         "lengths is two lenses)", "; ".join(f"{f:g} mm: {', '.join(v[:3])}" + (" ..." if len(v) > 3
+                                                                                                   else "")
+                                                             for f, v in by.items()) + "; split them into folders")
+    notes = []
+    if skipped:
+        notes.append(f"{len(skipped)} {'JPEG' if prefer == 'raw' else 'RAW'} file(s) of RAW + JPEG pairs left out "
+                     f"(e.g. {skipped[0]}); --prefer {'jpeg' if prefer == 'raw' else 'raw'} lists those instead")
+    camera, pitch_source = _pitch(records, width, pixel_pitch_mm, sensor, sensor_width_mm, folder)
+    notes.append(f"pixel pitch: {pitch_source}")
+    targets, target_note = _targets(Path(target_file) if target_file is not None else None)
+    if target_note:
+        notes.append(target_note)
+
+    keys = []
+    for i, r in enumerate(records):
+        if grouping == "per-image":
+            keys.append(i)
+        elif grouping == "one":
+            keys.append(0)
+        else:
+            keys.append((_round(r.f_number, 3), _round(r.focus_distance_mm, 3)))
+    labels = {k: _label(n) for n, k in enumerate(dict.fromkeys(keys))}
+    if grouping == "exif":
+        if any(r.f_number is None for r in records):
+            notes.append("some photos record no f-number: they share a setting only with others that record none")
+        if all(r.focus_distance_mm is None for r in records):
+            notes.append("the EXIF records no focus distance: photos are grouped by f-number alone; if you refocused "
+                         "between shots, give those photos different setting labels (or --settings per-image)")
+    images, rows = [], []
+    for p, r, k in zip(files, records, keys):
+        entry: dict[str, Any] = {"file": p.name}
+        if p.suffix.lower() in JPEG_SUFFIXES:
+            entry["encoding"] = "srgb"
+        elif p.suffix.lower() in (".png", ".tif", ".tiff"):
+            entry["encoding"] = "linear"
+            notes_png = "PNG/TIFF files are read as linear (encoding = \"linear\"); write \"srgb\" for exported, " \
+                        "tone-mapped images"
+            if notes_png not in notes:
+                notes.append(notes_png)
+        entry["setting"] = labels[k]
+        exif = {name: value for name, value in (
+            ("camera", r.camera), ("focal_length_mm", _round(r.focal_length_mm)), ("f_number", _round(r.f_number)),
+            ("focus_distance_mm", _round(r.focus_distance_mm) if r.focus_distance_mm not in (None, float("inf"))
+             else ("inf" if r.focus_distance_mm else None)),
+            ("exposure_time_s", _round(r.exposure_time_s)), ("iso", _round(r.iso)), ("taken", r.taken))
+            if value is not None}
+        if exif:
+            entry["x_exif"] = exif
+        images.append(entry)
+        rows.append({"file": p.name, "setting": labels[k], "focal_length_mm": r.focal_length_mm,
+                     "f_number": r.f_number, "focus_distance_mm": r.focus_distance_mm})
+    manifest = {"camera": camera, "target": targets, "image": images}
+    validate(manifest, "stack", folder / "stack.toml")
+    return Draft(manifest_text(manifest, notes, folder), manifest, rows, notes)
+
+
+def manifest_text(manifest: dict[str, Any], notes: list[str], folder: Path) -> str:
+    """stack.toml: the header (with the notes as comments), [camera], [[target]]s, [[image]]s."""
+    import tomli_w
+
+    from lensfit import __version__
+
+    lines = [f"{HEADER} {__version__} from the EXIF of the photos in {folder.name}/.",
+             "# Only what a photographer knows (never the answer): check the setting labels -- images with one",
+             "# label share focus distance and f-number -- and the target's printed size.",
+             "# x_exif: what each file's EXIF says (nominal values; never read by the fit)."]
+    lines += [f"# Note: {n}" for n in notes]
+    text = "\n".join(lines) + "\n\n[camera]\n" + tomli_w.dumps(manifest["camera"])
+    for section in ("target", "image"):
+        for entry in manifest[section]:
+            plain = {k: v for k, v in entry.items() if not isinstance(v, dict)}
+            text += f"\n[[{section}]]\n" + tomli_w.dumps(plain)
+            for key, table in entry.items():  # inline: a [sub-table] header here would leave the entry
+                if isinstance(table, dict):
+                    items = ", ".join(f"{k} = {json.dumps(v)}" for k, v in table.items())
+                    text += f"{key} = {{ {items} }}\n"
+    return text

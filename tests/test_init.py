@@ -1,0 +1,217 @@
+"""The real-camera path end to end (``lensfit target`` -> photos -> ``lensfit init`` -> ``fit``),
+and ``lensfit init``'s reading of EXIF, grouping and refusals.
+
+The photos are the printed page (the PNG ``lensfit target`` wrote, as an image texture with paper
+and ink reflectance) rendered by synth as a camera would store them: JPEG (8-bit sRGB) and DNG
+(Bayer mosaic, raw DN), both with EXIF. Only the image files are copied to the photo folder:
+``init`` sees what a photographer has. The fit is compared with the truth synth rendered from."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lensfit.cli import main as lensfit_main
+from synth.cli import main as synth_main
+
+SHOTS = [(700.0, (0.0, 0.0), (0.0, 0.0)), (850.0, (25.0, 0.0), (10.0, 0.0)), (1000.0, (0.0, -30.0), (0.0, 0.0)),
+         (1300.0, (-20.0, 15.0), (0.0, 0.0)), (1600.0, (0.0, 25.0), (0.0, 0.0)), (2000.0, (0.0, 0.0), (0.0, 0.0)),
+         (2200.0, (15.0, -15.0), (0.0, 0.0))]
+
+
+def camera_scene(fmt: str, f_number: float = 2.8) -> str:
+    """A 12 mm lens on a 7.2 x 4.8 mm sensor photographing an A4 print of the board at 0.7-2.2 m,
+    focused at 1.3 m."""
+    effects = '["defocus"]' if fmt == "jpeg" else '["defocus", "mosaic"]'
+    text = f"""name = "round-trip"
+[camera]
+pixel_pitch_mm = 0.008
+width_px = 900
+height_px = 600
+[lens]
+focal_length_mm = 12.0
+f_number = {f_number}
+focus_distance_mm = 1300.0
+[render]
+effects = {effects}
+format = "{fmt}"
+samples_per_pixel = 16
+[background]
+value = 0.3
+"""
+    text += """[[object]]
+id = "page"
+target = "image"
+file = "board.png"
+dark = 0.05
+light = 0.85
+size_mm = [297.0, 210.0]
+distance_mm = 1000.0
+"""
+    for d, tilt, offset in SHOTS:
+        text += (f"[[shot]]\npose = [{{ id = \"page\", distance_mm = {d}, tilt_deg = [{tilt[0]}, {tilt[1]}], "
+                 f"offset_mm = [{offset[0]}, {offset[1]}] }}]\n")
+    return text
+
+
+@pytest.fixture(scope="module")
+def board(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("board")
+    assert lensfit_main(["target", "--out", str(folder / "board.png"), "--entry", str(folder / "board.toml")]) == 0
+    return folder
+
+
+def photos_of(board: Path, tmp: Path, fmt: str) -> tuple[Path, dict]:
+    """Render the scene, copy only the photos to a new folder; returns it and the truth."""
+    (tmp / "scene.toml").write_text(camera_scene(fmt))
+    shutil.copy(board / "board.png", tmp / "board.png")
+    assert synth_main(["render", str(tmp / "scene.toml"), "--out", str(tmp / "stack")]) == 0
+    photos = tmp / "photos"
+    photos.mkdir()
+    suffix = {"jpeg": ".jpg", "dng": ".dng"}[fmt]
+    for p in sorted((tmp / "stack").glob(f"*{suffix}")):
+        shutil.copy(p, photos / p.name)
+    return photos, json.loads((tmp / "stack" / "truth.json").read_text())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fmt", ["jpeg", "dng"])
+def test_print_photograph_init_fit_recovers_the_lens(board, tmp_path, fmt, capsys):
+    photos, truth = photos_of(board, tmp_path, fmt)
+    assert lensfit_main(["init", str(photos), "--target", str(board / "board.toml")]) == 0
+    manifest = tomllib.loads((photos / "stack.toml").read_text())
+    # what init read from the EXIF: the pitch from FocalPlaneXResolution, one setting, the board
+    assert manifest["camera"]["pixel_pitch_mm"] == pytest.approx(truth["pixel_pitch_mm"], rel=1e-5)
+    assert {im["setting"] for im in manifest["image"]} == {"a"}
+    assert manifest["target"][0]["square_mm"] == tomllib.loads((board / "board.toml").read_text())["target"][0][
+        "square_mm"]
+    assert all(im["x_exif"]["f_number"] == pytest.approx(2.8) for im in manifest["image"])
+    assert ("encoding" in manifest["image"][0]) == (fmt == "jpeg")
+    out = tmp_path / "results.json"
+    code = lensfit_main(["fit", str(photos), "--out", str(out)])
+    assert code == 0, capsys.readouterr()
+    res = json.loads(out.read_text())
+    s = res["settings"]["a"]
+    t = truth["settings"]["a"]
+    assert res["focal_length_mm"]["value"] == pytest.approx(truth["focal_length_mm"], rel=0.01)
+    assert s["f_number"]["value"] == pytest.approx(t["f_number"], rel=0.05)
+    assert s["focus_distance_mm"]["value"] == pytest.approx(t["focus_distance_mm"], rel=0.03)
+    lo, hi = s["f_number"]["ci95"]
+    assert lo < t["f_number"] < hi
+
+
+# --------------------------------------------------------------------------- init's reading, grouping, refusals
+
+
+def jpeg_with_exif(path: Path, *, make="Canon", model="Canon EOS R5", focal=50.0, fnum=2.8, subject_m=None,
+                   plane_res=None, plane_unit=None, exif_width=None, size=(48, 64)) -> Path:
+    """A small JPEG whose EXIF is written tag by tag with Pillow (not with synth.exif)."""
+    from PIL import Image
+    from PIL.ExifTags import IFD
+    from PIL.TiffImagePlugin import IFDRational
+
+    ex = Image.Exif()
+    ex[0x010F], ex[0x0110] = make, model
+    sub = ex.get_ifd(IFD.Exif)
+    sub[0x920A] = IFDRational(int(focal * 10), 10)
+    sub[0x829D] = IFDRational(int(fnum * 10), 10)
+    if subject_m is not None:
+        sub[0x9206] = IFDRational(int(subject_m * 100), 100)
+    if plane_res is not None:
+        sub[0xA20E] = IFDRational(int(plane_res * 1000), 1000)
+        sub[0xA210] = plane_unit
+    if exif_width is not None:
+        sub[0xA002] = exif_width
+    Image.fromarray(np.full(size, 128, np.uint8)).save(path, "JPEG", exif=ex)
+    return path
+
+
+def test_exif_fields_in_lensfit_units(tmp_path):
+    from lensfit.exif import read_camera_record
+
+    # 2000 px/inch -> 0.0127 mm; SubjectDistance 1.5 m; Make repeated in Model shown once
+    r = read_camera_record(jpeg_with_exif(tmp_path / "a.jpg", subject_m=1.5, plane_res=2000.0, plane_unit=2))
+    assert (r.focal_length_mm, r.f_number, r.focus_distance_mm) == (50.0, 2.8, 1500.0)
+    assert r.focal_plane_pitch_mm == pytest.approx(25.4 / 2000.0)
+    assert r.camera == "Canon EOS R5"
+    r = read_camera_record(jpeg_with_exif(tmp_path / "b.jpg", model="D850", make="NIKON CORPORATION",
+                                          plane_res=1000.0, plane_unit=3))
+    assert r.focal_plane_pitch_mm == pytest.approx(0.01) and r.focus_distance_mm is None
+    assert r.camera == "NIKON CORPORATION D850"
+    (tmp_path / "c.jpg").write_bytes(b"not an image")
+    assert read_camera_record(tmp_path / "c.jpg").f_number is None
+
+
+def test_init_groups_by_f_number_and_focus_and_takes_pitch_from_the_camera_table(tmp_path, capsys):
+    photos = tmp_path / "p"
+    photos.mkdir()
+    for i, (n, d) in enumerate([(2.8, 1.5), (2.8, 1.5), (5.6, 1.5), (2.8, 3.0)]):
+        jpeg_with_exif(photos / f"img_{i}.jpg", fnum=n, subject_m=d)
+    assert lensfit_main(["init", str(photos)]) == 0
+    m = tomllib.loads((photos / "stack.toml").read_text())
+    assert [im["setting"] for im in m["image"]] == ["a", "a", "b", "c"]
+    # Canon EOS R5: 36.0 mm wide (data_specs/cameras.toml) over the 64 px image width
+    assert m["camera"] == {"sensor_width_mm": 36.0}
+    assert [im["encoding"] for im in m["image"]] == ["srgb"] * 4
+    assert "assumed the board" in capsys.readouterr().out
+    # a second run does not replace it; --force replaces what init wrote, never a user's file
+    assert lensfit_main(["init", str(photos)]) == 2
+    assert lensfit_main(["init", str(photos), "--force", "--settings", "per-image"]) == 0
+    assert [im["setting"] for im in tomllib.loads((photos / "stack.toml").read_text())["image"]] == list("abcd")
+    (photos / "stack.toml").write_text("# my own\n")
+    assert lensfit_main(["init", str(photos), "--force"]) == 2
+    assert (photos / "stack.toml").read_text() == "# my own\n"
+
+
+def test_init_pitch_of_a_resized_copy_and_raw_jpeg_pairs(tmp_path):
+    photos = tmp_path / "p"
+    photos.mkdir()
+    # the EXIF resolution refers to a 6400 px wide original; this copy is 64 px wide: pitch x 100
+    jpeg_with_exif(photos / "x.jpg", model="Unknown body", plane_res=1000.0, plane_unit=3, exif_width=6400)
+    assert lensfit_main(["init", str(photos)]) == 0
+    assert tomllib.loads((photos / "stack.toml").read_text())["camera"]["pixel_pitch_mm"] == pytest.approx(1.0)
+    from lensfit.manifest import photo_files
+
+    (photos / "x.dng").write_bytes(b"")
+    (photos / "y.png").write_bytes(b"")
+    (photos / "notes.txt").write_text("")
+    assert [p.name for p in photo_files(photos)[0]] == ["x.dng", "y.png"]
+    assert [p.name for p in photo_files(photos, "jpeg")[0]] == ["x.jpg", "y.png"]
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("no-pitch", "--pixel-pitch MM"),
+    ("two-focal-lengths", "one focal length"),
+    ("two-sizes", "images of one size"),
+    ("empty", "PHOTOS_DIR"),
+    ("two-pitches", "--sensor-width must be given alone"),
+    ("bad-target", "no [[target]] tables"),
+])
+def test_init_refusals_name_the_fix(tmp_path, capsys, case, needle):
+    photos = tmp_path / "p"
+    photos.mkdir()
+    args = ["init", str(photos)]
+    if case == "no-pitch":
+        jpeg_with_exif(photos / "a.jpg", make="Acme", model="Nonesuch 1")
+    elif case == "two-focal-lengths":
+        jpeg_with_exif(photos / "a.jpg", focal=24.0)
+        jpeg_with_exif(photos / "b.jpg", focal=70.0)
+    elif case == "two-sizes":
+        jpeg_with_exif(photos / "a.jpg")
+        jpeg_with_exif(photos / "b.jpg", size=(40, 64))
+    elif case == "two-pitches":
+        jpeg_with_exif(photos / "a.jpg")
+        args += ["--pixel-pitch", "0.005", "--sensor-width", "36"]
+    elif case == "bad-target":
+        jpeg_with_exif(photos / "a.jpg")
+        (tmp_path / "t.toml").write_text("[camera]\npixel_pitch_mm = 0.005\n")
+        args += ["--target", str(tmp_path / "t.toml")]
+    assert lensfit_main(args) == 2
+    err = capsys.readouterr().err
+    assert needle in err and len(err.strip().splitlines()) == 1
+    assert not (photos / "stack.toml").exists()
