@@ -244,7 +244,7 @@ def _progress_bar(console, enabled: bool):
                     TimeElapsedColumn(), console=console, disable=not console.is_terminal and not enabled)
 
 
-def _write_fit_outputs(args, source: Path, table, result, document) -> list[Path]:
+def _write_fit_outputs(args, source: Path, table, result, document, stack=None) -> list[Path]:
     """Every output to a temporary sibling first, then renamed: all appear, or none."""
     from lensfit.fitting import write_results
     from lensfit.outputs import write_all
@@ -258,6 +258,11 @@ def _write_fit_outputs(args, source: Path, table, result, document) -> list[Path
         from lensfit.plots import plot_fit
 
         files.append((Path(args.plot), lambda tmp: plot_fit(result, tmp, title=f"{source.name}: {result.code}")))
+    if args.report:
+        from lensfit.fitreport import write_fit_report
+
+        files.append((Path(args.report), lambda tmp: write_fit_report(
+            tmp, result, document, table, stack, title=f"lensfit fit {source}")))
     return write_all(files, force=args.force)
 
 
@@ -307,8 +312,8 @@ def _print_fit(result, document) -> None:
 
 
 def _fit_outputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
-    outputs = [(opt, Path(v)) for opt, v in (("--out", args.out), ("--plot", args.plot), ("--samples", args.samples))
-               if v]
+    outputs = [(opt, Path(v)) for opt, v in (("--out", args.out), ("--plot", args.plot), ("--samples", args.samples),
+                                              ("--report", args.report)) if v]
     for opt, path in outputs:
         if path.is_dir():
             raise CliError(f"{opt} {path} is a folder; give a file name, e.g. {path / 'results.json'}")
@@ -316,11 +321,13 @@ def _fit_outputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
         raise CliError(f"--plot must end in .png, .svg or .pdf, got {args.plot!r}")
     if args.samples and Path(args.samples).suffix.lower() not in (".csv", ".json"):
         raise CliError(f"--samples must end in .csv or .json, got {args.samples!r}")
+    if args.report and Path(args.report).suffix.lower() not in (".html", ".htm"):
+        raise CliError(f"--report must end in .html, got {args.report!r}")
     if args.out and Path(args.out).suffix.lower() != ".json":
         raise CliError(f"--out must end in .json, got {args.out!r}")
     resolved = [p.resolve() for _, p in outputs]
     if len(set(resolved)) < len(resolved):
-        raise CliError("--out, --plot and --samples must be different files")
+        raise CliError("--out, --plot, --samples and --report must be different files")
     if Path(args.stack).exists() and Path(args.stack).resolve() in resolved:
         raise CliError(f"an output would replace the input {args.stack}; choose another output name")
     return outputs
@@ -346,7 +353,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
 
     source = Path(args.stack)
     console = Console(stderr=True)
-    truth = None
+    truth = stack = None
     if source.suffix.lower() in (".csv", ".json") and not source.exists():
         raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
                        "or a stack folder")
@@ -372,7 +379,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
                      blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification)
     document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
 
-    written = _write_fit_outputs(args, source, table, result, document)
+    written = _write_fit_outputs(args, source, table, result, document, stack)
     if args.json:
         print(json.dumps(document, indent=1))
     else:
@@ -739,6 +746,9 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--out", metavar="FILE", help="results JSON (data_specs/schemas/results.schema.json)")
     ft.add_argument("--plot", metavar="FILE", help="plot of blur versus inverse distance and the fit (.png/.svg/.pdf)")
     ft.add_argument("--samples", metavar="FILE", help="also write the measured samples (.csv/.json)")
+    ft.add_argument("--report", metavar="FILE.html",
+                    help="one self-contained HTML page: estimates, the fit plot and per image the detected corners "
+                         "and measured edges coloured by blur and by residual")
     ft.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"],
                     help="robust loss (default huber; cauchy for many outliers)")
     ft.add_argument("--blur-floor", type=_number, metavar="PX",

@@ -273,6 +273,8 @@ class FitData:
     #: image index of each sample (errors shared by an image's edges: its pose, its noise);
     #: -1 where the samples do not name their image
     group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    #: index of each used sample in the input rows (unmeasured rows are dropped)
+    row: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
 
 def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -331,7 +333,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     if not PIXEL_PITCH_RANGE_MM[0] <= pitch <= PIXEL_PITCH_RANGE_MM[1]:
         raise InputError("pixel_pitch_mm", pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
                          "mm (0.1 micrometre to 1 mm)", "pixel pitches are given in mm, e.g. 0.0059 for 5.9 um")
-    used, dropped = [], 0
+    used, used_rows, dropped = [], [], 0
     for i, r in enumerate(rows):
         c, sg = r.get("coc_diameter_px"), r.get("sigma_px")
         d = r.get("distance_mm")
@@ -353,6 +355,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
             raise InputError(f"samples[{i}].sigma_px", sg, f"between {MIN_SIGMA_PX:g} and {MAX_BLUR_PX:g} px",
                              "a blur measurement is never that exact (or that vague)")
         used.append(r)
+        used_rows.append(i)
     if not used:
         raise InputError("samples", f"{len(rows)} rows", "at least one sample with a measured coc_diameter_px and "
                          "sigma_px", "measure a stack whose targets were detected (lensfit measure)")
@@ -380,7 +383,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
                    np.array([float(r["coc_diameter_px"]) for r in used]),
                    np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
-                   np.array([image_index[name] for name in images], int))
+                   np.array([image_index[name] for name in images], int), np.array(used_rows, int))
 
 
 # --------------------------------------------------------------------------- model

@@ -62,6 +62,9 @@ class SampleTable:
     pixel_pitch_mm: float = float("nan")
     image_shape: tuple[int, int] = (0, 0)
     warnings: list[str] = field(default_factory=list)
+    #: image file name -> (target id, detected corner positions (N, 2) px) of every target found
+    #: (after refinement); kept in memory for the fit report's overlays, not written to files
+    corners_px: dict[str, list[tuple[str, np.ndarray]]] = field(default_factory=dict)
 
     COLUMNS = SAMPLES_CSV_COLUMNS
 
@@ -382,6 +385,8 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         table.intrinsics = calibrate_all()
     for i in range(n):
         entry = stack.images[i]
+        table.corners_px[entry.file.name] = [(d.target_id, np.asarray(d.image_points_px, np.float64))
+                                             for d in detections[i]]
         tasks, meta = tasks_for(i, table.intrinsics)
         if estimator == "edge" and i in first:
             # Blur from the first pass (the edge lines are located in the image itself, so the

@@ -12,8 +12,9 @@ import numpy as np
 from lensfit.fitting import FitResult
 
 
-def plot_fit(result: FitResult, path: str | Path, *, title: str | None = None) -> None:
-    """Write a PNG/SVG/PDF (by suffix) of the samples, the fitted V per setting and residuals.
+def plot_fit(result: FitResult, path, *, title: str | None = None, image_format: str | None = None) -> None:
+    """Write a PNG/SVG/PDF (by suffix, or ``image_format`` for a file object) of the samples,
+    the fitted V per setting and residuals.
 
     Top: measured blur diameter (px, with 1-sigma bars) against inverse distance (1/m); the
     fitted model for a fronto-parallel edge; the focus distance marked. Bottom: residuals in
@@ -63,7 +64,10 @@ def plot_fit(result: FitResult, path: str | Path, *, title: str | None = None) -
     axr.set_ylabel("residual / sigma")
     axr.set_xlabel("inverse distance from the lens (1/m)")
     axr.grid(alpha=0.3)
-    fig.savefig(path, dpi=110, metadata=_creator(path))
+    if isinstance(path, (str, Path)):
+        fig.savefig(path, dpi=110, metadata=_creator(path))
+    else:
+        fig.savefig(path, dpi=110, format=image_format or "png")
     plt.close(fig)
 
 

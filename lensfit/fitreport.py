@@ -1,0 +1,220 @@
+"""One HTML page per fit (``lensfit fit --report report.html``): what was found and what it was
+found from.
+
+Self-contained (pictures inline as PNG data), readable offline and mailable:
+
+1. the estimates per setting with 1-sigma and 95 % intervals (and the truth where the stack
+   has a truth.json), the fit's statistics, warnings and the reasons for any refusal;
+2. the fit plot (blur versus inverse distance with the fitted V, residuals);
+3. one overlay per image (a stack fit, where the images are at hand): left, the image with
+   the detected corners (crosses) and every measured edge drawn where it was measured,
+   coloured by its blur diameter (px); right, the same edges coloured by residual / sigma
+   (measured minus model, in units of the edge's stated sigma; blue below the model, red
+   above, dashed where the robust loss down-weighted the edge, grey where nothing was
+   measured). A per-image table gives edges, distances and the RMS residual: a bad image
+   (a moved target, a wrong setting label, motion blur) stands out there.
+
+Matplotlib (Agg) draws; nothing is shown on screen.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lensfit.fitting import FitResult
+from lensfit.measure import SampleTable
+
+#: Overlays wider than this (px) are drawn downscaled (the picture, not the measurement).
+OVERLAY_WIDTH_PX = 1400
+#: |residual| / sigma above which an edge is listed as suspicious.
+SUSPICIOUS_SIGMAS = 3.0
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _edge_values(table: SampleTable, result: FitResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per sample of ``table``: blur (NaN where unmeasured), residual / sigma and robust weight
+    (NaN where the fit did not use it)."""
+    n = len(table.samples)
+    blur = np.array([np.nan if s.coc_diameter_px is None else s.coc_diameter_px for s in table.samples], float)
+    z = np.full(n, np.nan)
+    w = np.full(n, np.nan)
+    data = result.samples
+    if data is not None and len(getattr(data, "row", ())) == len(result.residuals_px):
+        z[data.row] = result.residuals_px / data.sigma_px
+        w[data.row] = result.weights
+    return blur, z, w
+
+
+def overlay_figure(image: np.ndarray, name: str, samples: list, blur: np.ndarray, z: np.ndarray, w: np.ndarray,
+                   corners: list[tuple[str, np.ndarray]], blur_range: tuple[float, float]):
+    """The two-panel overlay of one image (see the module notes); a matplotlib Figure."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import Normalize
+
+    from lensfit.targets import display_8bit
+
+    grey = image if image.ndim == 2 else image.mean(axis=-1)
+    shown = display_8bit(grey, gamma=2.2)
+    h, w_px = shown.shape
+    aspect = h / w_px
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.4 * aspect + 0.9), layout="constrained")
+    segments = np.array([[s.start_px, s.end_px] for s in samples], float).reshape(-1, 2, 2)
+    norm_blur = Normalize(*blur_range)
+    norm_z = Normalize(-4.0, 4.0)
+    for ax, values, norm, cmap, label in ((axes[0], blur, norm_blur, "viridis", "blur-disk diameter (px)"),
+                                          (axes[1], z, norm_z, "coolwarm", "residual / sigma")):
+        ax.imshow(shown, cmap="gray", vmin=0, vmax=255, interpolation="antialiased")
+        ok = np.isfinite(values)
+        if (~ok).any():
+            ax.add_collection(LineCollection(segments[~ok], colors="0.6", linewidths=1.2))
+        if ok.any():
+            styles = ["--" if (np.isfinite(wt) and wt < 0.5) else "-" for wt in w[ok]]
+            lc = LineCollection(segments[ok], cmap=cmap, norm=norm, linewidths=2.6, linestyles=styles)
+            lc.set_array(np.clip(values[ok], norm.vmin, norm.vmax))
+            ax.add_collection(lc)
+            fig.colorbar(lc, ax=ax, shrink=0.8, label=label)
+        for _, pts in corners:
+            if len(pts):
+                ax.plot(pts[:, 0], pts[:, 1], "+", color="orange", ms=5, mew=0.8)
+        ax.set_xlim(0, w_px)
+        ax.set_ylim(h, 0)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    axes[0].set_title(f"{name}: detected corners (+) and measured edges", fontsize=10)
+    axes[1].set_title("residual of each edge (dashed: down-weighted; grey: not measured)", fontsize=10)
+    return fig
+
+
+def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarray) -> list[dict[str, Any]]:
+    """Per image: setting, edges found / measured / used, distance range, RMS residual / sigma and
+    the number of suspicious edges."""
+    rows = []
+    names = list(dict.fromkeys(s.image for s in table.samples))
+    for name in names:
+        idx = np.array([i for i, s in enumerate(table.samples) if s.image == name])
+        d = np.array([table.samples[i].distance_mm for i in idx])
+        zi = z[idx][np.isfinite(z[idx])]
+        rows.append({"image": name, "setting": table.samples[idx[0]].setting, "edges": len(idx),
+                     "measured": int(np.isfinite(blur[idx]).sum()), "used": int(zi.size),
+                     "distance_mm": (float(d.min()), float(d.max())),
+                     "rms_residual_sigma": float(np.sqrt(np.mean(zi**2))) if zi.size else math.nan,
+                     "suspicious": int((np.abs(zi) > SUSPICIOUS_SIGMAS).sum()),
+                     "down_weighted": int((w[idx][np.isfinite(w[idx])] < 0.5).sum())})
+    return rows
+
+
+def _estimates_table(result: FitResult, document: dict[str, Any]) -> str:
+    truth = {(r["setting"], r["quantity"]): r for r in document.get("truth_comparison", [])}
+    head = "<tr><th>setting</th><th>quantity</th><th>estimate</th><th>1 sigma</th><th>95 % interval</th>"
+    head += "<th>truth</th><th>error</th></tr>" if truth else "</tr>"
+    out = [head]
+    for label, qs in result.settings.items():
+        for q in ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
+                  "sensor_distance_mm", "aperture_diameter_mm", "blur_floor_px"):
+            est = qs.get(q)
+            if est is None:
+                continue
+            if est.value is None:
+                cells = ["not determined", "", ""]
+            else:
+                lo, hi = est.ci95
+                cells = [f"{est.value:.6g}", f"{est.sigma:.3g}", f"[{lo:.6g}, {hi:.6g}]"]
+            row = f"<tr><td>{html.escape(label)}</td><td>{q}</td>" + "".join(f"<td>{c}</td>" for c in cells)
+            if truth:
+                t = truth.get((label, q))
+                if t and t.get("truth") is not None and t.get("relative_error") is not None:
+                    inside = "" if t.get("within_ci95", True) else " class='bad'"
+                    row += f"<td>{t['truth']:.6g}</td><td{inside}>{100 * t['relative_error']:+.3f} %</td>"
+                else:
+                    row += "<td></td><td></td>"
+            out.append(row + "</tr>")
+    return "<table>" + "".join(out) + "</table>"
+
+
+_CSS = """body{font-family:system-ui,sans-serif;max-width:1350px;margin:1em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
+th{background:#f0f0f0}td:first-child,th:first-child{text-align:left}.bad{color:#b00;font-weight:bold}
+img{max-width:100%}.warn{color:#a60}.note{color:#555;font-size:90%}h2{margin-top:1.5em}"""
+
+
+def write_fit_report(path: str | Path, result: FitResult, document: dict[str, Any], table: SampleTable,
+                     stack=None, *, title: str = "lensfit fit", progress=None) -> None:
+    """Write the report (see the module notes). ``stack``: the :class:`lensfit.stack.Stack` the
+    samples were measured on (None: no overlays, e.g. a refit from a samples file)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from lensfit import __version__
+    from lensfit.outputs import software_tag
+    from lensfit.plots import plot_fit
+
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'>"
+             f"<meta name=\"generator\" content=\"{software_tag('lensfit')}\">"
+             f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
+             f"<h1>{html.escape(title)}</h1>",
+             f"<p class='note'>lensfit {__version__}; {result.n_samples} edges used, {result.n_outliers} down-weighted; "
+             f"RMS residual {result.rms_residual_px:.3g} px, reduced chi-square {result.chi2_reduced:.3g}, "
+             f"loss {result.loss}; pupil magnification P = {result.pupil_magnification.value:.4g} "
+             f"({result.pupil_magnification_source}); distances from the entrance pupil.</p>",
+             f"<h2>Estimates: fit {html.escape(result.code)}</h2>", _estimates_table(result, document)]
+    for reason in result.reasons:
+        parts.append(f"<p class='bad'>{html.escape(reason)}</p>")
+    for warning in [*table.warnings, *result.warnings]:
+        parts.append(f"<p class='warn'>warning: {html.escape(warning)}</p>")
+    buf = io.BytesIO()
+    plot_fit(result, buf, title=f"{title}: {result.code}", image_format="png")
+    parts.append("<h2>Blur versus inverse distance</h2>")
+    parts.append(f"<img alt='fit plot' src='data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}'>")
+
+    blur, z, w = _edge_values(table, result)
+    rows = image_rows(table, blur, z, w)
+    parts.append("<h2>Images</h2><table><tr><th>image</th><th>setting</th><th>edges</th><th>measured</th>"
+                 "<th>used</th><th>distance (mm)</th><th>RMS residual / sigma</th>"
+                 f"<th>|residual| &gt; {SUSPICIOUS_SIGMAS:g} sigma</th><th>down-weighted</th></tr>")
+    for r in rows:
+        flag = " class='bad'" if r["suspicious"] > max(2, 0.1 * r["used"]) else ""
+        anchor = html.escape(r["image"])
+        parts.append(f"<tr><td><a href='#{anchor}'>{anchor}</a></td><td>{html.escape(r['setting'])}</td>"
+                     f"<td>{r['edges']}</td><td>{r['measured']}</td><td>{r['used']}</td>"
+                     f"<td>{r['distance_mm'][0]:.0f}-{r['distance_mm'][1]:.0f}</td>"
+                     f"<td>{r['rms_residual_sigma']:.2f}</td><td{flag}>{r['suspicious']}</td>"
+                     f"<td>{r['down_weighted']}</td></tr>")
+    parts.append("</table>")
+    if stack is not None:
+        finite = blur[np.isfinite(blur)]
+        blur_range = (0.0, float(np.percentile(finite, 99)) if finite.size else 1.0)
+        by_name = {im.file.name: im.index for im in stack.images}
+        for k, r in enumerate(rows):
+            if r["image"] not in by_name:
+                continue
+            idx = [i for i, s in enumerate(table.samples) if s.image == r["image"]]
+            image = stack.read(by_name[r["image"]])
+            fig = overlay_figure(image, r["image"], [table.samples[i] for i in idx], blur[idx], z[idx], w[idx],
+                                 table.corners_px.get(r["image"], []), blur_range)
+            parts.append(f"<h3 id='{html.escape(r['image'])}'>{html.escape(r['image'])} (setting "
+                         f"{html.escape(r['setting'])})</h3><img alt='overlay' src='data:image/png;base64,{_png(fig)}'>")
+            plt.close(fig)
+            if progress:
+                progress(k + 1, len(rows))
+    else:
+        parts.append("<p class='note'>No overlays: the samples were read from a file, not measured on images.</p>")
+    parts.append("</body></html>")
+    Path(path).write_text("\n".join(parts), encoding="utf-8")

@@ -1,0 +1,72 @@
+"""The HTML fit report: one page with the estimates, the fit plot and per image the detected
+corners and measured edges coloured by blur and residual; a bad image stands out."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import re
+
+import numpy as np
+import pytest
+
+from lensfit.cli import main as lensfit_main
+from lensfit.fitreport import _edge_values, image_rows, write_fit_report
+from lensfit.fitting import fit, results_document
+from lensfit.outputs import written_by
+from lensfit.stack import load_stack
+
+
+def test_an_image_whose_blur_is_wrong_stands_out(calibration_samples):
+    table = copy.deepcopy(calibration_samples)
+    names = list(dict.fromkeys(s.image for s in table.samples))
+    bad = names[3]
+    # the image's edges read 40 % more blur than the lens gives (e.g. camera shake in that shot)
+    table.samples = [dataclasses.replace(s, coc_diameter_px=s.coc_diameter_px * 1.4)
+                     if s.image == bad and s.coc_diameter_px is not None else s for s in table.samples]
+    result = fit(table)
+    rows = {r["image"]: r for r in image_rows(table, *_edge_values(table, result))}
+    worst = max(rows.values(), key=lambda r: r["rms_residual_sigma"])
+    assert worst["image"] == bad
+    assert worst["rms_residual_sigma"] > 2 * np.median([r["rms_residual_sigma"] for r in rows.values()])
+    # every sample of the table appears exactly once in the rows
+    assert sum(r["edges"] for r in rows.values()) == len(table.samples)
+    assert sum(r["used"] for r in rows.values()) == result.n_samples
+
+
+def test_report_has_every_image_with_its_corners_and_edges(calibration_stack, calibration_samples, tmp_path):
+    stack = load_stack(calibration_stack)
+    result = fit(calibration_samples)
+    document = results_document(result, ["test"], None)
+    out = tmp_path / "report.html"
+    write_fit_report(out, result, document, calibration_samples, stack)
+    text = out.read_text()
+    assert written_by(out) == "lensfit"
+    shown = re.findall(r"<h3 id='([^']+)'", text)
+    assert shown == [im.file.name for im in stack.images if im.file.name in calibration_samples.corners_px
+                     and any(s.image == im.file.name for s in calibration_samples.samples)]
+    assert len(re.findall(r"data:image/png;base64,", text)) == len(shown) + 1  # overlays + the fit plot
+    # the corners kept for the overlays are the detections: inside the image, one set per image
+    h, w = stack.shape
+    for name, dets in calibration_samples.corners_px.items():
+        for _, pts in dets:
+            assert np.all((pts >= 0) & (pts < [w, h]))
+    # and the samples' edges run between detected corners (within 2 px)
+    for s in calibration_samples.samples[:40]:
+        pts = np.concatenate([p for _, p in calibration_samples.corners_px[s.image]])
+        for end in (s.start_px, s.end_px):
+            assert np.min(np.hypot(*(pts - np.array(end)).T)) < 2.0
+
+
+@pytest.mark.slow
+def test_cli_report_written_once_replaced_only_with_force(calibration_stack, tmp_path, capsys):
+    report = tmp_path / "r.html"
+    assert lensfit_main(["fit", str(calibration_stack), "--report", str(report)]) == 0
+    assert "<h1>" in report.read_text()
+    assert lensfit_main(["fit", str(calibration_stack), "--report", str(report)]) == 2
+    assert "--force" in capsys.readouterr().err
+    mine = tmp_path / "mine.html"
+    mine.write_text("<html>my notes</html>")
+    assert lensfit_main(["fit", str(calibration_stack), "--report", str(mine), "--force"]) == 2
+    assert mine.read_text() == "<html>my notes</html>"
+    assert lensfit_main(["fit", str(calibration_stack), "--report", str(tmp_path / "r.txt")]) == 2
