@@ -614,6 +614,77 @@ def _init_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------- plan
+
+_PLAN_OPTIONS = {"focal_length_mm": "--focal-length", "f_number": "--f-number", "focus_distance_mm": "--focus-distance",
+                 "pixel_pitch_mm": "--pixel-pitch", "goal": "--goal", "max_shots": "--max-shots",
+                 "width_px": "--width-px", "target": "--target", "target.kind": "--target's kind"}
+
+
+def _plan_command(args: argparse.Namespace) -> int:
+    from lensfit.plan import QUANTITIES, Board, blur_at, plan_capture
+    from lensfit.sensors import sensor_format
+
+    try:
+        if args.sensor:
+            fmt = sensor_format(args.sensor)
+            width_px, height_px = args.width_px, args.height_px
+            if fmt.resolution_px and width_px is None:
+                width_px, height_px = fmt.resolution_px
+            if width_px is None or height_px is None:
+                raise CliError(f"--sensor {args.sensor} has no pixel grid in data_specs/sensor_formats.toml; "
+                               "give --width-px and --height-px")
+            pitch = args.pixel_pitch or fmt.width_mm / width_px
+        else:
+            if args.pixel_pitch is None or args.width_px is None or args.height_px is None:
+                raise CliError("give --sensor NAME, or --pixel-pitch MM with --width-px and --height-px")
+            pitch, width_px, height_px = args.pixel_pitch, args.width_px, args.height_px
+        if args.target:
+            from lensfit.specs import load_toml
+
+            entries = load_toml(args.target).get("target") or []
+            if not entries:
+                raise CliError(f"--target {args.target}: no [[target]] table; give the file lensfit target --entry wrote")
+            entry = entries[0]
+        else:
+            from lensfit.printable import charuco_page
+
+            entry = charuco_page().entry
+        board = Board.from_entry(entry)
+        plan = plan_capture(args.focal_length, args.f_number, args.focus_distance, pixel_pitch_mm=pitch,
+                            width_px=int(width_px), height_px=int(height_px), board=board, goal_rel=args.goal / 100,
+                            max_shots=args.max_shots, edge_sigma_px=args.edge_sigma_px,
+                            edge_sigma_rel=args.edge_sigma_rel / 100,
+                            calibration_sigma_rel=args.calibration_sigma / 100)
+    except InputError as exc:
+        raise _fail_input(exc, _PLAN_OPTIONS) from None
+    if args.json:
+        print(json.dumps(plan.to_json_dict(), indent=1))
+        return EXIT_OK
+    print(f"lens guess f {args.focal_length:g} mm, f/{args.f_number:g}, focus {_fmt_mm(args.focus_distance)}; "
+          f"board {board.width_mm:g} x {board.height_mm:g} mm ({board.edges} edges per shot); sensor "
+          f"{width_px} x {height_px} px of {pitch * 1000:.3g} um")
+    print(f"usable target distances: {plan.usable_mm[0]:.0f} to {plan.usable_mm[1]:.0f} mm from the lens")
+    if plan.shots is not None:
+        print(f"{plan.shots} shots reach 95 % intervals within {args.goal:g} % on f, N and focus distance:")
+    else:
+        print(f"closest plan ({len(plan.distances_mm)} shots); the goal of {args.goal:g} % is not reached:")
+    print(f"{'shot':>5} {'distance (mm)':>14} {'blur (px)':>10}")
+    for k, d in enumerate(plan.distances_mm):
+        print(f"{k + 1:>5} {d:>14.0f} {blur_at(args.focal_length, args.f_number, args.focus_distance, d, pitch):>10.2f}")
+    print("predicted 95 % half-interval (Cramer-Rao bound, fronto-parallel shots): " + ", ".join(
+        f"{q} {100 * 1.96 * plan.sigma[q]:.2g} %" for q in QUANTITIES if math.isfinite(plan.sigma[q])))
+    print("what accuracy costs in capture (shots -> 95 % half-interval of f, N, focus distance):")
+    for row in plan.curve:
+        if row["shots"] in (3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96) or row["shots"] == plan.shots:
+            print(f"  {row['shots']:>3} shots: " + ", ".join(
+                f"{100 * 1.96 * row[q]:.2g} %" if math.isfinite(row[q]) else "-" for q in QUANTITIES))
+    for note in plan.notes:
+        print(f"note: {note}")
+    print("note: a lower bound for an unbiased fit; tilt some shots by 20-40 degrees for the calibration")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -717,6 +788,33 @@ def build_parser() -> argparse.ArgumentParser:
     it.add_argument("--force", action="store_true", help="replace a stack.toml lensfit init wrote")
     _input_options(it, outside=False)
     it.set_defaults(func=_init_command, prog="lensfit init")
+
+    pl = sub.add_parser("plan", help="where to put the target and how many shots for a requested accuracy",
+                        description="Plan a capture for a lens guess: the usable target distances (the board fits, "
+                                    "its squares are detectable, the blur leaves them readable), shots spread evenly in "
+                                    "inverse distance over them, and the Cramer-Rao bound of f, N and the focus "
+                                    "distance against the number of shots; the smallest number reaching --goal.")
+    pl.add_argument("--focal-length", type=_number, required=True, metavar="MM", help="focal length guess, mm")
+    pl.add_argument("--f-number", type=_number, required=True, metavar="N", help="f-number of the capture")
+    pl.add_argument("--focus-distance", type=_number, required=True, metavar="MM",
+                    help="focus distance from the lens, mm ('inf' allowed)")
+    pl.add_argument("--sensor", metavar="NAME", help="sensor format with a pixel grid (data_specs/sensor_formats.toml)")
+    pl.add_argument("--pixel-pitch", type=_number, metavar="MM", help="pixel pitch, mm")
+    pl.add_argument("--width-px", type=int, metavar="PX", help="image width, px")
+    pl.add_argument("--height-px", type=int, metavar="PX", help="image height, px")
+    pl.add_argument("--target", metavar="FILE.toml",
+                    help="the board's [[target]] entry (lensfit target --entry); default: lensfit target's default board")
+    pl.add_argument("--goal", type=_number, default=1.0, metavar="PCT",
+                    help="95%% half-interval to reach on f, N and focus distance, per cent (default 1)")
+    pl.add_argument("--max-shots", type=int, default=48, metavar="N", help="largest capture considered (default 48)")
+    pl.add_argument("--edge-sigma-px", type=_number, default=0.05, metavar="PX",
+                    help="blur measurement noise per edge, px (default 0.05)")
+    pl.add_argument("--edge-sigma-rel", type=_number, default=2.0, metavar="PCT",
+                    help="and its part proportional to the blur, per cent (default 2)")
+    pl.add_argument("--calibration-sigma", type=_number, default=0.1, metavar="PCT",
+                    help="1-sigma of the calibrated focal length in px, per cent (default 0.1)")
+    pl.add_argument("--json", action="store_true", help="print the plan as JSON")
+    pl.set_defaults(func=_plan_command, prog="lensfit plan")
 
     m = sub.add_parser(
         "measure", help="measure blur diameter versus distance on the targets of an image stack",
