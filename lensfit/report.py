@@ -50,6 +50,11 @@ def _rows(records: list[dict[str, Any]], tolerances: dict[str, float]) -> list[d
     return rows
 
 
+#: Seeds a configuration needs before its scatter is estimated (two draws give a standard
+#: deviation with 100 % relative uncertainty; three, about 50 %).
+MIN_SEEDS_FOR_SCATTER = 3
+
+
 def summarise(records: list[dict[str, Any]], suite: Suite) -> dict[str, Any]:
     """Per-configuration figures (over seeds and settings) and the Pareto fronts."""
     for r in records:
@@ -80,7 +85,7 @@ def summarise(records: list[dict[str, Any]], suite: Suite) -> dict[str, Any]:
             scat, crlb, stated = [], [], []
             for label in {x["setting"] for x in vals}:
                 v = [x for x in vals if x["setting"] == label]
-                if len(v) > 1:
+                if len(v) >= MIN_SEEDS_FOR_SCATTER:
                     scat.append(float(np.std([x["value"] for x in v], ddof=1)) / v[0]["truth"])
                 crlb += [x["crlb"] / x["truth"] for x in v if x["crlb"] is not None]
                 stated += [x["sigma"] / x["truth"] for x in v if x["sigma"] is not None]
@@ -129,6 +134,16 @@ def pareto(points: list[tuple[float | None, float | None]]) -> list[bool]:
 # --------------------------------------------------------------------------- plots
 
 
+def _readable_log_ticks(ax) -> None:
+    """Plain numbers at 1-2-5 steps on log axes, no labels on the minor ticks (they overlapped)."""
+    from matplotlib.ticker import LogLocator, NullFormatter, StrMethodFormatter
+
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=8))
+        axis.set_major_formatter(StrMethodFormatter("{x:.3g}"))
+        axis.set_minor_formatter(NullFormatter())
+
+
 def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
     import matplotlib
 
@@ -174,11 +189,19 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
                             (axes[1], "seconds_measure_fit", "measure + fit time per stack (s)")):
         pts = [(c[axis], 100 * c["rms_relative_error"], c) for c in configs
                if c[axis] is not None and c["rms_relative_error"] is not None]
+        # Only the Pareto-optimal configurations are named (the others would overlap); labels
+        # alternate above and below their point, and name what differs between them.
+        front_pts = sorted(((t, e, c) for t, e, c in pts if c[f"pareto_{axis}"]), key=lambda p: p[0])
+        varying = [k for k in ("render", "effects", "noise", "estimator", "solver")
+                   if len({c[k] for _, _, c in pts}) > 1] or ["render"]
         for t, e, c in pts:
             on = c[f"pareto_{axis}"]
-            ax.plot(t, e, "o", ms=7 if on else 5, color="C3" if on else "C0", alpha=0.9 if on else 0.5)
-            ax.annotate(f"{c['render']}, {c['effects']}, {c['noise']}, {c['estimator']}, {c['solver']}", (t, e), fontsize=6,
-                        xytext=(3, 3), textcoords="offset points")
+            ax.plot(t, e, "o", ms=7 if on else 5, color="C3" if on else "0.6", alpha=0.9 if on else 0.6,
+                    zorder=3 if on else 2)
+        for j, (t, e, c) in enumerate(front_pts):
+            ax.annotate(", ".join(str(c[k]) for k in varying), (t, e), fontsize=7,
+                        xytext=(4, 8 if j % 2 == 0 else -12), textcoords="offset points",
+                        bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
         for i, scene in enumerate(sorted({c["scene"] for _, _, c in pts})):
             front = sorted((t, e) for t, e, c in pts if c[f"pareto_{axis}"] and c["scene"] == scene)
             if front:
@@ -190,8 +213,9 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
         ax.set_ylabel("RMS relative error of f, N, focus (%)")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        _readable_log_ticks(ax)
         ax.grid(alpha=0.3, which="both")
-    fig.suptitle("The price of accuracy")
+    fig.suptitle("The price of accuracy (red: Pareto-optimal, named; grey: dominated)")
     figs["price_of_accuracy"] = fig
 
     fig, ax = plt.subplots(figsize=(7, 3.8), layout="constrained")
@@ -218,15 +242,19 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
     lims = ax.get_xlim() + ax.get_ylim()
     if all(np.isfinite(lims)) and min(lims) > 0:
         lo, hi = min(lims), max(lims)
-        ax.plot([lo, hi], [lo, hi], "k-", lw=0.8, label="scatter = bound")
+    else:
+        lo, hi = 0.01, 10.0
+    ax.plot([lo, hi], [lo, hi], "k-", lw=0.8, label="scatter = bound (efficient)")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    _readable_log_ticks(ax)
     ax.set_xlabel("Cramer-Rao lower bound (relative %, 1 sigma)")
     ax.set_ylabel("observed scatter over seeds (relative %)")
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=8)
     else:
-        ax.text(0.5, 0.5, "needs 2+ seeds per configuration", ha="center", transform=ax.transAxes)
+        ax.text(0.5, 0.5, f"needs {MIN_SEEDS_FOR_SCATTER}+ seeds per configuration", ha="center",
+                transform=ax.transAxes)
     ax.grid(alpha=0.3, which="both")
     ax.set_title("Efficiency")
     figs["efficiency"] = fig
