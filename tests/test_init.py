@@ -215,3 +215,15 @@ def test_init_refusals_name_the_fix(tmp_path, capsys, case, needle):
     err = capsys.readouterr().err
     assert needle in err and len(err.strip().splitlines()) == 1
     assert not (photos / "stack.toml").exists()
+
+
+def test_focus_distance_from_canon_maker_note_and_infinity():
+    from lensfit.exif import record_from_tags
+
+    # exifread's names: Canon's ShotInfo SubjectDistance is in centimetres
+    r = record_from_tags({"Image Make": "Canon", "EXIF FocalLength": 35.0, "MakerNote SubjectDistance": 250})
+    assert (r.focus_distance_mm, r.focus_distance_source) == (2500.0, "Canon maker note")
+    # EXIF SubjectDistance wins; 0xFFFFFFFF means infinity, 0 means unknown
+    r = record_from_tags({"EXIF SubjectDistance": 4294967295.0, "MakerNote SubjectDistance": 250})
+    assert r.focus_distance_mm == float("inf")
+    assert record_from_tags({"EXIF SubjectDistance": 0.0}).focus_distance_mm is None
