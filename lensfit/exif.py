@@ -37,7 +37,7 @@ class CameraRecord:
     focus_distance_source: str | None = None
     focal_plane_pitch_mm: float | None = None
     reference_width_px: int | None = None
-    exposure_time_s: float | None = None
+    shutter_s: float | None = None
     iso: float | None = None
     taken: str | None = None
 
@@ -118,5 +118,5 @@ def record_from_tags(tags: dict[str, Any]) -> CameraRecord:
         f_number=f_number if f_number and f_number > 0 else None,
         focus_distance_mm=focus, focus_distance_source=source, focal_plane_pitch_mm=pitch,
         reference_width_px=int(width) if width else None,
-        exposure_time_s=_number(_get(tags, "ExposureTime")), iso=_number(_get(tags, "ISOSpeedRatings")),
+        shutter_s=_number(_get(tags, "ExposureTime")), iso=_number(_get(tags, "ISOSpeedRatings")),
         taken=_text(_get(tags, "DateTimeOriginal")))

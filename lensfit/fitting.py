@@ -60,7 +60,6 @@ the capture that would fix it; never a number, NaN or inf.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from dataclasses import dataclass, field
@@ -69,7 +68,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from lensfit.errors import InputError, SpecError
+from lensfit.errors import InputError
 
 #: Weak prior on each setting's blur floor (px, 1 sigma about 0).
 FLOOR_PRIOR_SIGMA_PX = 1.0
@@ -1198,41 +1197,6 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
 # --------------------------------------------------------------------------- files
 
 
-def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
-    """Rows of a samples CSV written by ``lensfit measure`` (numbers parsed, blanks None)."""
-    path = Path(path)
-    try:
-        return _read_samples_csv(path)
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise SpecError(path, "", f"not a readable CSV ({exc}); write samples with lensfit measure") from None
-
-
-def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
-    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
-               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
-    rows = []
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in (reader.fieldnames
-                                                                                                      or [])]
-        if missing:
-            raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
-        for i, r in enumerate(reader, start=2):
-            row: dict[str, Any] = dict(r)
-            for c in numeric:
-                if c in row:
-                    v = (row[c] or "").strip()
-                    try:
-                        row[c] = float(v) if v else None
-                    except ValueError:
-                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a number") from None
-                    if row[c] is not None and not math.isfinite(row[c]):
-                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a finite number; leave the cell "
-                                        "empty where an edge has no measurement")
-            rows.append(row)
-    return rows
-
-
 def results_document(result: FitResult, command: Iterable[str] | None = None,
                      truth: dict[str, Any] | None = None, intrinsics: dict[str, Any] | None = None) -> dict[str, Any]:
     """The results JSON with provenance (and, when given, the truth and relative errors, and the
@@ -1293,4 +1257,4 @@ def write_results(path: str | Path, document: dict[str, Any]) -> None:
 
 
 __all__ = ["fit", "cramer_rao", "FitResult", "Estimate", "FitData", "prepare", "inverse_distance_moments", "results_document",
-           "compare_with_truth", "write_results", "read_samples_csv", "QUANTITIES", "LOSSES"]
+           "compare_with_truth", "write_results", "QUANTITIES", "LOSSES"]

@@ -259,7 +259,7 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
             ("camera", r.camera), ("focal_length_mm", _round(r.focal_length_mm)), ("f_number", _round(r.f_number)),
             ("focus_distance_mm", _round(r.focus_distance_mm) if r.focus_distance_mm not in (None, float("inf"))
              else ("inf" if r.focus_distance_mm else None)),
-            ("exposure_time_s", _round(r.exposure_time_s)), ("iso", _round(r.iso)), ("taken", r.taken))
+            ("shutter_s", _round(r.shutter_s)), ("iso", _round(r.iso)), ("taken", r.taken))
             if value is not None}
         if exif:
             entry["x_exif"] = exif

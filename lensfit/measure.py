@@ -106,8 +106,6 @@ class SampleTable:
         if not path.is_file():
             raise SpecError(path, "", "no such file; write samples with lensfit measure --out")
         if path.suffix.lower() == ".csv":
-            from lensfit.fitting import read_samples_csv
-
             rows = read_samples_csv(path)
             doc: dict[str, Any] = {"samples": rows, **_csv_calibration(path, rows)}
         else:
@@ -174,6 +172,41 @@ class SampleTable:
                            focal_length_px=None if k is None else repr(k.focal_length_px),
                            focal_length_sigma_px=None if k is None else repr(k.focal_length_sigma_px))
                 writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
+
+
+def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
+    """Rows of a samples CSV written by ``lensfit measure`` (numbers parsed, blanks None)."""
+    path = Path(path)
+    try:
+        return _read_samples_csv(path)
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise SpecError(path, "", f"not a readable CSV ({exc}); write samples with lensfit measure") from None
+
+
+def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
+    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
+               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
+    rows = []
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in (reader.fieldnames
+                                                                                                      or [])]
+        if missing:
+            raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
+        for i, r in enumerate(reader, start=2):
+            row: dict[str, Any] = dict(r)
+            for c in numeric:
+                if c in row:
+                    v = (row[c] or "").strip()
+                    try:
+                        row[c] = float(v) if v else None
+                    except ValueError:
+                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a number") from None
+                    if row[c] is not None and not math.isfinite(row[c]):
+                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a finite number; leave the cell "
+                                        "empty where an edge has no measurement")
+            rows.append(row)
+    return rows
 
 
 def _csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:

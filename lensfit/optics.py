@@ -62,7 +62,7 @@ __all__ = [
     "crop_factor",
     "equivalent_focal_length_35mm",
     "exposure_value",
-    "equivalent_shutter_time_s",
+    "equivalent_shutter_s",
     "equivalent_f_number",
     "equivalent_iso",
 ]
@@ -719,7 +719,7 @@ def equivalent_focal_length_35mm(focal_length_mm, crop_factor):
 
 
 @float64
-def exposure_value(f_number, shutter_time_s, iso=100.0):
+def exposure_value(f_number, shutter_s, iso=100.0):
     """Exposure value of camera settings, referred to ISO 100.
 
     .. math:: \\mathrm{EV}_{100} = \\log_2\\frac{N^2}{t} - \\log_2\\frac{S}{100}
@@ -731,7 +731,7 @@ def exposure_value(f_number, shutter_time_s, iso=100.0):
     ----------
     f_number : array_like
         f-number N, > 0.
-    shutter_time_s : array_like
+    shutter_s : array_like
         Exposure (shutter) time t, seconds, > 0.
     iso : array_like, optional
         ISO speed S, > 0. Default 100.
@@ -753,20 +753,20 @@ def exposure_value(f_number, shutter_time_s, iso=100.0):
     14.644
     """
     N = arg("f_number", f_number, positive=True)
-    t = arg("shutter_time_s", shutter_time_s, positive=True)
+    t = arg("shutter_s", shutter_s, positive=True)
     S = arg("iso", iso, positive=True)
     return jnp.log2(N * N / t) - jnp.log2(S / 100.0)
 
 
 @float64
-def equivalent_shutter_time_s(f_number, shutter_time_s, iso, new_f_number, new_iso):
+def equivalent_shutter_s(f_number, shutter_s, iso, new_f_number, new_iso):
     """Shutter time that keeps the exposure when f-number and ISO change.
 
     .. math:: t' = t \\left(\\frac{N'}{N}\\right)^2 \\frac{S}{S'}
 
     Parameters
     ----------
-    f_number, shutter_time_s, iso : array_like
+    f_number, shutter_s, iso : array_like
         Reference settings (N, t in seconds, S), all > 0.
     new_f_number, new_iso : array_like
         New f-number N' and ISO S', > 0.
@@ -778,11 +778,11 @@ def equivalent_shutter_time_s(f_number, shutter_time_s, iso, new_f_number, new_i
 
     Examples
     --------
-    >>> float(equivalent_shutter_time_s(8.0, 1 / 125, 100, 4.0, 100)) * 500
+    >>> float(equivalent_shutter_s(8.0, 1 / 125, 100, 4.0, 100)) * 500
     1.0
     """
     N = arg("f_number", f_number, positive=True)
-    t = arg("shutter_time_s", shutter_time_s, positive=True)
+    t = arg("shutter_s", shutter_s, positive=True)
     S = arg("iso", iso, positive=True)
     N2 = arg("new_f_number", new_f_number, positive=True)
     S2 = arg("new_iso", new_iso, positive=True)
@@ -790,16 +790,16 @@ def equivalent_shutter_time_s(f_number, shutter_time_s, iso, new_f_number, new_i
 
 
 @float64
-def equivalent_f_number(f_number, shutter_time_s, iso, new_shutter_time_s, new_iso):
+def equivalent_f_number(f_number, shutter_s, iso, new_shutter_s, new_iso):
     """f-number that keeps the exposure when shutter time and ISO change.
 
     .. math:: N' = N \\sqrt{\\frac{t'}{t} \\frac{S'}{S}}
 
     Parameters
     ----------
-    f_number, shutter_time_s, iso : array_like
+    f_number, shutter_s, iso : array_like
         Reference settings (N, t in seconds, S), all > 0.
-    new_shutter_time_s, new_iso : array_like
+    new_shutter_s, new_iso : array_like
         New shutter time t' (seconds) and ISO S', > 0.
 
     Returns
@@ -813,24 +813,24 @@ def equivalent_f_number(f_number, shutter_time_s, iso, new_shutter_time_s, new_i
     4.0
     """
     N = arg("f_number", f_number, positive=True)
-    t = arg("shutter_time_s", shutter_time_s, positive=True)
+    t = arg("shutter_s", shutter_s, positive=True)
     S = arg("iso", iso, positive=True)
-    t2 = arg("new_shutter_time_s", new_shutter_time_s, positive=True)
+    t2 = arg("new_shutter_s", new_shutter_s, positive=True)
     S2 = arg("new_iso", new_iso, positive=True)
     return N * jnp.sqrt((t2 / t) * (S2 / S))
 
 
 @float64
-def equivalent_iso(f_number, shutter_time_s, iso, new_f_number, new_shutter_time_s):
+def equivalent_iso(f_number, shutter_s, iso, new_f_number, new_shutter_s):
     """ISO that keeps the exposure when f-number and shutter time change.
 
     .. math:: S' = S \\left(\\frac{N'}{N}\\right)^2 \\frac{t}{t'}
 
     Parameters
     ----------
-    f_number, shutter_time_s, iso : array_like
+    f_number, shutter_s, iso : array_like
         Reference settings (N, t in seconds, S), all > 0.
-    new_f_number, new_shutter_time_s : array_like
+    new_f_number, new_shutter_s : array_like
         New f-number N' and shutter time t' (seconds), > 0.
 
     Returns
@@ -844,8 +844,8 @@ def equivalent_iso(f_number, shutter_time_s, iso, new_f_number, new_shutter_time
     400.0
     """
     N = arg("f_number", f_number, positive=True)
-    t = arg("shutter_time_s", shutter_time_s, positive=True)
+    t = arg("shutter_s", shutter_s, positive=True)
     S = arg("iso", iso, positive=True)
     N2 = arg("new_f_number", new_f_number, positive=True)
-    t2 = arg("new_shutter_time_s", new_shutter_time_s, positive=True)
+    t2 = arg("new_shutter_s", new_shutter_s, positive=True)
     return S * (N2 / N) ** 2 * (t / t2)

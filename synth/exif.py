@@ -20,7 +20,7 @@ MODEL = "lensfit synth"
 _TAGS = {
     "make": (0x010F, "Make", "ascii"),
     "model": (0x0110, "Model", "ascii"),
-    "exposure_time_s": (0x829A, "ExposureTime", "rational"),
+    "shutter_s": (0x829A, "ExposureTime", "rational"),
     "f_number": (0x829D, "FNumber", "rational"),
     "iso": (0x8827, "ISOSpeedRatings", "short"),
     "subject_distance_m": (0x9206, "SubjectDistance", "rational"),
@@ -49,8 +49,8 @@ def exif_entries(exif: dict[str, Any], model: str = MODEL) -> list[tuple[str, An
         per_cm = 10.0 / float(exif["pixel_pitch_mm"])
         out += [("focal_plane_x_resolution", per_cm), ("focal_plane_y_resolution", per_cm),
                 ("focal_plane_resolution_unit", 3)]  # 3 = centimetre
-    if exif.get("exposure_time_s") is not None:
-        out.append(("exposure_time_s", float(exif["exposure_time_s"])))
+    if exif.get("shutter_s") is not None:
+        out.append(("shutter_s", float(exif["shutter_s"])))
     if exif.get("iso") is not None:
         out.append(("iso", int(round(exif["iso"]))))
     return out

@@ -558,7 +558,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
                              "pixel_pitch_mm": cam.pixel_pitch_mm, "width_px": cam.width_px,
                              **({"focus_distance_mm": round(cam.focus_distance_mm, -1)}
                                 if math.isfinite(cam.focus_distance_mm) else {}),
-                             **({"exposure_time_s": extra["exposure"]["shutter_s"], "iso": extra["exposure"]["iso"]}
+                             **({"shutter_s": extra["exposure"]["shutter_s"], "iso": extra["exposure"]["iso"]}
                                 if "exposure" in extra else {})}
         depth = chief_ray_depth(shot, scene.effects.distortion)
         coc = np.asarray(cam.coc_diameter_px(depth))

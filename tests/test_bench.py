@@ -12,9 +12,9 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from lensfit.bench import load_suite
+from lensfit.bench.suites import load_suite
 from lensfit.cli import main
-from lensfit.report import pareto
+from lensfit.bench.report import pareto
 
 
 @pytest.fixture(scope="module")

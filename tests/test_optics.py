@@ -269,13 +269,13 @@ def test_equivalent_exposures_keep_ev():
     N, t, S = log_uniform(0.7, 64, n), log_uniform(1e-5, 30, n), log_uniform(50, 102400, n)
     N2, t2, S2 = log_uniform(0.7, 64, n), log_uniform(1e-5, 30, n), log_uniform(50, 102400, n)
     ev = optics.exposure_value(N, t, S)
-    np.testing.assert_allclose(optics.exposure_value(N2, optics.equivalent_shutter_time_s(N, t, S, N2, S2), S2), ev,
+    np.testing.assert_allclose(optics.exposure_value(N2, optics.equivalent_shutter_s(N, t, S, N2, S2), S2), ev,
                                atol=1e-9)
     np.testing.assert_allclose(optics.exposure_value(optics.equivalent_f_number(N, t, S, t2, S2), t2, S2), ev,
                                atol=1e-9)
     np.testing.assert_allclose(optics.exposure_value(N2, t2, optics.equivalent_iso(N, t, S, N2, t2)), ev, atol=1e-9)
     # One stop: opening from f/8 to f/5.657 (sqrt 2) halves the time.
-    assert float(optics.equivalent_shutter_time_s(8.0, 1 / 125, 100, 8 / math.sqrt(2), 100)) == pytest.approx(1 / 250)
+    assert float(optics.equivalent_shutter_s(8.0, 1 / 125, 100, 8 / math.sqrt(2), 100)) == pytest.approx(1 / 250)
 
 
 # --------------------------------------------------------------------------- properties

@@ -63,7 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit.estimators import BlurEstimate, EdgeTask, with_model_floor
+from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.psf import pixel_edge_profile
 
 MIN_PIXELS = 24

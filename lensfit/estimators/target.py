@@ -33,7 +33,7 @@ import numpy as np
 import scipy.optimize
 import scipy.signal
 
-from lensfit.estimators import BlurEstimate, EdgeTask, with_model_floor
+from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.psf import disk_kernel
 
 SUB = 4

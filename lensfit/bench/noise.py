@@ -19,7 +19,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from lensfit.bench import QUANTITIES
+from lensfit.bench.suites import QUANTITIES
 from lensfit.fitting import fit
 from lensfit.measure import measure
 from lensfit.stack import load_stack

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from lensfit.bench import QUANTITIES, Suite
+from lensfit.bench.suites import QUANTITIES, Suite
 from lensfit.outputs import write_text
 
 CONFIG_KEYS = ("scene", "render", "effects", "noise", "estimator", "solver")

@@ -1,0 +1,243 @@
+"""The ``lensfit`` command line: thin; parses, calls the API, prints.
+
+Heavy modules (JAX, OpenCV) are imported inside the commands, so ``lensfit --help`` answers
+at once. One module per group of commands (``dof``, ``fit`` with ``measure``, ``capture``:
+target, init and plan; ``bench``); the parser and ``main`` are here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+from lensfit import __version__
+from lensfit.errors import InputError
+from lensfit.cli.bench import _bench_command, _bench_fit_command, _bench_lenses_command, _bench_measure_command
+from lensfit.cli.capture import _init_command, _plan_command, _target_command
+from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
+                                _input_options, _number, _pupil)
+from lensfit.cli.dof import _dof_command
+from lensfit.cli.fit import _fit_command, _measure_command
+
+__all__ = ["main", "build_parser", "CliError", "EXIT_OK", "EXIT_USAGE", "EXIT_NOT_IDENTIFIABLE", "EXIT_BENCH_FAILED"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lensfit",
+        description="Measure defocus blur in image stacks and recover focal length, f-number and "
+                    "focus distance. All lengths in millimetres.")
+    parser.add_argument("--version", action="version", version=f"lensfit {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    dof = sub.add_parser(
+        "dof", help="depth-of-field calculator (thin lens)",
+        description="Depth of field of a thin lens: near and far limits, total DOF, hyperfocal "
+                    "distance. Distances are from the lens plane, in mm.")
+    dof.add_argument("--focal-length", type=_number, required=True, metavar="MM",
+                     help="focal length f, mm (> 0)")
+    dof.add_argument("--f-number", type=_number, required=True, metavar="N",
+                     help="f-number N (> 0)")
+    dof.add_argument("--focus-distance", type=_number, required=True, metavar="MM",
+                     help="focus distance D_s from the lens plane, mm (> focal length; 'inf' allowed)")
+    dof.add_argument("--coc", type=_number, metavar="MM",
+                     help="acceptable circle-of-confusion diameter, mm (default: sensor diagonal / 1500)")
+    dof.add_argument("--sensor", metavar="NAME",
+                     help="sensor format, e.g. full-frame, aps-c, micro-four-thirds (data_specs/sensor_formats.toml)")
+    dof.add_argument("--pixel-pitch", type=_number, metavar="MM",
+                     help="pixel pitch, mm, to express the CoC in pixels (default: from --sensor when known)")
+    dof.add_argument("--json", action="store_true", help="print a JSON object instead of a table")
+    dof.set_defaults(func=_dof_command, prog="lensfit dof")
+
+    tg = sub.add_parser("target", help="write a printable ChArUco board (PDF/PNG) and its stack.toml entry",
+                        description="Lay out a ChArUco board at its true size on a sheet of paper (PDF or PNG, "
+                                    "by --out's suffix) and print the [[target]] entry of stack.toml that "
+                                    "describes it. Print at 100 % and measure a square before use.")
+    tg.add_argument("--out", required=True, metavar="FILE", help="board.pdf or board.png")
+    tg.add_argument("--paper", default="a4-landscape", metavar="SIZE",
+                    help="a4, a3, a2, letter, tabloid (+ -landscape) or WxH in mm (default a4-landscape)")
+    tg.add_argument("--squares", type=int, nargs=2, default=(9, 6), metavar=("COLS", "ROWS"),
+                    help="squares across and down (default 9 6)")
+    tg.add_argument("--square-mm", type=_number, metavar="MM", help="square side (default: the largest that fits)")
+    tg.add_argument("--marker-mm", type=_number, metavar="MM", help="marker side (default 0.75 x the square)")
+    tg.add_argument("--dictionary", default="DICT_5X5_100", metavar="NAME",
+                    help="OpenCV ArUco dictionary (default DICT_5X5_100)")
+    tg.add_argument("--dpi", type=_number, default=300.0, help="at least this resolution (default 300)")
+    tg.add_argument("--id", default="board", help="the target's id in stack.toml (default board)")
+    tg.add_argument("--entry", metavar="FILE.toml",
+                    help="also write the [[target]] entry to this file (for lensfit init --target)")
+    tg.add_argument("--force", action="store_true", help="replace an existing board this program wrote")
+    tg.set_defaults(func=_target_command, prog="lensfit target")
+
+    it = sub.add_parser("init", help="write stack.toml for a folder of photos from their EXIF",
+                        description="Draft PHOTOS_DIR/stack.toml from the photos' EXIF: the images (RAW preferred "
+                                    "over the JPEG of a RAW + JPEG pair), setting labels grouped by f-number and "
+                                    "focus distance, the pixel pitch (EXIF FocalPlaneXResolution, or the camera in "
+                                    "data_specs/cameras.toml) and the target (--target). Reads the photos' headers "
+                                    "only; check the draft before fitting.")
+    it.add_argument("photos", metavar="PHOTOS_DIR", help="folder holding the photos of the target")
+    it.add_argument("--target", metavar="FILE.toml",
+                    help="[[target]] entry of the printed board (lensfit target --entry FILE; or a stack.toml); "
+                         "default: the board lensfit target draws by default, noted as assumed")
+    it.add_argument("--pixel-pitch", type=_number, metavar="MM", help="sensor pixel pitch, mm (overrides the EXIF)")
+    it.add_argument("--sensor-width", type=_number, metavar="MM",
+                    help="sensor active width, mm (the pitch is this / image width)")
+    it.add_argument("--sensor", metavar="NAME", help="a sensor format of data_specs/sensor_formats.toml")
+    it.add_argument("--settings", default="exif", choices=["exif", "per-image", "one"],
+                    help="setting labels: by the EXIF f-number and focus distance (default), one per image, or one")
+    it.add_argument("--prefer", default="raw", choices=["raw", "jpeg"],
+                    help="which file of a RAW + JPEG pair to list (default raw: linear, no tone curve)")
+    it.add_argument("--out", metavar="FILE", help="manifest to write (default PHOTOS_DIR/stack.toml)")
+    it.add_argument("--force", action="store_true", help="replace a stack.toml lensfit init wrote")
+    _input_options(it, outside=False)
+    it.set_defaults(func=_init_command, prog="lensfit init")
+
+    pl = sub.add_parser("plan", help="where to put the target and how many shots for a requested accuracy",
+                        description="Plan a capture for a lens guess: the usable target distances (the board fits, "
+                                    "its squares are detectable, the blur leaves them readable), shots spread evenly in "
+                                    "inverse distance over them, and the Cramer-Rao bound of f, N and the focus "
+                                    "distance against the number of shots; the smallest number reaching --goal.")
+    pl.add_argument("--focal-length", type=_number, required=True, metavar="MM", help="focal length guess, mm")
+    pl.add_argument("--f-number", type=_number, required=True, metavar="N", help="f-number of the capture")
+    pl.add_argument("--focus-distance", type=_number, required=True, metavar="MM",
+                    help="focus distance from the lens, mm ('inf' allowed)")
+    pl.add_argument("--sensor", metavar="NAME", help="sensor format with a pixel grid (data_specs/sensor_formats.toml)")
+    pl.add_argument("--pixel-pitch", type=_number, metavar="MM", help="pixel pitch, mm")
+    pl.add_argument("--width-px", type=int, metavar="PX", help="image width, px")
+    pl.add_argument("--height-px", type=int, metavar="PX", help="image height, px")
+    pl.add_argument("--target", metavar="FILE.toml",
+                    help="the board's [[target]] entry (lensfit target --entry); default: lensfit target's default board")
+    pl.add_argument("--goal", type=_number, default=1.0, metavar="PCT",
+                    help="95%% half-interval to reach on f, N and focus distance, per cent (default 1)")
+    pl.add_argument("--max-shots", type=int, default=48, metavar="N", help="largest capture considered (default 48)")
+    pl.add_argument("--edge-sigma-px", type=_number, default=0.05, metavar="PX",
+                    help="blur measurement noise per edge, px (default 0.05)")
+    pl.add_argument("--edge-sigma-rel", type=_number, default=2.0, metavar="PCT",
+                    help="and its part proportional to the blur, per cent (default 2)")
+    pl.add_argument("--calibration-sigma", type=_number, default=0.1, metavar="PCT",
+                    help="1-sigma of the calibrated focal length in px, per cent (default 0.1)")
+    pl.add_argument("--json", action="store_true", help="print the plan as JSON")
+    pl.set_defaults(func=_plan_command, prog="lensfit plan")
+
+    m = sub.add_parser(
+        "measure", help="measure blur diameter versus distance on the targets of an image stack",
+        description="Detect the targets of STACK (a folder with stack.toml), calibrate, solve poses and "
+                    "measure the blur-disk diameter on every target edge.")
+    m.add_argument("stack", help="stack folder (or its stack.toml)")
+    m.add_argument("--out", required=True, metavar="FILE", help="samples file: .csv or .json")
+    m.add_argument("--estimator", default="edge", metavar="NAME",
+                   help="blur estimator: edge (fast; second-moment blur diameter), edge-disk (uniform-disk reading) "
+                        "or target (analysis by synthesis)")
+    m.add_argument("--force", action="store_true", help="replace an existing --out file that lensfit wrote")
+    _input_options(m)
+    m.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    m.set_defaults(func=_measure_command, prog="lensfit measure")
+
+    ft = sub.add_parser(
+        "fit", help="measure a stack and fit focal length, f-number and focus distance",
+        description="Measure blur on every target edge of STACK (a folder with stack.toml; or a samples "
+                    ".json/.csv from 'lensfit measure') and fit the circle-of-confusion model: the shared "
+                    "focal length and, per setting, f-number and focus distance, with 1-sigma and 95% "
+                    "intervals. Exit status 0: every parameter determined; 3: the fit ran but some parameter "
+                    "is not identifiable (the results say which and why); 2: bad input.")
+    ft.add_argument("stack", help="stack folder (or its stack.toml), or a samples .json/.csv")
+    ft.add_argument("--estimator", default="edge", metavar="NAME",
+                    help="blur estimator: edge (fast; second-moment blur diameter), edge-disk (uniform-disk reading) "
+                        "or target (analysis by synthesis)")
+    ft.add_argument("--out", metavar="FILE", help="results JSON (data_specs/schemas/results.schema.json)")
+    ft.add_argument("--plot", metavar="FILE", help="plot of blur versus inverse distance and the fit (.png/.svg/.pdf)")
+    ft.add_argument("--samples", metavar="FILE", help="also write the measured samples (.csv/.json)")
+    ft.add_argument("--report", metavar="FILE.html",
+                    help="one self-contained HTML page: estimates, the fit plot and per image the detected corners "
+                         "and measured edges coloured by blur and by residual")
+    ft.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"],
+                    help="robust loss (default huber; cauchy for many outliers)")
+    ft.add_argument("--blur-floor", type=_number, metavar="PX",
+                    help="fix the blur floor (px) instead of fitting it per setting")
+    ft.add_argument("--pupil-magnification", type=_pupil, metavar="P|LO:HI",
+                    help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
+                         "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
+                         "fitted from two or more focus settings, else 1 (thin lens) with a warning")
+    ft.add_argument("--pixel-pitch", type=_number, metavar="MM",
+                    help="pixel pitch, mm (for samples without it, e.g. a CSV of your own)")
+    ft.add_argument("--focal-length-px", type=_number, metavar="PX",
+                    help="calibrated focal length in px (overrides the samples file's; for samples without one)")
+    ft.add_argument("--json", action="store_true", help="print the results JSON instead of tables")
+    ft.add_argument("--force", action="store_true", help="replace existing output files that lensfit wrote")
+    _input_options(ft)
+    ft.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    ft.set_defaults(func=_fit_command, prog="lensfit fit")
+
+    bs = sub.add_parser("bench", help="run a benchmark suite and write its report",
+                        description="Run a suite of data_specs/bench/ (scenes x render quality x noise x "
+                                    "estimators x solver settings x seeds): render, measure and fit each case, then "
+                                    "write results.json, report.md and a self-contained report.html to --out. "
+                                    "Finished cases are cached: --resume continues an interrupted run.")
+    bs.add_argument("--suite", default="quick", metavar="NAME", help="quick (default), standard, hard, or a .toml path")
+    bs.add_argument("--out", required=True, metavar="DIR", help="output folder (new or empty, unless --resume)")
+    bs.add_argument("--jobs", type=int, default=1, metavar="N", help="parallel processes or Dask workers (default 1)")
+    bs.add_argument("--resume", action="store_true", help="continue a run in --out, keeping finished cases")
+    bs.add_argument("--executor", default="local", metavar="KIND",
+                    help="local (process pool, default), dask (a local Dask cluster) or dask://HOST:PORT")
+    bs.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    bs.add_argument("--allow-fail", action="store_true",
+                    help="exit 0 even when estimates miss the suite's tolerances (default: exit status 4)")
+    bs.set_defaults(func=_bench_command, prog="lensfit bench")
+
+    bf = sub.add_parser("bench-fit", help="accuracy of f, N, focus distance and honesty of sigma under noise",
+                        description="Measure and fit a rendered STACK (with truth.json) clean and with seeded "
+                                    "photon + read noise; report errors, observed scatter and stated sigma.")
+    bf.add_argument("--stack", required=True, metavar="DIR", help="a stack rendered by synth (linear PNGs)")
+    bf.add_argument("--seeds", type=int, default=5, help="noise draws (default 5)")
+    bf.add_argument("--full-well", type=_number, default=20000.0, metavar="E", help="electrons at white (20000)")
+    bf.add_argument("--read-noise", type=_number, default=5.0, metavar="E", help="read noise, electrons (5)")
+    bf.add_argument("--estimator", default="edge", metavar="NAME", help="blur estimator (edge)")
+    bf.add_argument("--json", action="store_true", help="print JSON")
+    bf.set_defaults(func=_bench_fit_command, prog="lensfit bench-fit")
+
+    bl = sub.add_parser("bench-lenses", help="thin- and thick-lens fits on stacks ray traced through real lenses",
+                        description="Render the demo calibration stack through every shipped compound lens "
+                                    "(data_specs/lenses) at two focus distances, and fit it as a thin lens (one setting), "
+                                    "as a thick lens with P given, and as a thick lens with P fitted from the bracket.")
+    bl.add_argument("--lens", action="append", metavar="NAME", help="only this design (repeatable)")
+    bl.add_argument("--spp", type=int, default=64, help="ray-tracing samples per pixel (default 64)")
+    bl.add_argument("--f-number", type=_number, default=11.0, metavar="N",
+                    help="f-number of every shot (default 11; faster than a design opens to is refused)")
+    bl.add_argument("--wavelengths", type=_number, nargs="+", metavar="NM",
+                    help="render grey through these wavelengths (glass dispersion: longitudinal and lateral colour); "
+                         "only the designs whose glasses are known (default: the d line alone)")
+    bl.add_argument("--json", action="store_true", help="print JSON")
+    bl.set_defaults(func=_bench_lenses_command, prog="lensfit bench-lenses")
+
+    bm = sub.add_parser("bench-measure", help="accuracy and time per edge of the blur estimators",
+                        description="Benchmark: slanted edges rendered by synth at several CoC diameters and "
+                                    "noise levels; optionally both estimators on a rendered STACK with truth.")
+    bm.add_argument("--stack", metavar="DIR", help="also run every estimator on this rendered stack")
+    bm.add_argument("--draws", type=int, default=3, help="noise draws per case (default 3)")
+    bm.add_argument("--json", action="store_true", help="print JSON")
+    bm.set_defaults(func=_bench_measure_command, prog="lensfit bench-measure")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from lensfit.outputs import run_guarded
+
+    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(argv)
+    args.argv = argv
+
+    def known(exc: Exception):
+        if isinstance(exc, CliError):
+            return str(exc), exc.code
+        if isinstance(exc, InputError):  # input errors the command did not map itself
+            return exc.describe(_FIT_OPTIONS), EXIT_USAGE
+        return None
+
+    return run_guarded(args.prog, lambda: args.func(args), known)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""The benchmark commands: ``lensfit bench``, ``bench-fit``, ``bench-lenses``, ``bench-measure``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from lensfit.errors import InputError
+from lensfit.cli.common import EXIT_BENCH_FAILED, EXIT_OK, CliError, _progress_bar
+
+def _bench_measure_command(args: argparse.Namespace) -> int:
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from lensfit.bench.measure import run, run_stack
+
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        result = run(draws=args.draws, progress=lambda m: status.update(f"benchmarking: {m}"))
+        if args.stack:
+            result["stack"] = run_stack(args.stack, progress=lambda m: status.update(f"benchmarking: {m}"))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    table = Table(title="edge estimator on slanted edges (synth, 256 spp)")
+    for col in ("CoC px", "noise", "edges", "RMS error px", "bias px", "median sigma px", "within 1 sigma", "ms/edge"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        table.add_row(f"{r['coc_diameter_px']:g}", f"{r['noise']:g}", str(r["edges"]), f"{r['rms_error_px']:.3f}",
+                      f"{r['bias_px']:+.3f}", f"{r['median_sigma_px']:.3f}", f"{r['within_1_sigma']:.2f}",
+                      f"{1000 * r['seconds_per_edge']:.1f}")
+    Console().print(table)
+    for r in result.get("stack", []):
+        print(f"{r['estimator']}: {r['compared']} edges (CoC >= 1.5 px) of {r['edges']}: RMS error "
+              f"{r['rms_error_px']:.3f} px, median |error| {r['median_abs_error_px']:.3f} px, bias {r['bias_px']:+.3f} px, "
+              f"{100 * r['within_1_sigma']:.0f}% within 1 sigma, {1000 * r['seconds_per_edge']:.0f} ms per edge "
+              f"({r['seconds_total']:.1f} s with detection and calibration)")
+    return EXIT_OK
+
+
+def _bench_fit_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from lensfit.bench.noise import run
+    from lensfit.jaxcache import enable_compilation_cache
+
+    if not (Path(args.stack) / "truth.json").is_file():
+        raise CliError(f"--stack {args.stack} has no truth.json; render one with synth render")
+    if args.seeds < 2:
+        raise CliError(f"--seeds must be at least 2 (a scatter needs two draws), got {args.seeds}")
+    enable_compilation_cache()
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        result = run(args.stack, seeds=args.seeds, full_well_e=args.full_well, read_noise_e=args.read_noise,
+                     estimator=args.estimator, progress=lambda m: status.update(f"benchmarking: {m}"))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    table = Table(title=f"{args.stack}: {args.seeds} noise draws, full well {args.full_well:g} e-, read noise "
+                        f"{args.read_noise:g} e-")
+    for col in ("quantity", "clean error", "noisy mean error", "noisy max |error|", "observed scatter",
+                "stated sigma", "stated/observed"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        def pct(x):
+            return "refused" if x is None else f"{100 * x:+.3f}%"
+        table.add_row(r["quantity"], pct(r["clean_relative_error"]), pct(r["noisy_mean_relative_error"]),
+                      f"{100 * r['noisy_max_abs_relative_error']:.3f}%", f"{r['observed_scatter']:.4g}",
+                      f"{r['median_stated_sigma']:.4g}",
+                      "" if r["stated_over_observed"] is None else f"{r['stated_over_observed']:.2f}")
+    Console(width=None if sys.stdout.isatty() else 120).print(table)
+    print(f"measure {result['seconds_measure']:.1f} s, fit {result['seconds_fit']:.2f} s per stack")
+    return EXIT_OK
+
+
+def _bench_lenses_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from lensfit.bench.lenses import run
+    from lensfit.jaxcache import enable_compilation_cache
+
+    if not 1 <= args.spp <= 65536:
+        raise CliError(f"--spp must be between 1 and 65536, got {args.spp}")
+    enable_compilation_cache()
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        result = run(args.lens or None, spp=args.spp, f_number=args.f_number,
+                     progress=lambda m: status.update(f"benchmarking: {m}"),
+                     wavelengths_nm=tuple(args.wavelengths or ()))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    colour = f", grey from {'/'.join(f'{w:g}' for w in args.wavelengths)} nm" if args.wavelengths else ""
+    table = Table(title=f"real lenses (demo stack scaled to each, f/{args.f_number:g}, {args.spp} spp{colour}): errors "
+                        "of the near setting (and the far one in the bracket)")
+    for col in ("lens", "P", "fit", "f", "N", "N (real pupil)", "focus distance", "in 95 %", "P fitted"):
+        table.add_column(col, justify="right" if col not in ("lens", "fit") else "left")
+
+    def pct(e):
+        if e is None:
+            return ""
+        return "refused" if e["relative_error"] is None else f"{100 * e['relative_error']:+.2f}%"
+
+    def inside(e):
+        return f"{sum(bool(e[q]['within_ci95']) for q in ('focal_length_mm', 'f_number', 'focus_distance_mm'))}/3"
+
+    for row in result["rows"]:
+        for how, fr in row["fits"].items():
+            e = fr["errors"]
+            p_fit = "" if not how.startswith("thick (bracket") or fr["pupil_magnification"] is None else \
+                f"{fr['pupil_magnification']:.3f} ± {fr['pupil_magnification_sigma']:.3f}"
+            table.add_row(row["lens"], f"{row['pupil_magnification']:.3f}", how, pct(e["focal_length_mm"]),
+                          pct(e["f_number"]), pct(e.get("f_number_real_ray")), pct(e["focus_distance_mm"]),
+                          inside(e), p_fit)
+            if fr.get("errors_far"):
+                e = fr["errors_far"]
+                table.add_row("", "", "  same fit, far setting", pct(e["focal_length_mm"]), pct(e["f_number"]),
+                              pct(e.get("f_number_real_ray")), pct(e["focus_distance_mm"]), inside(e), "")
+    Console(width=None if sys.stdout.isatty() else 160).print(table)
+    for row in result["rows"]:
+        cal = ", ".join(f"{label} {100 * c['relative_error']:+.3f}% (sigma {100 * c['sigma'] / c['focal_length_px']:.3f}%)"
+                        for label, c in row["calibration"].items())
+        print(f"{row['lens']}: calibrated f_px error {cal}; render {row['seconds_render']:.0f} s, "
+              f"measure {row['seconds_measure']:.0f} s")
+    return EXIT_OK
+
+
+def _bench_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from lensfit.bench.runs import provenance, run_suite
+    from lensfit.bench.suites import list_suites, load_suite
+    from lensfit.bench.report import write_report
+
+    if args.jobs < 1:
+        raise CliError(f"--jobs must be at least 1, got {args.jobs}")
+    try:
+        suite = load_suite(args.suite)
+    except InputError as exc:
+        raise CliError(f"--suite {args.suite!r} is not a suite; available: {', '.join(list_suites())} "
+                       "(or the path of a suite .toml)") from exc
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out {out} is a file; give a folder")
+    if out.exists() and any(out.iterdir()) and not args.resume:
+        raise CliError(f"--out {out} is not empty; pass --resume to continue the run there, or choose another folder")
+    from lensfit.outputs import OutputLock
+
+    console = Console(stderr=True)
+    n_cases = sum(len(t["cases"]) for t in suite.tasks())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with OutputLock([("--out", out)]), _progress_bar(console, args.progress) as bar:
+        task = bar.add_task(f"suite {suite.name}", total=n_cases)
+        records = run_suite(suite, out, jobs=args.jobs, resume=args.resume, executor=args.executor,
+                            progress=lambda done, total: bar.update(task, completed=done, total=total))
+        prov = provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor)
+        first = out / "cache" / "provenance.json"
+        if first.is_file():  # a resumed run: the cases came (partly) from the first run
+            prov = {**prov, "first_run": json.loads(first.read_text())}
+        else:
+            first.write_text(json.dumps(prov, indent=1))
+        files = write_report(records, suite, prov, out)
+    from lensfit.bench.report import summarise
+
+    failed = sum(1 for r in records if r.get("error"))
+    missed = sum(1 for r in summarise(records, suite)["rows"] if r["passed"] is False)
+    print(f"{len(records)} cases ({failed} refused by the input checks); wrote "
+          + ", ".join(str(f) for f in files.values()))
+    if missed and not args.allow_fail:
+        print(f"lensfit bench: {missed} estimate(s) outside the suite's tolerances (FAIL rows in the report); "
+              "exit status 4 (--allow-fail: 0)", file=sys.stderr)
+        return EXIT_BENCH_FAILED
+    return EXIT_OK
