@@ -15,9 +15,10 @@ __all__ = ["__version__", "fit"]
 
 
 def __getattr__(name: str):
-    """``lensfit.fit`` without importing JAX when the package is imported."""
+    """``lensfit.fit`` without importing JAX when the package is imported: the fit package,
+    which is callable (``lensfit.fit(samples)`` fits; ``lensfit/fit/__init__.py``)."""
     if name == "fit":
-        from lensfit.fitting import fit
+        import importlib
 
-        return fit
+        return importlib.import_module("lensfit.fit")
     raise AttributeError(f"module 'lensfit' has no attribute {name!r}")

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from lensfit.fitting import FitResult
+from lensfit.fit import FitResult
 from lensfit.measure import SampleTable
 
 #: Overlays wider than this (px) are drawn downscaled (the picture, not the measurement).

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lensfit.fitting import FitResult
+from lensfit.fit import FitResult
 
 
 def plot_fit(result: FitResult, path, *, title: str | None = None, image_format: str | None = None) -> None:

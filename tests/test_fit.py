@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from helpers import assert_recovered_or_refused
 from lensfit.errors import InputError
-from lensfit.fitting import fit, inverse_distance_moments
+from lensfit.fit import fit, inverse_distance_moments
 
 PITCH = 0.005
 
@@ -366,7 +366,7 @@ def test_cramer_rao_bound_matches_the_scatter_of_an_efficient_fit():
     """Least squares on Gaussian noise is efficient: over 150 simulated captures, the scatter of
     f, N and D matches the bound computed once from the model (within the 15 % a standard
     deviation of 150 draws allows)."""
-    from lensfit.fitting import cramer_rao
+    from lensfit.fit import cramer_rao
 
     f, N, D = 50.0, 2.8, 2000.0
     rng = np.random.default_rng(77)

@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from helpers import assert_recovered_or_refused
-from lensfit.fitting import fit
+from lensfit.fit import fit
 from lensfit.measure import SampleTable, measure
 from lensfit.specs import schema
 from synth.render import render
@@ -269,7 +269,7 @@ def test_blur_of_an_edge_across_depth_is_the_power_mean_the_model_uses(tmp_path)
     The edge estimator's single diameter is checked against power means of the local
     thin-lens CoC (the textbook formula, sampled densely here): the model's exponent (1.3) must
     fit within 5 % and beat both the mean (1) and the RMS (2)."""
-    from lensfit.fitting import BLUR_POWER_MEAN
+    from lensfit.fit import BLUR_POWER_MEAN
 
     f, N, D, pitch = 50.0, 2.0, 1000.0, 0.01
     shots = [{"pose": [{"id": "sq", "distance_mm": d, "tilt_deg": [0.0, t]}]}

@@ -12,7 +12,7 @@ import pytest
 
 from lensfit.cli import main as lensfit_main
 from lensfit.fitreport import _edge_values, image_rows, write_fit_report
-from lensfit.fitting import fit, results_document
+from lensfit.fit import fit, results_document
 from lensfit.outputs import written_by
 from lensfit.stack import load_stack
 

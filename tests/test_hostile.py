@@ -499,7 +499,7 @@ def test_fit_never_crashes_or_returns_nan_on_extreme_finite_samples():
     NaN or inf (estimates or typed reasons), or an InputError naming the field; nothing else."""
     import warnings
 
-    from lensfit.fitting import fit
+    from lensfit.fit import fit
 
     rng = np.random.default_rng(20261123)
     outcomes = {"ok": 0, "not_identifiable": 0, "InputError": 0}

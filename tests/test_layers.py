@@ -24,7 +24,7 @@ PACKAGES = ("lensfit", "synth")
 #: Readable at once: about 500 lines. Modules still above it may not grow (a ratchet: lower a
 #: ceiling when a module shrinks, remove it when it is under the limit).
 MAX_LINES = 500
-OVERSIZE_CEILING = {"lensfit/fitting.py": 1290, "lensfit/optics.py": 851, "synth/render.py": 660,
+OVERSIZE_CEILING = {"lensfit/optics.py": 851, "synth/render.py": 660,
                     "synth/lens.py": 600}
 
 
@@ -75,7 +75,7 @@ RANK = {"core": 0, "synth": 1, "bench": 2, "cli": 3}
 
 def test_the_graph_sees_the_known_imports():
     # the test itself must see imports, lazy ones included: guards against a parser that finds none
-    assert "lensfit.fitting" in GRAPH["lensfit.measure"] or "lensfit.measure" in GRAPH["lensfit.fitting"]
+    assert "lensfit.fit.core" in GRAPH["lensfit.fit"] and "lensfit.fit.model" in GRAPH["lensfit.fit.solve"]
     assert "synth.render" in GRAPH["lensfit.bench.runs"]
     assert "lensfit.optics" in GRAPH["synth.geometry"]
 

@@ -29,7 +29,7 @@ def samples_at(distances, sigma_px=0.05, sigma_rel=0.02):
 
 @pytest.mark.parametrize("distances", [[450.0, 700.0, 1600.0, 2400.0], [1200.0, 1500.0, 2500.0, 4000.0, 6000.0]])
 def test_plan_bound_equals_the_fits_cramer_rao(distances):
-    from lensfit.fitting import cramer_rao, fit
+    from lensfit.fit import cramer_rao, fit
 
     rows, fpx = samples_at(distances)
     res = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=0.001 * fpx,

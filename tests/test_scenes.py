@@ -44,7 +44,7 @@ def test_a_render_only_scene_is_refused_as_its_header_says(name, tmp_path, capsy
 def test_the_camera_raw_scene_fits(tmp_path):
     out = tmp_path / "raw"
     write_stack(render(load_scene(specs_dir() / "scenes" / "camera_raw.toml")), out)
-    from lensfit.fitting import fit
+    from lensfit.fit import fit
     from lensfit.measure import measure
 
     truth = json.loads((out / "truth.json").read_text())

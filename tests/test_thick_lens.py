@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lensfit.errors import InputError
-from lensfit.fitting import fit
+from lensfit.fit import fit
 
 PITCH = 0.005
 
@@ -87,7 +87,7 @@ def test_focus_bracket_recovers_pupil_magnification_and_the_lens(name):
 
 def test_thin_lens_mapping_of_a_telephoto_is_biased_as_predicted():
     """One setting of a P = 0.5 lens read as a thin lens: f and N come out high by about
-    (f/X)(1/P - 1) (thick lens: 1/f = 1/S + 1/(P X), lensfit.fitting notes); the stated assumption P = 1 says so."""
+    (f/X)(1/P - 1) (thick lens: 1/f = 1/S + 1/(P X), lensfit.fit notes); the stated assumption P = 1 says so."""
     f, P, N, X = 100.0, 0.5, 4.0, 2000.0
     rows, fpx, fsg = simulate(f, P, {"a": (N, X, (1200.0, 5000.0))}, np.random.default_rng(3))
     r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)

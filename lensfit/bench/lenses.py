@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from lensfit.fitting import fit
+from lensfit.fit import fit
 from lensfit.measure import measure
 from lensfit.specs import load_toml, specs_dir
 

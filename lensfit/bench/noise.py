@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.bench.suites import QUANTITIES
-from lensfit.fitting import fit
+from lensfit.fit import fit
 from lensfit.measure import measure
 from lensfit.stack import load_stack
 

@@ -41,7 +41,7 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
     """Render (or reuse) the task's stack, then measure and fit every case not yet done.
     Returns the finished case records (also written to ``cache/cases/<id>.json``)."""
     from lensfit.bench.noise import noisy_copy
-    from lensfit.fitting import cramer_rao, fit
+    from lensfit.fit import cramer_rao, fit
     from lensfit.jaxcache import enable_compilation_cache
     from lensfit.measure import measure
     from synth.render import render

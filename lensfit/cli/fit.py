@@ -54,7 +54,7 @@ def _measure_command(args: argparse.Namespace) -> int:
 
 def _write_fit_outputs(args, source: Path, table, result, document, stack=None) -> list[Path]:
     """Every output to a temporary sibling first, then renamed: all appear, or none."""
-    from lensfit.fitting import write_results
+    from lensfit.fit import write_results
     from lensfit.outputs import write_all
 
     files = []
@@ -180,7 +180,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     for w in table.warnings:
         print(f"warning: {w}", file=sys.stderr)
 
-    from lensfit.fitting import fit, results_document
+    from lensfit.fit import fit, results_document
 
     with console.status("fitting"):
         result = fit(table, pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,

@@ -301,7 +301,7 @@ def _at_one_depth(task: EdgeTask) -> bool:
     """Whether the edge lies at one depth (within ``SHAPE_MAX_DEPTH_SPAN``), or its depths are not
     known. Along an edge across depth the spot changes size, and the profile is a mixture of
     spots: the fit describes that by the power mean of a uniform-disk reading
-    (``lensfit.fitting.BLUR_POWER_MEAN``), so the shape is not read there."""
+    (``lensfit.fit.constants.BLUR_POWER_MEAN``), so the shape is not read there."""
     depths = task.context.get("end_depths_mm")
     if not depths:
         return True

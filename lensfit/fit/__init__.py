@@ -1,0 +1,93 @@
+"""Fit the circle-of-confusion model to blur samples: focal length, f-number, focus distance.
+
+Model
+-----
+For lens setting ``k`` (a focus distance ``D_k`` and f-number ``N_k``; all settings share the
+focal length ``f`` and the pupil magnification ``P``) and a sample on an edge whose ends lie at
+``d0`` and ``d1`` from the entrance pupil (the lens plane of a thin lens)::
+
+    s_k  = 1 / (1/f - 1/(P D_k))          pinhole distance S = f_px * p, mm (thin lens: P = 1,
+                                          the lens-to-sensor distance)
+    K_k  = A_k * s_k = f * s_k / N_k       slope of the blur "V" in inverse distance, mm^2
+    c(t) = sqrt( (K_k/p)^2 * (1/D_k - 1/d(t))^2 + b_k^2 )              px, local blur
+    c    = ( integral_0^1 c(t)^q dt )^(1/q),  q = BLUR_POWER_MEAN = 1.3     px, the edge's blur
+
+with ``d(t)`` linear from ``d0`` to ``d1`` along the edge (16-node Gauss-Legendre), ``p`` the
+pixel pitch and ``b_k`` the setting's blur floor in px. For a fronto-parallel edge this is
+``sqrt((A s / p)^2 (1/D - 1/d)^2 + b^2)``, the textbook ``(A s / p) |1/D - 1/d|`` with a floor.
+
+Why this form:
+- A blur estimator that fits one disk to an edge whose blur varies along it reports something
+  between the mean (q = 1) and the RMS (q = 2, the second moment of the mixture) of the local
+  diameters; measured on ray-traced tilted squares, q = 1.3 (see ``BLUR_POWER_MEAN``).
+- Blur that is not defocus (diffraction: an Airy core of diameter about ``1.68 lambda N`` for a
+  disk of equal second moment; residual aberrations; sensor MTF the estimator does not model)
+  convolves with the defocus disk, and variances of convolved PSFs add, so the floor adds in
+  quadrature. This also makes the model smooth at the focus plane, where ``|.|`` has a kink
+  (grad(abs) at 0 is arbitrary, grad(sqrt) at 0 is infinite).
+- The floor is fitted per setting with a weak prior ``b_k ~ 0 +- 1 px`` (a regulariser that
+  matters only when no sample lies near the focus plane), or fixed by the caller.
+
+Thick lenses (README, "Compound (real) lenses"; data_specs/CONVENTIONS.md): with ``A`` the
+entrance-pupil diameter, ``P`` the exit/entrance pupil ratio and ``s_x`` the exit pupil's
+distance from the sensor, the blur is
+``(A s_x / P) |1/D - 1/d|`` and a pinhole calibration centred on the entrance pupil measures
+``S = s_x / P``: the V is ``A S |1/D - 1/d|`` whatever ``P`` is, and only the mapping from ``S``
+to ``f`` carries ``P``: ``1/f = 1/S + 1/(P D)``. Two or more focus settings that share ``f`` and
+``P`` (unit focusing) determine ``P`` (``1/S_k`` is linear in ``1/D_k``); with one setting ``P``
+is an assumption (1 by default, with a warning) or a stated prior range.
+
+Observations: the blur samples (weights from each sample's stated 1 sigma) and, per setting,
+the calibrated focal length in px, ``f_px = s_k / p`` with its 1 sigma. Parameters (float64,
+chosen to stay well conditioned from macro to infinity): ``log f``; per setting the inverse
+focus distance ``1000/D_k`` (dioptres, 0 at infinity, allowed to cross it), ``log N_k`` and
+``b_k``; ``log P`` (held where assumed; a log-normal prior where a range is given, a very weak
+one where it is fitted).
+
+Solver: a closed-form start (for each candidate vertex on a grid spanning the data, linear
+least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix
+Levenberg-Marquardt, inside iteratively reweighted least squares for a robust loss (Huber by
+default, Cauchy for heavy contamination). The covariance is ``(J^T W J)^-1`` at the solution,
+scaled by the reduced chi-square when that exceeds 1, and propagated to every derived quantity
+by the delta method (log space for positive quantities, so intervals stay positive).
+
+Identifiability: blur at one setting fixes only ``K`` and ``D``; the calibrated
+``f_px`` supplies ``s``, hence ``f`` and ``N``. A parameter the data cannot determine (one
+distance, blur all below a pixel, no focal length in px, a vertex extrapolated far from the
+samples, a relative uncertainty over 20 %) is reported with value ``None`` and the reason and
+the capture that would fix it; never a number, NaN or inf.
+
+Layout
+------
+``data`` (samples in) -> ``start`` (closed-form vertex) -> ``solve`` (compiled
+Levenberg-Marquardt, robust reweighting) around ``model`` -> ``uncertainty`` (covariance, delta
+method, jackknife over images, Cramer-Rao) and ``identifiability`` (what cannot be known, and P)
+-> ``result`` (estimates, results file); ``core`` runs them (``fit``); ``constants`` holds the
+tunable numbers. ``lensfit.fit`` is both this package and its function: ``lensfit.fit(samples)``
+calls ``fit`` (the package module is callable).
+"""
+
+from __future__ import annotations
+
+import sys
+import types
+
+from lensfit.fit.constants import BLUR_POWER_MEAN, LOSSES, QUANTITIES
+from lensfit.fit.core import fit
+from lensfit.fit.data import FitData, inverse_distance_moments, prepare
+from lensfit.fit.result import Estimate, FitResult, Outcome, compare_with_truth, results_document, write_results
+from lensfit.fit.uncertainty import cramer_rao
+
+__all__ = ["fit", "cramer_rao", "FitResult", "Outcome", "Estimate", "FitData", "prepare", "inverse_distance_moments",
+           "results_document", "compare_with_truth", "write_results", "QUANTITIES", "LOSSES", "BLUR_POWER_MEAN"]
+
+
+class _CallableModule(types.ModuleType):
+    """``lensfit.fit`` names both this package and its main function: once the package is
+    imported the attribute of ``lensfit`` is the package, so calling it fits."""
+
+    def __call__(self, *args, **kwargs):
+        return fit(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -1,0 +1,49 @@
+"""The fit's tunable numbers and input ranges, in one place (each says why it has its value)."""
+
+from __future__ import annotations
+
+
+import numpy as np
+
+
+
+#: Weak prior on each setting's blur floor (px, 1 sigma about 0).
+FLOOR_PRIOR_SIGMA_PX = 1.0
+#: A parameter whose relative 1 sigma exceeds this is reported as not identifiable.
+MAX_RELATIVE_SIGMA = 0.2
+#: Samples whose distances spread less than this (relative) count as one distance.
+MIN_DISTANCE_SPREAD = 0.02
+#: Below this every measured blur is pixel integration, diffraction and aberration.
+MIN_USEFUL_BLUR_PX = 1.0
+#: Images needed for the leave-one-image-out jackknife of the covariance (see fit).
+MIN_CLUSTERS = 6
+MAX_CLUSTERS = 400  # one LM solve each
+#: Condition number (column-equilibrated Jacobian) above which the fit is degenerate.
+MAX_CONDITION = 1e8
+LOSSES = ("linear", "huber", "cauchy")
+#: An edge whose ends lie at different depths has a blur that varies along it; a one-disk
+#: edge fit then reports a power mean of the local blur diameters between the mean (1) and the
+#: RMS (2). Measured with the edge estimator on ray-traced squares tilted 50-60 degrees (blur
+#: 0-8 px along one edge, crossing focus or not): 1.3 fits within 4.2 % (mean |error| 1.6 %);
+#: the mean is 1-10 % low, the RMS 5-10 % high (tests/test_fit_pipeline.py). Fronto-parallel
+#: edges are unaffected.
+BLUR_POWER_MEAN = 1.3
+EDGE_NODES = 16
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(EDGE_NODES)
+_NODES_T = (_GL_X + 1.0) / 2.0  # positions along the edge, 0..1
+_NODES_W = _GL_W / 2.0  # weights summing to 1
+_HUBER_K = 1.345
+_CAUCHY_C = 2.385
+_EPS_PX = 1e-4  # keeps sqrt differentiable exactly at the focus plane with a zero floor
+_Z95 = 1.959963984540054
+
+#: The ranges of physically meaningful inputs; anything outside is refused naming the field.
+PIXEL_PITCH_RANGE_MM = (1e-4, 1.0)
+DISTANCE_RANGE_MM = (0.1, 1e9)
+MAX_BLUR_PX = 1e6
+MIN_SIGMA_PX = 1e-6
+MAX_FOCAL_LENGTH_PX = 1e7
+
+QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
+              "sensor_distance_mm", "aperture_diameter_mm", "blur_slope_mm2", "blur_floor_px",
+              "inverse_focus_distance_per_m")

@@ -1,0 +1,279 @@
+"""The fit: validate, start, solve with robust reweighting, derive, refuse what cannot be known."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+from lensfit.errors import InputError
+from lensfit.fit.constants import FLOOR_PRIOR_SIGMA_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES, _Z95
+from lensfit.fit.data import FitData, prepare
+from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
+                                         _second_vertex)
+from lensfit.fit.model import Layout, _size
+from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
+from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robust_weights, _solver, _solver_args,
+                               _solver_residual_fn)
+from lensfit.fit.start import _vertex_search
+from lensfit.fit.uncertainty import _covariance, _derive, _jackknife, _null_direction, _positive
+
+
+def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
+        focal_length_px: float | dict[str, float] | None = None,
+        focal_length_sigma_px: float | dict[str, float] | None = None,
+        loss: str = "huber", blur_floor_px: float | None = None,
+        floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
+        pupil_magnification: float | tuple[float, float] | None = None) -> FitResult:
+    """Fit focal length, and per setting f-number and focus distance, to blur samples.
+
+    Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
+    the lens plane of a thin lens). The lens may be thick: its pupil magnification
+    ``P`` (exit / entrance pupil diameter) enters through ``1/S = 1/f - 1/(P X)``, where
+    ``S = f_px * p`` is what the calibration measures (module notes).
+
+    Parameters
+    ----------
+    samples : a :class:`~lensfit.measure.SampleTable`, the path of a samples JSON/CSV written
+        by ``lensfit measure``, or a sequence of rows (dicts or ``Sample``) with ``setting``,
+        ``distance_mm``, ``coc_diameter_px``, ``sigma_px`` and optionally
+        ``distance_start_mm``/``distance_end_mm`` (the edge's ends, for tilted edges)
+    pixel_pitch_mm : sensor pixel pitch (default: the SampleTable's)
+    focal_length_px : calibrated focal length in px (= sensor distance / pitch), one number or
+        per setting label (default: the SampleTable's intrinsics). Without it f and N cannot
+        be separated and are reported as not identifiable.
+    focal_length_sigma_px : its 1 sigma (default: the calibration's; 0 = exact)
+    loss : "huber" (default), "cauchy" (many outliers) or "linear"
+    blur_floor_px : fix the blur floor (px) instead of fitting it per setting
+    floor_prior_sigma_px : width of the weak prior on a fitted floor (about 0)
+    max_irls : reweighting rounds for the robust loss
+    pupil_magnification : how P is treated. None (default): fitted where two or more calibrated
+        settings focus at different distances (unit focusing: they share f and P), otherwise
+        assumed 1 (the thin lens) with a warning that says so and what it costs. A number:
+        assumed at that value. A range ``(lo, hi)``: a prior on P (log-normal, the range its
+        95 % interval), which the data may sharpen and which widens the intervals of f and N
+        honestly where they cannot.
+
+    Returns
+    -------
+    FitResult (``code`` "ok" or "not_identifiable"; never NaN or inf in it)
+
+    Raises
+    ------
+    InputError
+        No usable sample, a bad pixel pitch, focal length, loss or floor.
+    """
+    if loss not in LOSSES:
+        raise InputError("loss", loss, "one of: " + ", ".join(LOSSES))
+    if blur_floor_px is not None and not (math.isfinite(blur_floor_px) and blur_floor_px >= 0):
+        raise InputError("blur_floor_px", blur_floor_px, ">= 0 px and finite")
+    if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
+        raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
+    pupil = _pupil_mode(pupil_magnification)
+    data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
+                   focal_length_sigma_px=focal_length_sigma_px)
+    try:
+        with np.errstate(all="ignore"):  # overflow on the way is caught below, not printed
+            result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls, pupil)
+    except InputError:
+        raise
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+        return _refused(data, loss, f"the fit failed numerically ({type(exc).__name__}: {exc}); the samples span "
+                        "magnitudes no lens produces: check their units (mm, px) and the pixel pitch")
+    try:
+        json.dumps(result.to_json_dict(), allow_nan=False)
+    except ValueError:
+        return _refused(data, loss, "the fit produced non-finite numbers; the samples span magnitudes no lens "
+                        "produces: check their units (mm, px) and the pixel pitch")
+    return result
+
+
+def _refused(data: FitData, loss: str, reason: str) -> FitResult:
+    """A result that states ``reason`` for every quantity (value None; never NaN)."""
+    n, m = len(data.coc_px), len(data.labels)
+    none = Estimate(None, reason=reason)
+    return FitResult({label: {q: none for q in QUANTITIES} for label in data.labels}, none, Outcome.NOT_IDENTIFIABLE,
+                     [reason], [], np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)), math.inf, n, 0, math.nan,
+                     math.nan, loss, [], data, np.zeros(n), np.ones(n), np.zeros(_size(m)))
+
+
+def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigma_px: float,
+         max_irls: int, pupil: tuple) -> FitResult:
+    """The body of :func:`fit` on validated data (it may raise on data of absurd magnitude;
+    :func:`fit` turns that into a refusal)."""
+    import jax
+    import jax.numpy as jnp
+
+    labels, m, p = data.labels, len(data.labels), data.pixel_pitch_mm
+    n = len(data.coc_px)
+    warnings: list[str] = []
+    if data.dropped:
+        warnings.append(f"{data.dropped} sample(s) without a measured blur were left out")
+
+    # ---- what cannot be determined before fitting (per setting)
+    blocked = _capture_problems(data)
+    has_fpx = ~np.isnan(data.focal_length_px)
+    no_fpx_reason = ("no focal length in px for this setting (calibration or stack.toml [[intrinsics]]): blur fixes "
+                     "only the slope A*s and the focus distance; calibrate on tilted target views to separate f and N")
+
+    # ---- closed-form start
+    fixed_floor = blur_floor_px is not None
+    theta = np.zeros(_size(m))
+    at = Layout(m)
+    i_p = at.log_p
+    verts, slopes = np.zeros(m), np.ones(m)
+    for k in range(m):
+        sel = data.setting == k
+        x, slope, b = _vertex_search(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], np.ones(sel.sum()),
+                                     not fixed_floor, blur_floor_px or 0.0)
+        verts[k], slopes[k] = x, max(slope, 1e-6)
+        theta[at.floor(k)] = blur_floor_px if fixed_floor else max(b, 0.3)
+
+    # ---- the pupil magnification: fitted, given a prior, or assumed (never silently)
+    fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
+    usable = [k for k in range(m) if has_fpx[k] and k not in blocked]
+    p_prior = (0.0, 0.0)
+    if pupil[0] == "fixed":
+        P0, p_source = pupil[1], "assumed"
+    elif pupil[0] == "prior":
+        P0, p_source, p_prior = math.exp(pupil[1]), "prior", (pupil[1], 1.0 / pupil[2])
+    else:
+        fit_p, why_not = _p_identifiable(data, verts, usable, fpx_sig)
+        if fit_p:
+            P0, p_source, p_prior = _p_start(data, verts, usable), "fitted", (0.0, 1.0 / _P_PRIOR_SIGMA_LOG)
+        else:
+            P0, p_source = 1.0, "assumed"
+            if has_fpx.any():
+                warnings.append(f"pupil magnification P = 1 assumed (a thin lens): {why_not}. A real lens has P "
+                                "about 0.5-0.9 (telephoto) to 1.2-2.5 (retrofocus wide angle), which moves f and N "
+                                "by about (f/X)(1/P - 1); give pupil_magnification (--pupil-magnification) as a "
+                                "value or a range, or add a second focus setting")
+    theta[i_p] = math.log(P0)
+
+    f_guess = [1 / (1 / (data.focal_length_px[k] * p) + verts[k] / P0) for k in range(m)
+               if has_fpx[k] and k not in blocked]
+    f_guess = f_guess or [1 / (1 / (data.focal_length_px[k] * p) + verts[k] / P0) for k in range(m) if has_fpx[k]]
+    f0 = float(np.median(f_guess)) if f_guess else 50.0
+    theta[at.LOG_F] = math.log(f0)
+    for k in range(m):
+        x = min(verts[k], 0.9 * P0 / f0)
+        s = 1 / (1 / f0 - x / P0)
+        theta[at.inv_d(k)] = 1000 * x
+        theta[at.log_n(k)] = math.log(f0 * s / (slopes[k] * p))
+
+    # ---- free parameters
+    free = np.ones(_size(m), bool)
+    free[i_p] = p_source != "assumed"
+    if not any(has_fpx[k] and k not in blocked for k in range(m)):
+        # Without a calibrated setting whose V is determined, f only scales N: held at a
+        # nominal value and reported as unknown.
+        free[0] = False
+    for k in blocked:
+        free[[at.inv_d(k), at.log_n(k), at.floor(k)]] = False
+    if fixed_floor:
+        free[at.floor()] = False
+    free_idx = np.flatnonzero(free)
+
+    fpx = np.where(has_fpx, data.focal_length_px, 0.0)
+    fpx_sig = np.where(has_fpx, fpx_sig, 0.0)
+    fpx_w = np.where(has_fpx, 1.0 / np.maximum(fpx_sig, 1e-300), 0.0)
+    floor_w = np.where(fixed_floor, 0.0, 1.0 / floor_prior_sigma_px) * np.ones(m)
+    for k in blocked:
+        fpx_w[k] = 0.0
+        floor_w[k] = 0.0
+    # Blocked settings leave the blur rows out (their parameters are held).
+    row_on = np.array([data.setting[i] not in blocked for i in range(n)], float)
+
+    npad = _padded_size(n)
+    fn = _solver_residual_fn(m)
+    rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
+
+    def irls(theta, rows, weights):
+        """Levenberg-Marquardt inside iteratively reweighted least squares over the blur rows
+        ``rows`` (0/1 per sample); returns (theta, weights, converged)."""
+        theta, converged = theta.copy(), True
+        for it in range(rounds):
+            args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
+                                p_prior)
+            sol, ok = _solver(m)[0](jnp.asarray(theta[free_idx]), args)
+            sol = np.asarray(sol)
+            if not np.all(np.isfinite(sol)):
+                return theta, weights, False
+            change = np.max(np.abs(sol - theta[free_idx])) if it else np.inf
+            theta[free_idx] = sol
+            converged = bool(ok)
+            if loss == "linear":
+                break
+            u = (data.coc_px - _predict_all(theta, m, data)) / data.sigma_px
+            new = _robust_weights(u / _robust_scale(u[rows > 0]), loss)
+            if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
+                break
+            weights = new
+        return theta, weights, converged
+
+    with jax.enable_x64(True):
+        theta, weights, converged = irls(theta, row_on, np.ones(n))
+        # Residuals and Jacobian with the final weights.
+        args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
+                            p_prior)
+        if free_idx.size:
+            res, jac = (np.asarray(a) for a in _solver(m)[1](jnp.asarray(theta[free_idx]), args))
+        else:
+            res = np.asarray(fn(jnp.asarray(theta[free_idx]), args))
+            jac = np.zeros((len(res), 0))
+    if not converged:
+        warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
+
+    pred = _predict_all(theta, m, data)
+    resid = data.coc_px - pred
+    used = row_on > 0
+    u = resid / data.sigma_px
+    n_used = int(used.sum())
+    dof = max(float(np.sum(weights[used])) - len(free_idx), 1.0)
+    chi2_red = float(np.sum(res[:npad] ** 2) / dof) if n_used else 1.0
+    scale2 = max(1.0, chi2_red)
+    n_out = int(np.sum(np.abs(u[used]) > 5 * math.sqrt(scale2)))
+
+    # ---- covariance, condition, correlations
+    names = _parameter_names(labels)
+    fnames = [names[i] for i in free_idx]
+    cov, cond, corr = _covariance(jac, scale2)
+    z = (1.0, _Z95)
+    cov, z = _jackknife(cov, corr, z, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior)
+    full_cov = np.zeros((_size(m), _size(m)))
+    full_cov[np.ix_(free_idx, free_idx)] = cov
+
+    degenerate = cond > MAX_CONDITION
+    weak: set[str] = set()
+    if degenerate and len(free_idx):
+        # The parameters in the near-null direction are the ones that cannot be told apart.
+        js = _null_direction(jac)
+        weak = {fnames[i] for i in range(len(fnames)) if abs(js[i]) > 0.3}
+
+    # ---- a second, distinct V that fits about as well (discrete ambiguity the covariance misses)
+    _second_vertex(data, theta, full_cov, weights, blocked, fixed_floor, blur_floor_px, scale2)
+
+    # ---- derived quantities
+    settings: dict[str, dict[str, Estimate]] = {}
+    reasons: list[str] = []
+    thin = p_source == "assumed" and theta[i_p] == 0.0
+    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons, z,
+                    thin)
+    if p_source == "assumed":
+        p_est = Estimate(P0, 0.0, (P0, P0), (P0, P0),
+                         "assumed (a thin lens)" if thin else "assumed (given as pupil_magnification)")
+    else:
+        sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
+        p_est = _positive(math.exp(theta[i_p]), sd_p, z)
+        if p_source == "fitted" and ("log_P" in weak or sd_p > MAX_RELATIVE_SIGMA):
+            p_est = Estimate(None, reason=f"the pupil magnification is poorly constrained (relative 1 sigma "
+                             f"{100 * sd_p:.0f}%): focus the settings farther apart")
+            reasons.append(f"pupil_magnification: {p_est.reason}")
+    code = Outcome.OK if not reasons else Outcome.NOT_IDENTIFIABLE
+    return FitResult(settings, f_est, code, reasons, fnames, theta[free_idx], cov, corr, cond, n_used, n_out,
+                     chi2_red, float(np.sqrt(np.mean(resid[used] ** 2))) if n_used else 0.0, loss, warnings, data,
+                     resid, weights, theta.copy(),
+                     dict(free_idx=free_idx, fpx=fpx, fpx_w=fpx_w, floor_w=floor_w, row_on=row_on, p_prior=p_prior),
+                     p_est, p_source)

@@ -1,0 +1,145 @@
+"""Samples in, in the solver's terms: validation, per-setting calibration, depth along each edge."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lensfit.errors import InputError
+from lensfit.fit.constants import (DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX,
+                                   PIXEL_PITCH_RANGE_MM, _NODES_T)
+
+
+@dataclass
+class FitData:
+    """Samples in the solver's terms (float64 arrays, one entry per used sample)."""
+
+    labels: list[str]
+    setting: np.ndarray  # index into labels
+    distance_mm: np.ndarray  # middle of the edge
+    w_mean: np.ndarray  # <1/d> along the edge, 1/mm
+    w_nodes: np.ndarray  # (n, EDGE_NODES) 1/d at the Gauss-Legendre nodes along the edge, 1/mm
+    coc_px: np.ndarray
+    sigma_px: np.ndarray
+    pixel_pitch_mm: float
+    focal_length_px: np.ndarray  # per setting, NaN = unknown
+    focal_length_sigma_px: np.ndarray
+    dropped: int = 0
+    #: image index of each sample (errors shared by an image's edges: its pose, its noise);
+    #: -1 where the samples do not name their image
+    group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    #: index of each used sample in the input rows (unmeasured rows are dropped)
+    row: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+
+
+def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance of ``1/d`` for ``d`` uniform along a segment from ``d0`` to ``d1``.
+
+    ``<1/d> = ln(d1/d0)/(d1 - d0)``, ``<1/d^2> = 1/(d0 d1)``; written with ``m`` the middle and
+    ``r = (d1 - d0)/(d1 + d0)`` as ``atanh(r)/(r m)`` and ``(1/(1 - r^2) - (atanh(r)/r)^2)/m^2``,
+    with the series ``r^2/3 + 22 r^4/45`` for the variance where ``|r|`` is small.
+    """
+    d0, d1 = np.asarray(d0, np.float64), np.asarray(d1, np.float64)
+    m = (d0 + d1) / 2
+    r = (d1 - d0) / (d1 + d0)
+    small = np.abs(r) < 1e-3
+    rs = np.where(small, 0.5, r)
+    ratio = np.where(small, 1 + r**2 / 3 + r**4 / 5, np.arctanh(rs) / rs)
+    var = np.where(small, r**2 / 3 + 22 * r**4 / 45, 1 / (1 - rs**2) - (np.arctanh(rs) / rs) ** 2)
+    return ratio / m, np.maximum(var, 0.0) / m**2
+
+
+def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Sample rows and context (pixel pitch, intrinsics) from any accepted input."""
+    from lensfit.measure import SampleTable
+
+    if isinstance(samples, (str, Path)):
+        samples = SampleTable.read(samples)
+    if isinstance(samples, SampleTable):
+        ctx = {"pixel_pitch_mm": samples.pixel_pitch_mm,
+               "focal_length_px": {k: v.focal_length_px for k, v in samples.intrinsics.items()},
+               "focal_length_sigma_px": {k: v.focal_length_sigma_px for k, v in samples.intrinsics.items()}}
+        return samples.rows(), ctx
+    rows = []
+    for s in samples:
+        rows.append(dict(s) if isinstance(s, dict) else dict(vars(s)))
+    return rows, {}
+
+
+def _per_setting(value: Any, labels: list[str], name: str, default: float) -> np.ndarray:
+    if value is None:
+        return np.full(len(labels), default)
+    if isinstance(value, dict):
+        unknown = [k for k in value if k not in labels]
+        if unknown:
+            raise InputError(name, unknown[0], "a setting label of the samples: " + ", ".join(labels))
+        return np.array([float(value[k]) if value.get(k) is not None else default for k in labels])
+    return np.full(len(labels), float(value))
+
+
+def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
+            focal_length_px: float | dict[str, float] | None = None,
+            focal_length_sigma_px: float | dict[str, float] | None = None) -> FitData:
+    """Validate samples and turn them into :class:`FitData` (see :func:`fit`)."""
+    rows, ctx = _rows_from(samples)
+    pitch = pixel_pitch_mm if pixel_pitch_mm is not None else ctx.get("pixel_pitch_mm")
+    if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
+        raise InputError("pixel_pitch_mm", pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
+    if not PIXEL_PITCH_RANGE_MM[0] <= pitch <= PIXEL_PITCH_RANGE_MM[1]:
+        raise InputError("pixel_pitch_mm", pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
+                         "mm (0.1 micrometre to 1 mm)", "pixel pitches are given in mm, e.g. 0.0059 for 5.9 um")
+    used, used_rows, dropped = [], [], 0
+    for i, r in enumerate(rows):
+        c, sg = r.get("coc_diameter_px"), r.get("sigma_px")
+        d = r.get("distance_mm")
+        for name in ("distance_mm", "setting"):
+            if r.get(name) is None:
+                raise InputError(f"samples[{i}].{name}", None, "present")
+        if not (isinstance(d, (int, float)) and math.isfinite(d) and d > 0):
+            raise InputError(f"samples[{i}].distance_mm", d, "> 0 mm and finite")
+        if not DISTANCE_RANGE_MM[0] <= d <= DISTANCE_RANGE_MM[1]:
+            raise InputError(f"samples[{i}].distance_mm", d, f"between {DISTANCE_RANGE_MM[0]:g} and "
+                             f"{DISTANCE_RANGE_MM[1]:g} mm", "distances are in mm from the lens")
+        if c is None or sg is None or not (math.isfinite(c) and math.isfinite(sg) and sg > 0 and c >= 0):
+            dropped += 1  # the estimator could not measure this edge
+            continue
+        if c > MAX_BLUR_PX:
+            raise InputError(f"samples[{i}].coc_diameter_px", c, f"at most {MAX_BLUR_PX:g} px",
+                             "no image is that large; blur diameters are in px")
+        if not MIN_SIGMA_PX <= sg <= MAX_BLUR_PX:
+            raise InputError(f"samples[{i}].sigma_px", sg, f"between {MIN_SIGMA_PX:g} and {MAX_BLUR_PX:g} px",
+                             "a blur measurement is never that exact (or that vague)")
+        used.append(r)
+        used_rows.append(i)
+    if not used:
+        raise InputError("samples", f"{len(rows)} rows", "at least one sample with a measured coc_diameter_px and "
+                         "sigma_px", "measure a stack whose targets were detected (lensfit measure)")
+    labels = sorted({str(r["setting"]) for r in used})
+    idx = {k: i for i, k in enumerate(labels)}
+    dist = np.array([float(r["distance_mm"]) for r in used])
+    d0 = np.array([float(r.get("distance_start_mm") or r["distance_mm"]) for r in used])
+    d1 = np.array([float(r.get("distance_end_mm") or r["distance_mm"]) for r in used])
+    if np.any(d0 <= 0) or np.any(d1 <= 0):
+        raise InputError("samples.distance_start_mm", float(min(d0.min(), d1.min())), "> 0 mm")
+    w_mean, _ = inverse_distance_moments(d0, d1)
+    w_nodes = 1.0 / (d0[:, None] + _NODES_T[None, :] * (d1 - d0)[:, None])
+    fpx = _per_setting(focal_length_px if focal_length_px is not None else ctx.get("focal_length_px"),
+                       labels, "focal_length_px", math.nan)
+    fsg = _per_setting(focal_length_sigma_px if focal_length_sigma_px is not None
+                       else ctx.get("focal_length_sigma_px"), labels, "focal_length_sigma_px", 0.0)
+    bad = ~(np.isnan(fpx) | ((fpx >= 1.0) & (fpx <= MAX_FOCAL_LENGTH_PX)))
+    if bad.any():
+        raise InputError("focal_length_px", float(fpx[bad][0]), f"between 1 and {MAX_FOCAL_LENGTH_PX:g} px")
+    bad = ~np.isfinite(fsg) | (fsg < 0) | (fsg > MAX_FOCAL_LENGTH_PX)
+    if bad.any():
+        raise InputError("focal_length_sigma_px", float(fsg[bad][0]), f"between 0 and {MAX_FOCAL_LENGTH_PX:g} px")
+    images = [str(r.get("image") or "") for r in used]  # "" = not known: no jackknife over images
+    image_index = {name: (i if name else -1) for i, name in enumerate(dict.fromkeys(images))}
+    return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
+                   np.array([float(r["coc_diameter_px"]) for r in used]),
+                   np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
+                   np.array([image_index[name] for name in images], int), np.array(used_rows, int))

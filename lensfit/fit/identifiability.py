@@ -1,0 +1,119 @@
+"""What the data cannot determine, said before and after fitting, and the pupil magnification P."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lensfit.errors import InputError
+from lensfit.fit.constants import MIN_DISTANCE_SPREAD, MIN_USEFUL_BLUR_PX
+from lensfit.fit.data import FitData
+from lensfit.fit.model import Layout
+from lensfit.fit.start import _side_hint, _vertex_profile
+
+
+def _capture_problems(data: FitData) -> dict[int, str]:
+    """Settings whose capture cannot determine their V, with the reason and the fix."""
+    blocked: dict[int, str] = {}
+    for k, label in enumerate(data.labels):
+        sel = data.setting == k
+        d = np.sort(data.distance_mm[sel])
+        groups = np.split(d, np.flatnonzero(np.diff(d) / d[:-1] > MIN_DISTANCE_SPREAD) + 1)
+        narrow = all((g.max() - g.min()) / g.mean() < MIN_DISTANCE_SPREAD for g in groups)
+        if sel.sum() < 4:
+            blocked[k] = (f"setting {label!r} has only {int(sel.sum())} measured edge(s); a V needs more: photograph "
+                          "the target at 3 or more distances")
+        elif (d.max() - d.min()) / np.median(d) < MIN_DISTANCE_SPREAD:
+            blocked[k] = (f"every sample of setting {label!r} lies at one distance (~{np.median(d):.0f} mm); blur at "
+                          "one distance cannot separate the V's slope from its vertex: photograph the target at 3 or "
+                          "more distances, some nearer and some farther than the focus")
+        elif len(groups) == 2 and narrow:
+            blocked[k] = (f"the samples of setting {label!r} lie at two distances only (~{groups[0].mean():.0f} and "
+                          f"~{groups[1].mean():.0f} mm); a V through two distances fits twice (focus between them, or "
+                          "beyond both): photograph the target at 3 or more distances")
+        elif data.coc_px[sel].max() < MIN_USEFUL_BLUR_PX:
+            blocked[k] = (f"every blur of setting {label!r} is below {MIN_USEFUL_BLUR_PX:g} px (largest "
+                          f"{data.coc_px[sel].max():.2f} px), where pixel integration, diffraction and aberrations "
+                          "dominate: open the aperture or place targets farther from the focus plane")
+    return blocked
+
+
+#: Pupil magnifications outside this range are refused (real photographic lenses: about 0.3
+#: for long telephotos to about 4 for extreme retrofocus wide angles).
+PUPIL_MAGNIFICATION_RANGE = (0.1, 10.0)
+#: Width (1 sigma of log P) of the weak prior that keeps a fitted P in a sane range; a factor of
+#: e^3 = 20 either way, so it never matters where the data determine P.
+_P_PRIOR_SIGMA_LOG = 3.0
+#: A fitted P needs focus settings spread enough that its relative 1 sigma stays below this;
+#: up to it, P is fitted and its uncertainty widens the intervals of f and N (an assumed P = 1
+#: would leave them narrow and wrong by (f/X)(1/P - 1)).
+_P_MAX_RELATIVE_SIGMA = 0.3
+
+
+def _pupil_mode(value) -> tuple:
+    """("auto",), ("fixed", P) or ("prior", log mean, log sigma) from the ``pupil_magnification`` argument."""
+    lo_ok, hi_ok = PUPIL_MAGNIFICATION_RANGE
+    req = f"a number between {lo_ok:g} and {hi_ok:g}, a range (lo, hi) within it, or None"
+
+    def number(v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and lo_ok <= v <= hi_ok):
+            raise InputError("pupil_magnification", value, req)
+        return float(v)
+
+    if value is None:
+        return ("auto",)
+    if isinstance(value, (tuple, list)):
+        if len(value) != 2:
+            raise InputError("pupil_magnification", value, req)
+        lo, hi = number(value[0]), number(value[1])
+        if not lo < hi:
+            raise InputError("pupil_magnification", value, req, "give the range as (lo, hi) with lo < hi")
+        return ("prior", 0.5 * (math.log(lo) + math.log(hi)), 0.25 * (math.log(hi) - math.log(lo)))
+    return ("fixed", number(value))
+
+
+def _p_identifiable(data: FitData, verts: np.ndarray, usable: list[int], fpx_sig: np.ndarray) -> tuple[bool, str]:
+    """Whether calibrated settings ``usable`` focus far enough apart to fit P (unit focusing:
+    ``1/S_k = 1/f - (1/P)(1/X_k)`` is a line in ``1/X_k``), and if not, why."""
+    if len(usable) < 2:
+        return False, "one calibrated focus setting cannot determine it"
+    x = verts[usable]
+    spread = float(np.sqrt(np.sum((x - x.mean()) ** 2)))
+    inv_s = 1.0 / (data.focal_length_px[usable] * data.pixel_pitch_mm)
+    sd_inv_s = float(np.max(inv_s * fpx_sig[usable] / data.focal_length_px[usable]))
+    if spread <= 0 or sd_inv_s / spread > _P_MAX_RELATIVE_SIGMA:
+        return False, (f"the calibrated settings focus too close together (inverse focus distances within "
+                       f"{1000 * np.ptp(x):.3g} /m) to determine it; focus a bracket at distances a factor 2 or more "
+                       "apart")
+    return True, ""
+
+
+def _p_start(data: FitData, verts: np.ndarray, usable: list[int]) -> float:
+    """Closed-form P from the line ``1/S_k = 1/f - (1/P) x_k`` through the calibrated settings."""
+    x = verts[usable]
+    y = 1.0 / (data.focal_length_px[usable] * data.pixel_pitch_mm)
+    slope = np.polyfit(x, y, 1)[0] if len(usable) >= 2 and np.ptp(x) > 0 else -1.0
+    P = -1.0 / slope if slope < 0 else 1.0
+    return float(min(max(P, PUPIL_MAGNIFICATION_RANGE[0]), PUPIL_MAGNIFICATION_RANGE[1]))
+
+
+def _second_vertex(data, theta, full_cov, weights, blocked: dict, fixed_floor: bool, blur_floor_px, scale2: float):
+    """Block (in ``blocked``) every setting where a second, distinct V fits about as well as the
+    solution (chi-square within 9 scale^2): a discrete ambiguity the covariance misses."""
+    at = Layout(len(data.labels))
+    for k, label in enumerate(data.labels):
+        if k in blocked:
+            continue
+        sel = data.setting == k
+        grid, chi2, _, _ = _vertex_profile(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], weights[sel],
+                                           not fixed_floor, blur_floor_px or 0.0)
+        x_fit = theta[at.inv_d(k)] / 1000.0
+        sd_x = math.sqrt(max(full_cov[at.inv_d(k), at.inv_d(k)], 0.0)) / 1000.0
+        far = np.abs(grid - x_fit) > max(5 * sd_x, 0.02 * np.ptp(data.w_mean[sel]))
+        if far.any() and chi2[far].min() < chi2.min() + 9.0 * scale2:
+            alt = grid[far][np.argmin(chi2[far])]
+            alt_mm = f"{1 / alt:.0f} mm" if alt > 0 else "infinity"
+            blocked[k] = (f"two focus distances fit setting {label!r} about equally well ({1 / x_fit:.0f} mm and "
+                          f"{alt_mm}){_side_hint(data.w_mean[sel], x_fit)}: add targets on both sides of the focus "
+                          "and spread them over more distances")

@@ -1,0 +1,88 @@
+"""The blur model (module notes of ``lensfit.fit``): one function for JAX and NumPy (``xp``)."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from lensfit.fit.constants import BLUR_POWER_MEAN, _EPS_PX, _NODES_W
+
+
+class Layout(NamedTuple):
+    """Where each parameter sits in the solver's flat vector, for ``m`` settings: ``log f``;
+    per setting ``k`` the inverse focus distance in dioptres (``inv_d(k)``), ``log N``
+    (``log_n(k)``) and the blur floor in px (``floor(k)``); ``log P`` last. Without ``k``, the
+    slice of all settings."""
+
+    m: int
+
+    LOG_F = 0
+
+    @property
+    def size(self) -> int:
+        return 2 + 3 * self.m
+
+    def inv_d(self, k: int | None = None):
+        return slice(1, 1 + self.m) if k is None else 1 + k
+
+    def log_n(self, k: int | None = None):
+        return slice(1 + self.m, 1 + 2 * self.m) if k is None else 1 + self.m + k
+
+    def floor(self, k: int | None = None):
+        return slice(1 + 2 * self.m, 1 + 3 * self.m) if k is None else 1 + 2 * self.m + k
+
+    @property
+    def log_p(self) -> int:
+        return 1 + 3 * self.m
+
+
+def _unpack(theta, m):
+    """(log f, inverse focus distances in dioptres, log N, floors in px, log P) from the vector."""
+    at = Layout(m)
+    return theta[at.LOG_F], theta[at.inv_d()], theta[at.log_n()], theta[at.floor()], theta[at.log_p]
+
+
+def _size(m: int) -> int:
+    """Length of the parameter vector for ``m`` settings."""
+    return Layout(m).size
+
+
+def _pinhole_distance(xp, f, x, P):
+    """``S = 1 / (1/f - x/P)``: the distance a pinhole calibration centred on the entrance pupil
+    measures (``f_px * p``), for focus at inverse distance ``x`` (1/mm) from the entrance pupil
+    (paraxial thick lens, module notes; ``s`` of the thin lens at ``P = 1``). Focus
+    nearer than the lens can image is clamped."""
+    return 1.0 / xp.maximum(1.0 / f - x / P, 1e-6 / f)
+
+
+def _edge_blur(xp, slope_px, x, w_nodes, floor):
+    """Blur an edge estimate reports: the power mean (``BLUR_POWER_MEAN``) over the edge of
+    the local blur ``sqrt((K/p)^2 (x - 1/d)^2 + b^2)``, by Gauss-Legendre quadrature."""
+    local = xp.sqrt(slope_px[:, None] ** 2 * (x[:, None] - w_nodes) ** 2 + floor[:, None] ** 2 + _EPS_PX**2)
+    return (local**BLUR_POWER_MEAN @ _NODES_W) ** (1.0 / BLUR_POWER_MEAN)
+
+
+def _model(theta, m, setting, w_nodes, pitch):
+    """Blur diameter in px of each sample (JAX)."""
+    import jax.numpy as jnp
+
+    log_f, inv_d, log_n, floor, log_p = _unpack(theta, m)
+    f = jnp.exp(log_f)
+    x = inv_d / 1000.0  # 1/mm
+    s = _pinhole_distance(jnp, f, x, jnp.exp(log_p))
+    slope_px = f * s / jnp.exp(log_n) / pitch  # K/p = A S / p
+    k = setting
+    return _edge_blur(jnp, slope_px[k], x[k], w_nodes, floor[k]), s
+
+
+def _model_np(theta, m, k, w_nodes, pitch):
+    """The same for the samples of setting ``k`` (NumPy)."""
+    log_f, inv_d, log_n, floor, log_p = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
+    f = math.exp(log_f)
+    x = inv_d[k] / 1000.0
+    s = float(_pinhole_distance(np, f, x, math.exp(log_p)))
+    n = len(w_nodes)
+    return _edge_blur(np, np.full(n, f * s / math.exp(log_n[k]) / pitch), np.full(n, x), w_nodes,
+                      np.full(n, floor[k]))
