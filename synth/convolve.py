@@ -16,7 +16,7 @@ one pixel, where only ray tracing is exact. Objects are
 composited back to front: ``I = I (1 - K*a) + K*(a t)``. With a uniform background this is
 exact, because the fraction of the aperture whose rays miss an object is ``K*a`` exactly;
 it is not exact where the blurred footprints of two objects overlap (partial occlusion of a
-textured object), which ``synth.render.choose_method`` checks.
+textured object), which ``synth.planning.choose_method`` checks.
 
 Cost: one FFT convolution per object over its footprint at S^2 times the pixel count;
 independent of the blur size up to the FFT padding.

@@ -1,0 +1,132 @@
+"""What synth writes beside the images: the ground truth (per-target pose, distance and the CoC
+at every edge; per-pixel depth along the chief ray) and stack.toml (what a photographer knows,
+never the answer)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+
+from synth.scene import Scene, Shot
+from synth import textures
+
+
+def chief_ray_depth(shot: Shot, distortion=None) -> np.ndarray:
+    """Depth (mm, float64) of the first surface along each pixel centre's chief ray; inf = background.
+
+    With ``distortion`` (``synth.effects.distortion.Distortion``) the chief ray is the one whose
+    image the distortion moved to the pixel centre, so the map matches the distorted image.
+    """
+    cam = shot.camera
+    W, H = cam.width_px, cam.height_px
+    if distortion is not None:
+        from synth.effects.distortion import undistorted_normalised
+
+        dx, dy = undistorted_normalised(W, H, cam.focal_length_px, cam.principal_point_px, distortion)
+    else:
+        cx, cy = cam.principal_point_px
+        u = (np.arange(W) - cx) / cam.focal_length_px
+        v = (np.arange(H) - cy) / cam.focal_length_px
+        dx, dy = np.meshgrid(u, v)
+    depth = np.full((H, W), np.inf)
+    for obj in shot.objects:
+        R, t = obj.pose.R_cam_target, obj.pose.t_cam_target
+        n = R[:, 2]
+        denom = dx * n[0] + dy * n[1] + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(np.abs(denom) > 1e-15, (t @ n) / denom, np.inf)
+        hit = np.stack([dx * z, dy * z, z], axis=-1) - t
+        x_local, y_local = hit @ R[:, 0], hit @ R[:, 1]
+        w, h = obj.target.size_mm
+        on = (z > 0) & (np.abs(x_local) <= w / 2) & (np.abs(y_local) <= h / 2) & (z < depth)
+        depth = np.where(on, z, depth)
+    return depth
+
+
+def _finite_or_none(x: float):
+    return None if not math.isfinite(x) else float(x)
+
+
+def _distorted_px(px: np.ndarray, cam, distortion) -> np.ndarray:
+    """Pinhole pixel positions (..., 2) -> where the distortion shows them."""
+    cx, cy = cam.principal_point_px
+    f = cam.focal_length_px
+    xd, yd = distortion.distort((px[..., 0] - cx) / f, (px[..., 1] - cy) / f)
+    return np.stack([cx + f * xd, cy + f * yd], axis=-1)
+
+
+def _target_truth(obj, shot: Shot, distortion=None) -> dict[str, Any]:
+    """A target's truth entry. ``*_px`` are pinhole (undistorted) positions; with ``distortion``
+    each also has a ``*_px_distorted`` twin: where the image shows it."""
+    cam = shot.camera
+    pose = obj.pose
+    w, h = obj.target.size_mm
+    corners = pose.to_camera(np.array([[-w / 2, -h / 2], [w / 2, -h / 2], [w / 2, h / 2], [-w / 2, h / 2]]))
+    edges = []
+    for e in textures.edges(obj.target):
+        pts = np.array([e["start_mm"], [(e["start_mm"][0] + e["end_mm"][0]) / 2, (e["start_mm"][1] + e["end_mm"][1]) / 2],
+                        e["end_mm"]])
+        X = pose.to_camera(pts)
+        px = cam.project(X)
+        inside = bool(np.all((px[[0, 2], 0] >= 0) & (px[[0, 2], 0] <= cam.width_px - 1)
+                             & (px[[0, 2], 1] >= 0) & (px[[0, 2], 1] <= cam.height_px - 1)))
+        twin = {}
+        if distortion is not None:
+            dpx = _distorted_px(px, cam, distortion)
+            twin = {"start_px_distorted": dpx[0].tolist(), "end_px_distorted": dpx[2].tolist()}
+        edges.append({
+            "id": e["id"], "start_mm": [float(v) for v in e["start_mm"]], "end_mm": [float(v) for v in e["end_mm"]],
+            "start_px": px[0].tolist(), "end_px": px[2].tolist(), **twin,
+            "distance_mm": X[:, 2].tolist(),
+            "coc_diameter_px": np.asarray(cam.coc_diameter_px(X[:, 2])).tolist(),
+            "in_image": inside,
+        })
+    entry = {
+        "id": obj.target.id,
+        "kind": obj.target.target,
+        "size_mm": [w, h],
+        "distance_mm": float(pose.t_cam_target[2]),
+        "coc_diameter_px": float(cam.coc_diameter_px(pose.t_cam_target[2])),
+        "pose": {"R_cam_target": pose.R_cam_target.tolist(), "t_cam_target_mm": pose.t_cam_target.tolist()},
+        "corners_px": cam.project(corners).tolist(),
+        **({"corners_px_distorted": _distorted_px(cam.project(corners), cam, distortion).tolist()}
+           if distortion is not None else {}),
+        "corners_distance_mm": corners[:, 2].tolist(),
+        "edges_sample_points": ["start", "middle", "end"],
+        "edges": edges,
+    }
+    params = {k: (list(v) if isinstance(v, tuple) else v) for k, v in obj.target.params.items() if k != "file"}
+    entry["params"] = params
+    return entry
+
+
+def stack_manifest(scene: Scene, files: list[str], settings: list[str],
+                   shown: list[list[str]] | None = None) -> dict[str, Any]:
+    """stack.toml: the camera's pixel pitch, the targets' printed geometry, images and labels,
+    and (``shown``) which measurement targets each image shows, as a photographer would note."""
+    targets = []
+    for t in scene.targets:
+        if t.target not in ("charuco", "checkerboard", "slanted-edge"):
+            continue  # not a measurement target: nothing a photographer would list
+        entry: dict[str, Any] = {"id": t.id, "kind": t.target}
+        p = t.params
+        if t.target in ("charuco", "checkerboard"):
+            entry.update(squares=list(p["squares"]), square_mm=p["square_mm"])
+        if t.target == "charuco":
+            entry.update(marker_mm=p["marker_mm"], dictionary=p["dictionary"])
+            if p.get("legacy_pattern"):
+                entry["legacy_pattern"] = True
+        if t.target == "slanted-edge":
+            entry.update(edge_mm=p["edge_mm"])
+        targets.append(entry)
+    encoding = "srgb" if scene.render.format == "jpeg" else "linear"
+    images = [{"file": f, "encoding": encoding, "setting": s} for f, s in zip(files, settings)]
+    listed = {t["id"] for t in targets}
+    for entry, ids in zip(images, shown or []):
+        ids = [i for i in ids if i in listed]
+        if ids and len(listed) > 1:  # with one target there is nothing to say
+            entry["targets"] = ids
+    return {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}
