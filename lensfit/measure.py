@@ -20,10 +20,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from lensfit import __version__
 from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, project
 from lensfit.errors import SpecError
-from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS
+from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.stack import Stack, load_stack
 from lensfit.targets import Detection, Target
@@ -94,7 +93,7 @@ class SampleTable:
             "intrinsics": {k: {**asdict(v), "principal_point_px": list(v.principal_point_px),
                                "distortion": list(v.distortion)} for k, v in self.intrinsics.items()},
             "warnings": self.warnings,
-            "provenance": {"program": "lensfit", "version": __version__},
+            "provenance": provenance("lensfit", dated=False),
         }
 
     @classmethod

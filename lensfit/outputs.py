@@ -41,7 +41,7 @@ import os
 import socket
 import uuid
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 from lensfit.errors import Interrupted, OutputError
 
@@ -63,6 +63,26 @@ def software_tag(program: str) -> str:
     from lensfit import __version__
 
     return f"{program} {__version__}"
+
+
+def provenance(program: str, command: Iterable[str] | None = None, *, dated: bool = True,
+               **extra: Any) -> dict[str, Any]:
+    """Who wrote a file and how: the one provenance record of both programs (results, samples,
+    benchmark reports, truth.json). ``dated=False`` leaves out the date and the machine, for
+    files that must be identical run to run given a seed (a rendered stack's truth)."""
+    import datetime
+    import platform
+
+    from lensfit import __version__
+
+    out: dict[str, Any] = {"program": program, "version": __version__}
+    if command is not None:
+        out["command"] = " ".join(command) if not isinstance(command, str) else command
+    if dated:
+        out.update(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                   python=platform.python_version(), machine=platform.machine())
+    out.update(extra)
+    return out
 
 
 def _program_of(text: str | None) -> str | None:

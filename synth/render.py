@@ -22,6 +22,7 @@ import numpy as np
 
 from lensfit import __version__
 from lensfit.errors import InputError
+from lensfit.outputs import provenance
 from synth.convolve import render_convolve
 from synth.raytrace import render_raytrace
 from synth.scene import Scene, load_scene
@@ -309,6 +310,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         "intensity": "linear radiance; 16-bit files hold round(65535 * clip(value, 0, 1))",
         "conventions": "data_specs/CONVENTIONS.md",
         "version": __version__,
+        "provenance": provenance("synth", dated=False),  # the same record as lensfit's files
     }
     result.manifest = stack_manifest(scene, [i["file"] for i in images_truth], [i["setting"] for i in images_truth],
                                      [[o.target.id for o in sp.shot.objects] for sp in plans])

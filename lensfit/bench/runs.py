@@ -222,13 +222,12 @@ def _run_dask(tasks, cache: str, jobs: int, executor: str, tick: Callable[[], No
 
 
 def provenance(suite: Suite, command: list[str] | None, jobs: int, executor: str) -> dict[str, Any]:
-    import datetime
     import platform
 
-    from lensfit import __version__
+    from lensfit.outputs import provenance as record
 
-    return {"version": __version__, "command": " ".join(command) if command else None,
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "machine": platform.machine(), "system": platform.platform(), "cores": os.cpu_count(),
-            "python": platform.python_version(), "jobs": jobs, "executor": executor, "suite": suite.name,
-            "suite_file": str(suite.path), "seeds": list(suite.seeds)}
+    out = record("lensfit", list(command) if command else [], system=platform.platform(), cores=os.cpu_count(),
+                 jobs=jobs, executor=executor, suite=suite.name, suite_file=str(suite.path), seeds=list(suite.seeds))
+    if not command:
+        out["command"] = None
+    return out

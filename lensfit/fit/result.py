@@ -170,16 +170,12 @@ def results_document(result: FitResult, command: Iterable[str] | None = None,
     """The results JSON with provenance (and, when given, the truth and relative errors, and the
     geometric calibration per setting: ``intrinsics`` maps a label to
     ``lensfit.calibration.Intrinsics``)."""
-    import datetime
-    import platform
-
-    from lensfit import __version__
+    from lensfit.outputs import provenance
 
     doc = result.to_json_dict()
-    doc["provenance"] = {"program": "lensfit", "version": __version__,
-                         "command": " ".join(command) if command else None,
-                         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                         "python": platform.python_version(), "machine": platform.machine()}
+    doc["provenance"] = provenance("lensfit", list(command) if command else [])
+    if not command:
+        doc["provenance"]["command"] = None
     if intrinsics:
         doc["calibration"] = {
             label: {"focal_length_px": v.focal_length_px, "focal_length_sigma_px": v.focal_length_sigma_px,
