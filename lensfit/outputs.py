@@ -30,6 +30,8 @@ Rules
 - **All or nothing.** :func:`write_all` writes every file to a unique temporary sibling and
   renames them into place only when all were written; without ``force`` the final step is an
   atomic create (``os.link``) that never overwrites a file another process put there.
+  :func:`write_folder` does the same for a folder (a stack): a temporary sibling folder,
+  swapped in at the end.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from lensfit.errors import Interrupted, OutputError
+from lensfit.errors import OutputError
 
 PROGRAMS = ("lensfit", "synth")
 
@@ -372,6 +374,8 @@ def write_all(files: Iterable[tuple[Path, Callable[[Path], None]]], *, force: bo
             tmp = temporary_sibling(final)
             pending.append((tmp, final))
             writer(tmp)
+        from lensfit.running import check_interrupted
+
         check_interrupted()
         placed = []
         for tmp, final in pending:
@@ -383,97 +387,44 @@ def write_all(files: Iterable[tuple[Path, Callable[[Path], None]]], *, force: bo
             tmp.unlink(missing_ok=True)
 
 
+def write_folder(out: str | Path, writer: Callable[[Path], None], *, force: bool, option: str = "--out") -> Path:
+    """A folder, all or nothing: ``writer(tmp)`` fills a temporary sibling folder, which is then
+    renamed into place. An existing folder is replaced only with ``force`` and only when
+    :func:`check_output` allows it (a stack synth wrote, nothing else in it), checked again just
+    before the swap; its old contents are removed only then, and put back if the swap fails.
+    An error or a stop signal before the swap leaves nothing behind."""
+    import shutil
+    import tempfile
+
+    out = check_output(out, option, force=force, folder=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    tmp.chmod(0o755)
+    try:
+        writer(tmp)
+        from lensfit.running import check_interrupted
+
+        check_interrupted()  # a stop signal, even one a C callback swallowed: nothing is put in place
+        check_output(out, option, force=force, folder=True)  # again: something may have appeared meanwhile
+        if out.is_dir() and any(out.iterdir()):
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            out.rename(old / out.name)
+            try:
+                tmp.rename(out)
+            except BaseException:
+                (old / out.name).rename(out)  # put the old folder back
+                raise
+            shutil.rmtree(old, ignore_errors=True)  # one check_output allowed replacing (ours, nothing else)
+        else:
+            tmp.rename(out)  # over an empty folder, or a new name
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
 def write_text(path: str | Path, text: str, *, force: bool = True) -> Path:
     """One text file, atomically (a temporary sibling, then renamed)."""
     path = Path(path)
     write_all([(path, lambda tmp: tmp.write_text(text))], force=force)
     return path
-
-
-_RECEIVED: list[int] = []
-
-
-def check_interrupted() -> None:
-    """Raise :class:`Interrupted` if a stop signal arrived (even one whose exception was
-    swallowed by a C callback); writers call it before putting anything in place."""
-    if _RECEIVED:
-        raise Interrupted(_RECEIVED[-1])
-
-
-@contextlib.contextmanager
-def signals_as_exceptions() -> Iterator[None]:
-    """Turn SIGTERM (and SIGHUP) into :class:`lensfit.errors.Interrupted` inside the block, so
-    that the ``finally`` clauses of the writers run and remove their temporary files and locks."""
-    import signal
-
-    def handler(signum, frame):
-        _RECEIVED.append(signum)  # kept: a raise inside a C callback (e.g. JAX's gc hook) is swallowed
-        raise Interrupted(signum)
-
-    previous = {}
-    for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
-        if sig is None:
-            continue
-        try:
-            previous[sig] = signal.signal(sig, handler)
-        except ValueError:  # not the main thread
-            pass
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-
-
-def run_guarded(prog: str, body: Callable[[], int],
-                known: Callable[[Exception], tuple[str, int] | None] = lambda exc: None) -> int:
-    """Run a CLI command: every failure becomes one line on stderr and a non-zero exit status.
-
-    ``known`` maps the command's own exceptions to (message, status). Then: Ctrl-C -> 130,
-    SIGTERM -> 143 (SIGHUP 129), with the writers' temporary files and locks already removed;
-    :class:`OutputError` / :class:`SpecError` / :class:`InputError` -> 2; out of memory -> 1;
-    an operating-system error -> 1 naming the file; anything unforeseen -> 70 with its type and
-    message (set ``LENSFIT_TRACEBACK=1`` to see the traceback).
-    """
-    import sys
-
-    from lensfit.errors import InputError, SpecError
-
-    interrupted = False
-    try:
-        with signals_as_exceptions():
-            code = body()
-            check_interrupted()
-            return code
-    except Interrupted as exc:
-        message, code, interrupted = (f"{exc}; temporary files removed, existing outputs unchanged", exc.exit_code,
-                                      True)
-    except KeyboardInterrupt:
-        message, code, interrupted = ("interrupted (Ctrl-C); temporary files removed, existing outputs unchanged",
-                                      130, True)
-    except Exception as exc:  # noqa: BLE001 - the one place where every failure becomes a message
-        mapped = known(exc)
-        if mapped is not None:
-            message, code = mapped
-        elif isinstance(exc, (OutputError, SpecError, InputError)):
-            message, code = str(exc), 2
-        elif isinstance(exc, MemoryError):
-            message, code = ("out of memory; use smaller or fewer images (see --max-megapixels) or a machine "
-                             "with more memory"), 1
-        elif isinstance(exc, OSError):
-            where = f"{exc.filename}: " if exc.filename else ""
-            message, code = f"{where}{exc.strerror or exc}", 1
-        else:
-            if os.environ.get("LENSFIT_TRACEBACK"):
-                raise
-            message, code = (f"internal error ({type(exc).__name__}: {exc}); please report it with the command "
-                             "line (LENSFIT_TRACEBACK=1 shows the traceback)"), 70
-    print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
-    if interrupted:
-        # Interrupted: the writers have already removed their temporary files and locks. Skip
-        # the interpreter's teardown, which can run beside an XLA computation still finishing on
-        # its own threads and crash there (seen: SIGSEGV instead of the exit status).
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    return code

@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from lensfit.outputs import run_guarded
+    from lensfit.running import run_guarded
 
     parser = build_parser()
     args = parser.parse_args(argv)

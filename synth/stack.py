@@ -16,13 +16,10 @@ replaced only with ``force=True``.
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from lensfit.errors import InputError
 from synth.render import RenderResult, quantise_16bit
 
 
@@ -91,13 +88,11 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
     replaced only with ``force`` and only when it holds nothing but a stack synth wrote (checked
     again just before the swap); its old contents are removed only then.
     """
+    from lensfit.outputs import write_folder
+
     image_format = result.image_format
 
-    out = check_out_dir(out, force)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    tmp.chmod(0o755)
-    try:
+    def fill(tmp: Path) -> None:
         for name, image in result.images.items():
             if image_format == "dng":
                 from synth.effects.mosaic import write_dng
@@ -120,22 +115,5 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
             truth["image_format"] += "; sensor DN with the black and white levels in stack.toml"
         (tmp / "truth.json").write_text(json.dumps(truth, indent=1, allow_nan=False))
         (tmp / "stack.toml").write_text(manifest_toml(result.manifest))
-        from lensfit.outputs import check_interrupted
 
-        check_interrupted()  # a stop signal, even one a C callback swallowed: nothing is put in place
-        check_out_dir(out, force)  # again: something may have been put there while rendering
-        if out.is_dir() and any(out.iterdir()):
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            out.rename(old / out.name)
-            try:
-                tmp.rename(out)
-            except BaseException:
-                (old / out.name).rename(out)  # put the old stack back
-                raise
-            shutil.rmtree(old, ignore_errors=True)  # a stack synth wrote (checked above), nothing else
-        else:
-            tmp.rename(out)  # over an empty folder, or a new name
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+    return write_folder(out, fill, force=force)

@@ -222,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from lensfit.outputs import run_guarded
+    from lensfit.running import run_guarded
 
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)

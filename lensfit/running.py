@@ -1,0 +1,100 @@
+"""Running a command: stop signals as exceptions, and every failure as one line with an exit
+status (``run_guarded``), for both programs' command lines. Outputs in flight are left whole or
+not at all (``lensfit.outputs``)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from typing import Callable, Iterator
+
+from lensfit.errors import Interrupted, OutputError
+
+
+_RECEIVED: list[int] = []
+
+
+def check_interrupted() -> None:
+    """Raise :class:`Interrupted` if a stop signal arrived (even one whose exception was
+    swallowed by a C callback); writers call it before putting anything in place."""
+    if _RECEIVED:
+        raise Interrupted(_RECEIVED[-1])
+
+
+@contextlib.contextmanager
+def signals_as_exceptions() -> Iterator[None]:
+    """Turn SIGTERM (and SIGHUP) into :class:`lensfit.errors.Interrupted` inside the block, so
+    that the ``finally`` clauses of the writers run and remove their temporary files and locks."""
+    import signal
+
+    def handler(signum, frame):
+        _RECEIVED.append(signum)  # kept: a raise inside a C callback (e.g. JAX's gc hook) is swallowed
+        raise Interrupted(signum)
+
+    previous = {}
+    for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if sig is None:
+            continue
+        try:
+            previous[sig] = signal.signal(sig, handler)
+        except ValueError:  # not the main thread
+            pass
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def run_guarded(prog: str, body: Callable[[], int],
+                known: Callable[[Exception], tuple[str, int] | None] = lambda exc: None) -> int:
+    """Run a CLI command: every failure becomes one line on stderr and a non-zero exit status.
+
+    ``known`` maps the command's own exceptions to (message, status). Then: Ctrl-C -> 130,
+    SIGTERM -> 143 (SIGHUP 129), with the writers' temporary files and locks already removed;
+    :class:`OutputError` / :class:`SpecError` / :class:`InputError` -> 2; out of memory -> 1;
+    an operating-system error -> 1 naming the file; anything unforeseen -> 70 with its type and
+    message (set ``LENSFIT_TRACEBACK=1`` to see the traceback).
+    """
+    import sys
+
+    from lensfit.errors import InputError, SpecError
+
+    interrupted = False
+    try:
+        with signals_as_exceptions():
+            code = body()
+            check_interrupted()
+            return code
+    except Interrupted as exc:
+        message, code, interrupted = (f"{exc}; temporary files removed, existing outputs unchanged", exc.exit_code,
+                                      True)
+    except KeyboardInterrupt:
+        message, code, interrupted = ("interrupted (Ctrl-C); temporary files removed, existing outputs unchanged",
+                                      130, True)
+    except Exception as exc:  # noqa: BLE001 - the one place where every failure becomes a message
+        mapped = known(exc)
+        if mapped is not None:
+            message, code = mapped
+        elif isinstance(exc, (OutputError, SpecError, InputError)):
+            message, code = str(exc), 2
+        elif isinstance(exc, MemoryError):
+            message, code = ("out of memory; use smaller or fewer images (see --max-megapixels) or a machine "
+                             "with more memory"), 1
+        elif isinstance(exc, OSError):
+            where = f"{exc.filename}: " if exc.filename else ""
+            message, code = f"{where}{exc.strerror or exc}", 1
+        else:
+            if os.environ.get("LENSFIT_TRACEBACK"):
+                raise
+            message, code = (f"internal error ({type(exc).__name__}: {exc}); please report it with the command "
+                             "line (LENSFIT_TRACEBACK=1 shows the traceback)"), 70
+    print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
+    if interrupted:
+        # Interrupted: the writers have already removed their temporary files and locks. Skip
+        # the interpreter's teardown, which can run beside an XLA computation still finishing on
+        # its own threads and crash there (seen: SIGSEGV instead of the exit status).
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
