@@ -1,41 +1,73 @@
-"""Argument checks and the float64 scope used by the numerical API.
+"""Argument checks and the numeric namespace of the optics API.
 
-The public optics functions accept Python scalars, NumPy or JAX arrays. With concrete inputs
-they validate every element and raise :class:`lensfit.errors.InputError` naming the argument;
-inside a caller's ``jax.jit`` trace values are abstract, so the checks are skipped and the
-documented valid range is the caller's responsibility.
-
-Float64 is switched on for the duration of each call only (``jax.enable_x64``), never as a side
-effect of importing the library; a call inside a caller's trace keeps the caller's setting.
+The public optics functions accept Python scalars, NumPy or JAX arrays. With NumPy or Python
+inputs they compute in NumPy float64 and return NumPy values, without importing JAX (so that
+``lensfit dof`` starts in a fraction of a second); with a JAX array among the inputs they
+compute in ``jax.numpy`` (float64 switched on for the duration of the call only, never as a
+side effect of importing the library; a call inside a caller's trace keeps the caller's
+setting) and can be traced, jitted and differentiated. With concrete inputs they validate
+every element and raise :class:`lensfit.errors.InputError` naming the argument; inside a
+caller's ``jax.jit`` trace values are abstract, so the checks are skipped and the documented
+valid range is the caller's responsibility.
 """
 
 from __future__ import annotations
 
+import contextvars
 import functools
+import sys
 from typing import Any, Callable, TypeVar
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from lensfit.errors import InputError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+#: The namespace of the call in progress (numpy, or jax.numpy for JAX inputs).
+_XP: contextvars.ContextVar[Any] = contextvars.ContextVar("lensfit_xp", default=np)
+
+
+def xp():
+    """The array namespace of the optics call in progress: ``numpy`` or ``jax.numpy``."""
+    return _XP.get()
+
+
+def _jax_array(x: Any) -> bool:
+    jax = sys.modules.get("jax")  # not imported: no JAX array can exist
+    return jax is not None and isinstance(x, (jax.Array, jax.core.Tracer))
+
 
 def _is_traced(x: Any) -> bool:
-    return isinstance(x, jax.core.Tracer)
+    jax = sys.modules.get("jax")
+    return jax is not None and isinstance(x, jax.core.Tracer)
 
 
 def float64(fn: F) -> F:
-    """Run ``fn`` with 64-bit JAX types enabled, unless called inside a trace."""
+    """Run ``fn`` in float64: NumPy for NumPy/Python inputs, ``jax.numpy`` with 64-bit types
+    for JAX inputs (unless called inside a trace)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        if any(_is_traced(a) for a in (*args, *kwargs.values())):
-            return fn(*args, **kwargs)
-        with jax.enable_x64(True):
-            return fn(*args, **kwargs)
+        values = (*args, *kwargs.values())
+        if not any(_jax_array(a) for a in values):
+            token = _XP.set(np)
+            try:
+                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                    return fn(*args, **kwargs)
+            finally:
+                _XP.reset(token)
+        import jax
+        import jax.numpy as jnp
+
+        token = _XP.set(jnp)
+        try:
+            if any(_is_traced(a) for a in values):
+                return fn(*args, **kwargs)
+            with jax.enable_x64(True):
+                return fn(*args, **kwargs)
+        finally:
+            _XP.reset(token)
 
     return wrapper  # type: ignore[return-value]
 
@@ -47,8 +79,8 @@ def arg(
     positive: bool = False,
     nonnegative: bool = False,
     allow_inf: bool = False,
-) -> jax.Array:
-    """Validate a numeric argument and return it as a float64 JAX array.
+) -> Any:
+    """Validate a numeric argument and return it as a float64 array of the call's namespace.
 
     Rules checked on concrete values: finite (or +inf where ``allow_inf``), never NaN,
     and ``> 0`` (``positive``) or ``>= 0`` (``nonnegative``).
@@ -70,6 +102,11 @@ def arg(
                 raise InputError(name, float(a[a <= 0].flat[0]), "> 0" + (" (inf allowed)" if allow_inf else ""))
             if nonnegative and (a < 0).any():
                 raise InputError(name, float(a[a < 0].flat[0]), ">= 0" + (" (inf allowed)" if allow_inf else ""))
+    if xp() is np:
+        return np.asarray(value, dtype=np.float64)
+    import jax
+    import jax.numpy as jnp
+
     return jnp.asarray(value, dtype=jnp.float64 if jax.config.jax_enable_x64 else None)
 
 

@@ -1,7 +1,8 @@
 """Thin-lens optics, implemented once for the whole project.
 
-Pure, vectorised functions of JAX arrays (anything array-like is accepted and broadcast),
-computed in float64. Symbols and units follow ``data_specs/CONVENTIONS.md``: every length is in
+Pure, vectorised functions (anything array-like is accepted and broadcast), computed in
+float64: in NumPy for Python and NumPy inputs (returning NumPy values; JAX is not imported), in
+``jax.numpy`` where an input is a JAX array (then traceable, jittable, differentiable). Symbols and units follow ``data_specs/CONVENTIONS.md``: every length is in
 millimetres, times in seconds, angles in degrees where the name ends in ``_deg``.
 
 =====================  ===========================================================
@@ -36,9 +37,9 @@ References
 
 from __future__ import annotations
 
-import jax.numpy as jnp
+import math
 
-from lensfit._checks import arg, float64, require
+from lensfit._checks import arg, float64, require, xp
 
 __all__ = [
     "FULL_FRAME_DIAGONAL_MM",
@@ -95,7 +96,7 @@ def image_distance(focal_length_mm, object_distance_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Image distance z from the lens plane, mm. ``z > f`` for a real image (d > f),
         ``z = f`` for an object at infinity, and ``z < 0`` for an object inside the focal
         length: a *virtual* image on the object's side of the lens (a magnifier).
@@ -135,7 +136,7 @@ def object_distance(focal_length_mm, image_distance_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Object distance d from the lens plane, mm. Positive for every real object;
         ``0 < d < f`` when ``z < 0`` (virtual image).
 
@@ -167,7 +168,7 @@ def sensor_distance(focal_length_mm, focus_distance_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Sensor distance s, mm, > f.
 
     Examples
@@ -195,7 +196,7 @@ def focus_distance_from_sensor(focal_length_mm, focus_distance_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Distance from the sensor plane to the plane of focus, mm. At least ``4 f``
         (reached at 1:1 magnification, ``D_s = s = 2f``).
 
@@ -223,7 +224,7 @@ def magnification(focal_length_mm, object_distance_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         ``M > 0``: real, inverted image ``M`` times the object's size (``M = 1`` at
         ``d = 2f``). ``M < 0``: virtual, upright image ``|M|`` times the object's size
         (object inside the focal length; ``|M| > 1``).
@@ -260,7 +261,7 @@ def aperture_diameter(focal_length_mm, f_number):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Aperture diameter A, mm.
 
     Examples
@@ -286,7 +287,7 @@ def f_number(focal_length_mm, aperture_diameter_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         f-number N (dimensionless).
 
     Examples
@@ -324,7 +325,7 @@ def coc_diameter_image_side(aperture_diameter_mm, sensor_distance_mm, image_dist
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         CoC diameter C on the sensor, mm (the *diameter*; the blur radius is C/2).
 
     Examples
@@ -336,7 +337,7 @@ def coc_diameter_image_side(aperture_diameter_mm, sensor_distance_mm, image_dist
     s = arg("sensor_distance_mm", sensor_distance_mm, positive=True)
     z = arg("image_distance_mm", image_distance_mm, allow_inf=True)
     require(z != 0, "image_distance_mm", z, "!= 0")
-    return A * jnp.abs(1.0 - s / z)
+    return A * xp().abs(1.0 - s / z)
 
 
 @float64
@@ -363,7 +364,7 @@ def coc_diameter_object_side(aperture_diameter_mm, sensor_distance_mm, focus_dis
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         CoC diameter C on the sensor, mm.
 
     Examples
@@ -375,7 +376,7 @@ def coc_diameter_object_side(aperture_diameter_mm, sensor_distance_mm, focus_dis
     s = arg("sensor_distance_mm", sensor_distance_mm, positive=True)
     D = arg("focus_distance_mm", focus_distance_mm, positive=True, allow_inf=True)
     d = arg("object_distance_mm", object_distance_mm, positive=True, allow_inf=True)
-    return A * s * jnp.abs(1.0 / D - 1.0 / d)
+    return A * s * xp().abs(1.0 / D - 1.0 / d)
 
 
 @float64
@@ -398,7 +399,7 @@ def coc_diameter(focal_length_mm, f_number, focus_distance_mm, object_distance_m
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         CoC diameter on the sensor, mm. Zero at ``d = D_s``; tends to ``A s / D_s`` as
         ``d -> inf``.
 
@@ -413,7 +414,7 @@ def coc_diameter(focal_length_mm, f_number, focus_distance_mm, object_distance_m
     d = arg("object_distance_mm", object_distance_mm, positive=True, allow_inf=True)
     require(D > f, "focus_distance_mm", D, "> focal_length_mm",
             "a camera can only focus on objects beyond the focal length")
-    return (f / N) * _conjugate(f, D) * jnp.abs(1.0 / D - 1.0 / d)
+    return (f / N) * _conjugate(f, D) * xp().abs(1.0 / D - 1.0 / d)
 
 
 # --------------------------------------------------------------------------- depth of field
@@ -449,7 +450,7 @@ def hyperfocal_distance(focal_length_mm, f_number, acceptable_coc_diameter_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Hyperfocal distance H from the lens plane, mm. Focused at H, the near limit is H/2.
 
     Examples
@@ -485,7 +486,7 @@ def near_limit(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_dist
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Near limit D_N from the lens plane, mm; always finite and in ``(f, D_s)``.
 
     Examples
@@ -521,7 +522,7 @@ def far_limit(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_dista
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Far limit D_F from the lens plane, mm; ``inf`` exactly when ``D_s >= H``.
 
     Examples
@@ -535,8 +536,8 @@ def far_limit(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_dista
     H = f * f / (N * C) + f
     u = 1.0 / D
     beyond = D >= H
-    denom = jnp.where(beyond, 1.0, f * f * u - N * C * (1.0 - f * u))
-    return jnp.where(beyond, jnp.inf, f * f / denom)
+    denom = xp().where(beyond, 1.0, f * f * u - N * C * (1.0 - f * u))
+    return xp().where(beyond, xp().inf, f * f / denom)
 
 
 @float64
@@ -555,7 +556,7 @@ def depth_of_field(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Depth of field, mm; ``inf`` exactly when ``D_s >= H`` (hyperfocal).
 
     Examples
@@ -585,7 +586,7 @@ def depth_of_field_approx(focal_length_mm, f_number, acceptable_coc_diameter_mm,
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Approximate depth of field, mm (finite even beyond the hyperfocal distance, where
         it is meaningless).
 
@@ -595,7 +596,7 @@ def depth_of_field_approx(focal_length_mm, f_number, acceptable_coc_diameter_mm,
     1728.0
     """
     f, N, C, D = _dof_args(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_distance_mm)
-    require(jnp.isfinite(D), "focus_distance_mm", D, "finite",
+    require(xp().isfinite(D), "focus_distance_mm", D, "finite",
             "the approximation diverges at infinity; use depth_of_field")
     return 2.0 * N * C * D * D / (f * f)
 
@@ -611,7 +612,7 @@ def default_coc_diameter(sensor_width_mm, sensor_height_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         CoC diameter, mm (0.0288 mm for 36 x 24 mm, often rounded to 0.03 mm).
 
     References
@@ -625,14 +626,14 @@ def default_coc_diameter(sensor_width_mm, sensor_height_mm):
     """
     w = arg("sensor_width_mm", sensor_width_mm, positive=True)
     h = arg("sensor_height_mm", sensor_height_mm, positive=True)
-    return jnp.hypot(w, h) / 1500.0
+    return xp().hypot(w, h) / 1500.0
 
 
 # --------------------------------------------------------------------------- sensor and field of view
 
 
 @float64
-def field_of_view_deg(sensor_extent_mm, focal_length_mm, focus_distance_mm=jnp.inf):
+def field_of_view_deg(sensor_extent_mm, focal_length_mm, focus_distance_mm=math.inf):
     """Angle of view across a sensor extent (width, height or diagonal).
 
     .. math:: \\mathrm{FOV} = 2 \\arctan\\frac{w}{2 s}, \\qquad s = \\frac{f D_s}{D_s - f}
@@ -651,7 +652,7 @@ def field_of_view_deg(sensor_extent_mm, focal_length_mm, focus_distance_mm=jnp.i
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Full angle of view, degrees, in (0, 180).
 
     Examples
@@ -661,7 +662,7 @@ def field_of_view_deg(sensor_extent_mm, focal_length_mm, focus_distance_mm=jnp.i
     """
     w = arg("sensor_extent_mm", sensor_extent_mm, positive=True)
     s = sensor_distance(focal_length_mm, focus_distance_mm)
-    return jnp.degrees(2.0 * jnp.arctan(w / (2.0 * s)))
+    return xp().degrees(2.0 * xp().arctan(w / (2.0 * s)))
 
 
 @float64
@@ -675,7 +676,7 @@ def crop_factor(sensor_width_mm, sensor_height_mm):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Crop factor (1 for 36 x 24 mm, about 1.53 for APS-C 23.6 x 15.6 mm).
 
     Examples
@@ -685,7 +686,7 @@ def crop_factor(sensor_width_mm, sensor_height_mm):
     """
     w = arg("sensor_width_mm", sensor_width_mm, positive=True)
     h = arg("sensor_height_mm", sensor_height_mm, positive=True)
-    return FULL_FRAME_DIAGONAL_MM / jnp.hypot(w, h)
+    return FULL_FRAME_DIAGONAL_MM / xp().hypot(w, h)
 
 
 @float64
@@ -702,7 +703,7 @@ def equivalent_focal_length_35mm(focal_length_mm, crop_factor):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         Equivalent focal length, mm.
 
     Examples
@@ -738,7 +739,7 @@ def exposure_value(f_number, shutter_s, iso=100.0):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         EV_100 (stops).
 
     References
@@ -755,7 +756,7 @@ def exposure_value(f_number, shutter_s, iso=100.0):
     N = arg("f_number", f_number, positive=True)
     t = arg("shutter_s", shutter_s, positive=True)
     S = arg("iso", iso, positive=True)
-    return jnp.log2(N * N / t) - jnp.log2(S / 100.0)
+    return xp().log2(N * N / t) - xp().log2(S / 100.0)
 
 
 @float64
@@ -773,7 +774,7 @@ def equivalent_shutter_s(f_number, shutter_s, iso, new_f_number, new_iso):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         New shutter time t', seconds.
 
     Examples
@@ -804,7 +805,7 @@ def equivalent_f_number(f_number, shutter_s, iso, new_shutter_s, new_iso):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         New f-number N'.
 
     Examples
@@ -817,7 +818,7 @@ def equivalent_f_number(f_number, shutter_s, iso, new_shutter_s, new_iso):
     S = arg("iso", iso, positive=True)
     t2 = arg("new_shutter_s", new_shutter_s, positive=True)
     S2 = arg("new_iso", new_iso, positive=True)
-    return N * jnp.sqrt((t2 / t) * (S2 / S))
+    return N * xp().sqrt((t2 / t) * (S2 / S))
 
 
 @float64
@@ -835,7 +836,7 @@ def equivalent_iso(f_number, shutter_s, iso, new_f_number, new_shutter_s):
 
     Returns
     -------
-    jax.Array
+    numpy.ndarray or jax.Array (as the inputs)
         New ISO S'.
 
     Examples
