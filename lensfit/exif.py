@@ -24,8 +24,7 @@ class CameraRecord:
     """A photo's EXIF in lensfit's units (None where the file does not say).
 
     ``focal_plane_pitch_mm``: the sensor pixel pitch from FocalPlaneXResolution, for an image
-    ``reference_width_px`` wide (the width the resolution refers to: the EXIF PixelXDimension
-    or the main image's width). ``focus_distance_source``: ``"EXIF SubjectDistance"`` or
+    ``reference_width_px`` wide (the EXIF PixelXDimension, where the file states it). ``focus_distance_source``: ``"EXIF SubjectDistance"`` or
     ``"Canon maker note"``.
     """
 
@@ -111,7 +110,9 @@ def record_from_tags(tags: dict[str, Any]) -> CameraRecord:
         pitch = unit_mm / res
         if not (1e-4 <= pitch <= 1.0):  # a placeholder, not a sensor
             pitch = None
-    width = _number(_get(tags, "ExifImageWidth")) or _number(tags.get("Image ImageWidth"))
+    # The width FocalPlaneXResolution refers to (EXIF PixelXDimension). Not IFD0's ImageWidth: in
+    # many RAW files IFD0 holds a thumbnail.
+    width = _number(tags.get("EXIF ExifImageWidth"))
     return CameraRecord(
         make=_text(_get(tags, "Make")), model=_text(_get(tags, "Model")),
         focal_length_mm=focal if focal and focal > 0 else None,

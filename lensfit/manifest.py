@@ -114,8 +114,8 @@ def _round(x: float | None, digits: int = 4) -> float | None:
     return None if x is None else float(f"{x:.{digits}g}")
 
 
-def _pitch(records: list[CameraRecord], width_px: int, pixel_pitch_mm: float | None, sensor: str | None,
-           sensor_width_mm: float | None, folder: Path) -> tuple[dict[str, Any], str]:
+def _pitch(records: list[CameraRecord], files: list[Path], width_px: int, pixel_pitch_mm: float | None,
+           sensor: str | None, sensor_width_mm: float | None, folder: Path) -> tuple[dict[str, Any], str]:
     """stack.toml's [camera] table and where its pitch comes from."""
     given = {k: v for k, v in (("pixel_pitch_mm", pixel_pitch_mm), ("sensor", sensor),
                                ("sensor_width_mm", sensor_width_mm)) if v is not None}
@@ -132,11 +132,12 @@ def _pitch(records: list[CameraRecord], width_px: int, pixel_pitch_mm: float | N
 
         return {"sensor": sensor_format(sensor).name}, "given"
     pitches = []
-    for r in records:
+    for r, f in zip(records, files):
         if r.focal_plane_pitch_mm is None:
             continue
         p = r.focal_plane_pitch_mm
-        if r.reference_width_px and abs(r.reference_width_px / width_px - 1) > _RESIZED:
+        resizable = f.suffix.lower() in RASTER_SUFFIXES  # RAW files are never resized
+        if resizable and r.reference_width_px and abs(r.reference_width_px / width_px - 1) > _RESIZED:
             p *= r.reference_width_px / width_px  # a resized copy: the same sensor, fewer pixels
         pitches.append(p)
     if pitches:
@@ -222,7 +223,7 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     if skipped:
         notes.append(f"{len(skipped)} {'JPEG' if prefer == 'raw' else 'RAW'} file(s) of RAW + JPEG pairs left out "
                      f"(e.g. {skipped[0]}); --prefer {'jpeg' if prefer == 'raw' else 'raw'} lists those instead")
-    camera, pitch_source = _pitch(records, width, pixel_pitch_mm, sensor, sensor_width_mm, folder)
+    camera, pitch_source = _pitch(records, files, width, pixel_pitch_mm, sensor, sensor_width_mm, folder)
     notes.append(f"pixel pitch: {pitch_source}")
     targets, target_note = _targets(Path(target_file) if target_file is not None else None)
     if target_note:

@@ -227,3 +227,12 @@ def test_focus_distance_from_canon_maker_note_and_infinity():
     r = record_from_tags({"EXIF SubjectDistance": 4294967295.0, "MakerNote SubjectDistance": 250})
     assert r.focus_distance_mm == float("inf")
     assert record_from_tags({"EXIF SubjectDistance": 0.0}).focus_distance_mm is None
+
+
+def test_a_raw_files_thumbnail_width_is_not_the_pitchs_reference():
+    from lensfit.exif import record_from_tags
+
+    # NEF-style: IFD0 is a 160 px thumbnail; the pitch must not be rescaled to it
+    r = record_from_tags({"Image ImageWidth": 160, "EXIF FocalPlaneXResolution": 1000.0,
+                          "EXIF FocalPlaneResolutionUnit": 3})
+    assert r.focal_plane_pitch_mm == pytest.approx(0.01) and r.reference_width_px is None
