@@ -113,7 +113,7 @@ def render_convolve(shot: Shot, background: float, supersampling: int, *, camera
             from synth.effects.aperture import kernel as aperture_kernel
 
             kernel = aperture_kernel(aperture, coc * S)
-            if 1.0 / z > cam.inverse_focus_distance:
+            if 1.0 / z > cam.inverse_focus_distance_per_mm:
                 kernel = kernel[::-1, ::-1]  # in front of the focus plane the spot is the aperture turned 180 deg
         reach = kernel.shape[0] // 2  # in sub-pixels
         reach_px = int(math.ceil(reach / S)) + 1

@@ -99,7 +99,7 @@ class ThinLensCamera:
         return float(optics.aperture_diameter(self.focal_length_mm, self.f_number))
 
     @property
-    def inverse_focus_distance(self) -> float:
+    def inverse_focus_distance_per_mm(self) -> float:
         """1/D_s in 1/mm (0 for focus at infinity)."""
         return 1.0 / self.focus_distance_mm
 
@@ -141,7 +141,7 @@ class ChannelCamera(ThinLensCamera):
 
     channel_sensor_distance_mm: float = 0.0
     channel_aperture_diameter_mm: float = 0.0
-    channel_inverse_focus_per_mm: float = 0.0
+    channel_inverse_focus_distance_per_mm: float = 0.0
 
     @classmethod
     def for_channel(cls, reference: ThinLensCamera, focal_length_mm: float) -> "ChannelCamera":
@@ -152,7 +152,7 @@ class ChannelCamera(ThinLensCamera):
                    focus_distance_mm=(1.0 / inv) if inv != 0 else np.inf,
                    pixel_pitch_mm=reference.pixel_pitch_mm, width_px=reference.width_px,
                    height_px=reference.height_px, channel_sensor_distance_mm=s,
-                   channel_aperture_diameter_mm=A, channel_inverse_focus_per_mm=inv)
+                   channel_aperture_diameter_mm=A, channel_inverse_focus_distance_per_mm=inv)
 
     @property
     def sensor_distance_mm(self) -> float:  # type: ignore[override]
@@ -163,15 +163,15 @@ class ChannelCamera(ThinLensCamera):
         return self.channel_aperture_diameter_mm
 
     @property
-    def inverse_focus_distance(self) -> float:
-        return self.channel_inverse_focus_per_mm
+    def inverse_focus_distance_per_mm(self) -> float:
+        return self.channel_inverse_focus_distance_per_mm
 
     def coc_diameter_px(self, depth_mm) -> np.ndarray:
         z = np.asarray(depth_mm, dtype=np.float64)
         with np.errstate(divide="ignore"):
             inv_z = np.where(np.isinf(z), 0.0, 1.0 / z)
         return (self.channel_aperture_diameter_mm * self.channel_sensor_distance_mm
-                * np.abs(self.channel_inverse_focus_per_mm - inv_z) / self.pixel_pitch_mm)
+                * np.abs(self.channel_inverse_focus_distance_per_mm - inv_z) / self.pixel_pitch_mm)
 
 
 @dataclass(frozen=True)
@@ -253,7 +253,7 @@ class CompoundLensCamera(ThinLensCamera):
         return polychromatic_best_focus_image_z(rxs, z_obj)
 
     @functools.cached_property
-    def paraxial_inverse_focus_distance(self) -> float:
+    def paraxial_inverse_focus_distance_per_mm(self) -> float:
         """1/distance (1/mm, from the entrance pupil) of the object whose paraxial image is on the
         sensor; negative when that object is virtual (the sensor in front of the rear focal point,
         as the best focus for infinity is)."""
@@ -271,14 +271,14 @@ class CompoundLensCamera(ThinLensCamera):
         with np.errstate(divide="ignore"):
             inv_z = np.where(np.isinf(z), 0.0, 1.0 / z)
         return self.aperture_diameter_mm * self.sensor_distance_mm * np.abs(
-            self.inverse_focus_distance - inv_z) / self.pixel_pitch_mm
+            self.inverse_focus_distance_per_mm - inv_z) / self.pixel_pitch_mm
 
     def truth(self) -> dict[str, Any]:
         """Thick-lens entries of truth.json's setting: distances from the entrance pupil; the
         exit pupil to sensor distance as ``sensor_distance_mm``; the paraxial data."""
         para = self.paraxial
         from_sensor = self.focus_distance_mm + (self.sensor_z_mm - para.entrance_pupil_z_mm)
-        inv_paraxial = self.paraxial_inverse_focus_distance
+        inv_paraxial = self.paraxial_inverse_focus_distance_per_mm
         from synth.lens import real_entrance_pupil_diameter
 
         real_epd = real_entrance_pupil_diameter(self.stopped, para.entrance_pupil_z_mm - self.focus_distance_mm)

@@ -82,9 +82,9 @@ def thin_lens_ray(pixel_x, pixel_y, lens_x_mm, lens_y_mm, cam):
     (lens_x + z dx, lens_y + z dy, z); at z = D_s every lens point of one pixel meets the
     chief ray's point ((x - cx) p D_s / s, (y - cy) p D_s / s).
     """
-    cx, cy, scale, inv_focus = cam[0], cam[1], cam[2], cam[3]
-    dx = (pixel_x - cx) * scale - lens_x_mm * inv_focus
-    dy = (pixel_y - cy) * scale - lens_y_mm * inv_focus
+    cx, cy, scale, inverse_focus_distance_per_mm = cam[0], cam[1], cam[2], cam[3]
+    dx = (pixel_x - cx) * scale - lens_x_mm * inverse_focus_distance_per_mm
+    dy = (pixel_y - cy) * scale - lens_y_mm * inverse_focus_distance_per_mm
     return dx, dy
 
 
@@ -248,7 +248,7 @@ def scene_arrays(shot: Shot):
 def camera_array(cam):
     cx, cy = cam.principal_point_px
     if getattr(cam, "prescription", None) is None:
-        return jnp.asarray([cx, cy, cam.pixel_pitch_mm / cam.sensor_distance_mm, cam.inverse_focus_distance,
+        return jnp.asarray([cx, cy, cam.pixel_pitch_mm / cam.sensor_distance_mm, cam.inverse_focus_distance_per_mm,
                             cam.aperture_diameter_mm], jnp.float32)
     return jnp.asarray(compound_camera_values(cam), jnp.float32)
 
@@ -282,7 +282,7 @@ def compound_camera_values(cam) -> list[float]:
     _, _, passed, _ = trace(reverse(cam.stopped), (np.zeros_like(tx), np.zeros_like(tx), z0),
                             (tx / norm, ty / norm, -dz / norm))
     scale = COMPOUND_WHITE / max(float(passed.mean()), 1e-6)
-    return [cx, cy, cam.pixel_pitch_mm, cam.inverse_focus_distance, cam.aperture_diameter_mm, cam.sensor_z_mm,
+    return [cx, cy, cam.pixel_pitch_mm, cam.inverse_focus_distance_per_mm, cam.aperture_diameter_mm, cam.sensor_z_mm,
             cam.scene_origin_z_mm, para.exit_pupil_z_mm, r_s, scale, z_last]
 
 

@@ -270,7 +270,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         settings.setdefault(shot.setting, {
             "f_number": cam.f_number,
             "focus_distance_mm": _finite_or_none(cam.focus_distance_mm),
-            "inverse_focus_distance_per_mm": cam.inverse_focus_distance,
+            "inverse_focus_distance_per_mm": cam.inverse_focus_distance_per_mm,
             "sensor_distance_mm": cam.sensor_distance_mm,
             "focus_distance_from_sensor_mm": _finite_or_none(cam.focus_distance_mm + cam.sensor_distance_mm),
             "aperture_diameter_mm": cam.aperture_diameter_mm,

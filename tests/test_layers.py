@@ -144,6 +144,8 @@ NOT_HOUSE_WORDS = {
     r"\bexposure_time\w*|\bshutter_time\w*|\bshutter_speed\w*": "shutter_s",
     r"\bfocus_dist\b|\bfocus_distance_m\b|\bsubject_distance_mm\b": "focus_distance_mm",
     r"\baperture_radius\b(?!_)": "aperture_diameter_mm or ..._radius_...",
+    r"^inv_d$|^inv_focus$|^inverse_focus_per_mm$|^inverse_focus_distance$|^channel_inverse_focus_per_mm$":
+        "inverse_focus_distance_per_mm (the fit's parameter: inv_focus_per_m, dioptres)",
 }
 
 

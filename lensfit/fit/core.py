@@ -160,7 +160,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     for k in range(m):
         x = min(verts[k], 0.9 * P0 / f0)
         s = 1 / (1 / f0 - x / P0)
-        theta[at.inv_d(k)] = 1000 * x
+        theta[at.inv_focus_per_m(k)] = 1000 * x
         theta[at.log_n(k)] = math.log(f0 * s / (slopes[k] * p))
 
     # ---- free parameters
@@ -171,7 +171,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         # nominal value and reported as unknown.
         free[0] = False
     for k in blocked:
-        free[[at.inv_d(k), at.log_n(k), at.floor(k)]] = False
+        free[[at.inv_focus_per_m(k), at.log_n(k), at.floor(k)]] = False
     if fixed_floor:
         free[at.floor()] = False
     free_idx = np.flatnonzero(free)

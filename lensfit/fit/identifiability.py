@@ -108,8 +108,8 @@ def _second_vertex(data, theta, full_cov, weights, blocked: dict, fixed_floor: b
         sel = data.setting == k
         grid, chi2, _, _ = _vertex_profile(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], weights[sel],
                                            not fixed_floor, blur_floor_px or 0.0)
-        x_fit = theta[at.inv_d(k)] / 1000.0
-        sd_x = math.sqrt(max(full_cov[at.inv_d(k), at.inv_d(k)], 0.0)) / 1000.0
+        x_fit = theta[at.inv_focus_per_m(k)] / 1000.0
+        sd_x = math.sqrt(max(full_cov[at.inv_focus_per_m(k), at.inv_focus_per_m(k)], 0.0)) / 1000.0
         far = np.abs(grid - x_fit) > max(5 * sd_x, 0.02 * np.ptp(data.w_mean[sel]))
         if far.any() and chi2[far].min() < chi2.min() + 9.0 * scale2:
             alt = grid[far][np.argmin(chi2[far])]

@@ -12,7 +12,7 @@ from lensfit.fit.constants import BLUR_POWER_MEAN, _EPS_PX, _NODES_W
 
 class Layout(NamedTuple):
     """Where each parameter sits in the solver's flat vector, for ``m`` settings: ``log f``;
-    per setting ``k`` the inverse focus distance in dioptres (``inv_d(k)``), ``log N``
+    per setting ``k`` the inverse focus distance in dioptres (``inv_focus_per_m(k)``), ``log N``
     (``log_n(k)``) and the blur floor in px (``floor(k)``); ``log P`` last. Without ``k``, the
     slice of all settings."""
 
@@ -24,7 +24,7 @@ class Layout(NamedTuple):
     def size(self) -> int:
         return 2 + 3 * self.m
 
-    def inv_d(self, k: int | None = None):
+    def inv_focus_per_m(self, k: int | None = None):
         return slice(1, 1 + self.m) if k is None else 1 + k
 
     def log_n(self, k: int | None = None):
@@ -41,7 +41,7 @@ class Layout(NamedTuple):
 def _unpack(theta, m):
     """(log f, inverse focus distances in dioptres, log N, floors in px, log P) from the vector."""
     at = Layout(m)
-    return theta[at.LOG_F], theta[at.inv_d()], theta[at.log_n()], theta[at.floor()], theta[at.log_p]
+    return theta[at.LOG_F], theta[at.inv_focus_per_m()], theta[at.log_n()], theta[at.floor()], theta[at.log_p]
 
 
 def _size(m: int) -> int:
@@ -68,9 +68,9 @@ def _model(theta, m, setting, w_nodes, pitch):
     """Blur diameter in px of each sample (JAX)."""
     import jax.numpy as jnp
 
-    log_f, inv_d, log_n, floor, log_p = _unpack(theta, m)
+    log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(theta, m)
     f = jnp.exp(log_f)
-    x = inv_d / 1000.0  # 1/mm
+    x = inv_focus_per_m / 1000.0  # 1/mm
     s = _pinhole_distance(jnp, f, x, jnp.exp(log_p))
     slope_px = f * s / jnp.exp(log_n) / pitch  # K/p = A S / p
     k = setting
@@ -79,9 +79,9 @@ def _model(theta, m, setting, w_nodes, pitch):
 
 def _model_np(theta, m, k, w_nodes, pitch):
     """The same for the samples of setting ``k`` (NumPy)."""
-    log_f, inv_d, log_n, floor, log_p = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
+    log_f, inv_focus_per_m, log_n, floor, log_p = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
     f = math.exp(log_f)
-    x = inv_d[k] / 1000.0
+    x = inv_focus_per_m[k] / 1000.0
     s = float(_pinhole_distance(np, f, x, math.exp(log_p)))
     n = len(w_nodes)
     return _edge_blur(np, np.full(n, f * s / math.exp(log_n[k]) / pitch), np.full(n, x), w_nodes,

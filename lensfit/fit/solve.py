@@ -54,11 +54,12 @@ def _solver(m: int):
     def quantities(t):
         import jax.numpy as jnp
 
-        log_f, inv_d, log_n, floor, log_p = _unpack(t, m)
+        log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(t, m)
         f = jnp.exp(log_f)
-        s = _pinhole_distance(jnp, f, inv_d / 1000.0, jnp.exp(log_p))
+        s = _pinhole_distance(jnp, f, inv_focus_per_m / 1000.0, jnp.exp(log_p))
         return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
-                "log_K": log_f + jnp.log(s) - log_n, "inv_d": inv_d, "floor": floor, "s": s, "N": jnp.exp(log_n),
+                "log_K": log_f + jnp.log(s) - log_n, "inv_focus_per_m": inv_focus_per_m, "floor": floor, "s": s,
+                "N": jnp.exp(log_n),
                 "f": f, "log_P": log_p, "log_sx": log_p + jnp.log(s)}
 
     @jax.jit

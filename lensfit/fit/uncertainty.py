@@ -123,16 +123,17 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
         out: dict[str, Estimate] = {}
         sel = data.setting == k
         why = blocked.get(k)
-        inv_d, s_inv = float(q["inv_d"][k]), sd("inv_d", k)
+        inv_focus_per_m, s_inv = float(q["inv_focus_per_m"][k]), sd("inv_focus_per_m", k)
         w = data.w_mean[sel] * 1000.0
         w_span = float(w.max() - w.min()) if sel.any() else 0.0
         if why is None:
             name = f"inv_focus_per_m[{label}]"
             if name in weak:
                 why = f"the focus distance of setting {label!r} is degenerate with other parameters"
-            elif s_inv > 0.25 * max(w_span, 1e-12) and s_inv > MAX_RELATIVE_SIGMA * abs(inv_d):
+            elif s_inv > 0.25 * max(w_span, 1e-12) and s_inv > MAX_RELATIVE_SIGMA * abs(inv_focus_per_m):
                 why = (f"the focus distance of setting {label!r} is poorly located (inverse distance 1 sigma "
-                       f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m){_side_hint(w, inv_d)}: add targets "
+                       f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m)"
+                       f"{_side_hint(w, inv_focus_per_m)}: add targets "
                        "on the other side of the focus distance, or spread them over a wider range of distances")
         # Focus distance (lens plane) and the inverse distance.
         if why:
@@ -141,24 +142,25 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     out[qn] = Estimate(None, reason=why)
             reasons.append(f"settings.{label}: {why}")
         else:
-            lo95, hi95 = inv_d - z[1] * s_inv, inv_d + z[1] * s_inv
-            lo68, hi68 = inv_d - z[0] * s_inv, inv_d + z[0] * s_inv
-            out["inverse_focus_distance_per_m"] = Estimate(inv_d, s_inv, (lo68, hi68), (lo95, hi95))
+            lo95, hi95 = inv_focus_per_m - z[1] * s_inv, inv_focus_per_m + z[1] * s_inv
+            lo68, hi68 = inv_focus_per_m - z[0] * s_inv, inv_focus_per_m + z[0] * s_inv
+            out["inverse_focus_distance_per_m"] = Estimate(inv_focus_per_m, s_inv, (lo68, hi68), (lo95, hi95))
 
             def dist(lo, hi):  # an inverse-distance interval as a distance interval (None = infinity)
                 return (1000.0 / hi if hi > 0 else None, 1000.0 / lo if lo > 0 else None)
 
             s_val = float(q["s"][k])
-            if inv_d > 0:
-                dval = 1000.0 / inv_d
-                out["focus_distance_mm"] = Estimate(dval, dval * s_inv / inv_d, dist(lo68, hi68), dist(lo95, hi95))
+            if inv_focus_per_m > 0:
+                dval = 1000.0 / inv_focus_per_m
+                out["focus_distance_mm"] = Estimate(dval, dval * s_inv / inv_focus_per_m, dist(lo68, hi68),
+                                                    dist(lo95, hi95))
                 ds = out["focus_distance_mm"]
                 out["focus_distance_from_sensor_mm"] = Estimate(
                     dval + s_val, ds.sigma, tuple(None if v is None else v + s_val for v in ds.ci68),
                     tuple(None if v is None else v + s_val for v in ds.ci95)) if thin else Estimate(
                     None, reason=_FROM_SENSOR_UNKNOWN)
             else:
-                note = (f"focus at infinity within the uncertainty (inverse focus distance {inv_d:.3g} +- "
+                note = (f"focus at infinity within the uncertainty (inverse focus distance {inv_focus_per_m:.3g} +- "
                         f"{s_inv:.2g} /m)")
                 out["focus_distance_mm"] = Estimate(None, None, dist(lo68, hi68), dist(lo95, hi95), note, True)
                 out["focus_distance_from_sensor_mm"] = (Estimate(None, None, None, None, note, True) if thin
@@ -214,7 +216,7 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
     theta[at.LOG_F] = math.log(focal_length_mm)
     for k, label in enumerate(data.labels):
         n_true, d_true = settings[label]
-        theta[at.inv_d(k)] = 0.0 if math.isinf(d_true) else 1000.0 / d_true
+        theta[at.inv_focus_per_m(k)] = 0.0 if math.isinf(d_true) else 1000.0 / d_true
         theta[at.log_n(k)] = math.log(n_true)
     free_idx = setup["free_idx"]
     with jax.enable_x64(True):
@@ -232,11 +234,11 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
 
     out = {}
     for k, label in enumerate(data.labels):
-        free_here = {at.inv_d(k), at.log_n(k)} <= set(int(i) for i in free_idx)
-        v = float(np.asarray(values["inv_d"])[k])
+        free_here = {at.inv_focus_per_m(k), at.log_n(k)} <= set(int(i) for i in free_idx)
+        v = float(np.asarray(values["inv_focus_per_m"])[k])
         out[label] = {
             "focal_length_mm": focal_length_mm * sd("log_f") if 0 in free_idx else None,
             "f_number": settings[label][0] * sd("log_N", k) if free_here else None,
-            "focus_distance_mm": (1000.0 * sd("inv_d", k) / v**2 if v > 0 else None) if free_here else None,
+            "focus_distance_mm": (1000.0 * sd("inv_focus_per_m", k) / v**2 if v > 0 else None) if free_here else None,
         }
     return out

@@ -60,6 +60,7 @@ class ChromaticAberration:
         return {"channels": list(CHANNELS), "focal_shift_mm": list(self.focal_shift_mm),
                 "magnification": list(self.magnification),
                 "channel_focal_length_mm": [c.focal_length_mm for c in cams],
-                "channel_inverse_focus_distance_per_mm": [c.inverse_focus_distance for c in cams],
-                "channel_focus_distance_mm": [1.0 / c.inverse_focus_distance if c.inverse_focus_distance > 0 else None
+                "channel_inverse_focus_distance_per_mm": [c.inverse_focus_distance_per_mm for c in cams],
+                "channel_focus_distance_mm": [1.0 / c.inverse_focus_distance_per_mm
+                                              if c.inverse_focus_distance_per_mm > 0 else None
                                               for c in cams]}

@@ -91,11 +91,11 @@ def circle_overlap_area(r1: float, r2: float, d: float) -> float:
 
 
 def clear_fraction(sensor_offset_mm: float, params: Vignetting, aperture_diameter_mm: float,
-                   sensor_distance_mm: float, inverse_focus_per_mm: float) -> float:
+                   sensor_distance_mm: float, inverse_focus_distance_per_mm: float) -> float:
     """Fraction of the circular pupil whose rays pass the front stop, for a sensor point
     ``sensor_offset_mm`` from the axis (the closed form behind the cat's eye)."""
     L, rad = params.front_stop()
-    shrink = 1.0 - L * inverse_focus_per_mm
+    shrink = 1.0 - L * inverse_focus_distance_per_mm
     centre = sensor_offset_mm * L / sensor_distance_mm / shrink
     a = 0.5 * aperture_diameter_mm
     return circle_overlap_area(a, rad / shrink, centre) / (math.pi * a * a)
