@@ -61,7 +61,9 @@ def _init_command(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else folder / "stack.toml"
     if out.suffix.lower() != ".toml":
         raise CliError(f"--out {out}: give a .toml file name (lensfit reads stack.toml)")
-    if folder.is_dir() and out.parent.resolve() != folder.resolve():
+    if not folder.is_dir():
+        raise CliError(f"PHOTOS_DIR {folder}: no such folder; give the folder that holds the photos of the target")
+    if out.parent.resolve() != folder.resolve():
         raise CliError(f"--out {out}: write it into {folder} (a manifest names its images relative to itself), "
                        f"e.g. --out {folder / 'stack-jpeg.toml'}")
     try:
