@@ -12,6 +12,7 @@ from lensfit.limits import RENDER_MEMORY_BYTES, format_bytes
 from synth.convolve import blurred_footprint_px, convolve_bytes
 from synth.raytrace import BYTES_PER_SAMPLE, raytrace_bytes
 from synth.effects import Effects
+from synth.effects.stages import wanted_stages, working_f_number
 from synth.scene import Scene, Shot
 
 
@@ -156,9 +157,8 @@ def _check_memory(shot: Shot, method: str, spp: int, supersampling: int, effects
 
 
 def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[tuple[str, float]]:
-    """(stage, estimated seconds) in pipeline order; only the effects the scene calls for."""
-    from synth.effects import diffraction, exposure, noise
-
+    """(stage, estimated seconds) in pipeline order; only the effects the scene calls for (the
+    stages after the geometric render describe themselves: ``synth.effects.stages``)."""
     fx, cam = scene.effects, shot.camera
     W, H, C = cam.width_px, cam.height_px, fx.channels
     pixels = W * H
@@ -176,34 +176,9 @@ def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[t
         detail = {"polygon": f"{a.blades} blades, {a.rotation_deg:g} deg", "anamorphic": f"squeeze {a.squeeze:g}",
                   "circle": "circle"}[a.shape]
         out.append((f"aperture ({detail}, in the {method} stage)", 0.0))
-    if fx.diffraction is not None:
-        waves = "/".join(f"{w:g}" for w in fx.diffraction.wavelength_nm)
-        out.append((f"diffraction (Airy, {waves} nm)", diffraction.seconds(W, H, C)))
-    if fx.vignetting is not None:
-        v = fx.vignetting
-        parts = (["cos^4"] if v.natural else []) + (["front stop in the ray tracer"] if v.optical else [])
-        out.append((f"vignetting ({', '.join(parts) or 'none'})", 5e-9 * pixels * C if v.natural else 0.0))
-    lateral = fx.chromatic_aberration is not None and fx.chromatic_aberration.lateral
-    if fx.distortion is not None and method == "raytrace":
-        out.append(("distortion (exact, in the ray tracer)", 4e-7 * pixels))
-    if lateral or (fx.distortion is not None and method != "raytrace"):
-        name = "lateral CA" if method == "raytrace" or fx.distortion is None else (
-            "distortion" + (" + lateral CA" if lateral else ""))
-        out.append((f"{name} (cubic resampling)", 1.5e-7 * pixels * C
-                    + (4e-7 * pixels if fx.distortion is not None and method != "raytrace" else 0.0)))
-    if fx.chromatic_aberration is not None and fx.chromatic_aberration.longitudinal:
-        out.append(("chromatic_aberration (longitudinal: per-channel focus, in the defocus stage)", 0.0))
-    if fx.exposure is not None:
-        e = fx.exposure.for_shot(shot.shutter_s, shot.iso)
-        iso = e.iso if e.iso is not None else fx.sensor.base_iso
-        out.append((f"exposure ({e.shutter_s:g} s, ISO {iso:g}, {fx.sensor.name})", exposure.seconds(W, H)))
-    if fx.mosaic is not None:
-        out.append((f"mosaic ({fx.mosaic.pattern})", 1e-8 * pixels))
-    if fx.noise is not None:
-        out.append(("noise (shot + read)", noise.seconds(W, H)))
-    if fx.exposure is not None:
-        out.append((f"readout ({fx.sensor.bit_depth}-bit DN)", 5e-9 * pixels))
-    else:
+    for stage in wanted_stages(fx, method):
+        out += stage.describe(scene, shot, method)
+    if fx.exposure is None:
         out.append(("quantise (16-bit)" if scene.render.format != "float-tiff" else "store (float32)", 1e-8 * pixels * C))
     return out
 
@@ -220,8 +195,3 @@ def plan(scene: Scene) -> list[ShotPlan]:
         out.append(ShotPlan(shot, method, exact, reason, tuple(n for n, _ in stages), sum(t for _, t in stages), work,
                             tuple(t for _, t in stages)))
     return out
-
-
-def working_f_number(camera) -> float:
-    """Image-side f-number s/A (N at infinity focus; 2N at 1:1)."""
-    return camera.sensor_distance_mm / camera.aperture_diameter_mm

@@ -26,7 +26,8 @@ from lensfit.outputs import provenance
 from synth.convolve import render_convolve
 from synth.raytrace import render_raytrace
 from synth.scene import Scene, load_scene
-from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan, working_f_number
+from synth.effects.stages import ShotState, quantise_16bit, run_stages, working_f_number
+from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan
 from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
 
 #: Planning and truth live in synth.planning and synth.truth; their public names are here too.
@@ -72,11 +73,6 @@ class RenderResult:
     stage_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
-def quantise_16bit(image: np.ndarray) -> np.ndarray:
-    """Linear radiance -> uint16: round(65535 * clip(v, 0, 1))."""
-    return np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
-
-
 def _shot_seed(seed: int, k: int) -> int:
     return (seed * 1_000_003 + k * 7_919) % (1 << 32)
 
@@ -87,7 +83,9 @@ def image_extension(fmt: str) -> str:
 
 def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None]):
     """One shot through its stages: (linear radiance float32 (H, W) or (H, W, 3), raw DN uint16
-    or None, per-image truth entries, seconds per stage). Only the stages the scene calls for run."""
+    or None, per-image truth entries, seconds per stage). The geometric render (defocus: the
+    aperture, optical vignetting, exact distortion and per-channel focus act inside it) here,
+    then the stages the scene calls for (``synth.effects.stages``)."""
     r, fx, shot = scene.render, scene.effects, sp.shot
     seconds: dict[str, float] = {}
     last = [time.perf_counter()]
@@ -98,7 +96,6 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
         last[0] = now
 
     cam = shot.camera
-    extra: dict[str, Any] = {}
     ca = fx.chromatic_aberration
     waves = getattr(cam, "wavelengths_nm", ())
     if waves:  # one render per wavelength, mixed into grey or colour below (synth.spectral)
@@ -140,58 +137,8 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
     else:
         image = planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
     lap("defocus")
-    if fx.diffraction is not None:
-        from synth.effects import diffraction
-
-        Nw = working_f_number(cam)
-        image = diffraction.apply(image, fx.diffraction, Nw, cam.pixel_pitch_mm).astype(np.float32)
-        extra["diffraction"] = fx.diffraction.truth(Nw, cam.pixel_pitch_mm)
-        lap("diffraction")
-    if fx.vignetting is not None and fx.vignetting.natural:
-        from synth.effects import vignetting
-
-        image = vignetting.apply_natural(image, cam)
-        lap("vignetting")
-    lateral = ca is not None and ca.lateral
-    if (fx.distortion is not None and not exact_distortion) or lateral:
-        from synth.effects import distortion
-
-        image = distortion.warp(image, cam, None if exact_distortion else fx.distortion,
-                                ca.magnification if lateral else None)
-        lap("distortion")
-    if fx.distortion is not None:
-        extra["distortion"] = {**fx.distortion.truth(cam.focal_length_px, cam.principal_point_px),
-                               "applied": ("in the ray tracer (each sample's own undistorted ray)" if exact_distortion
-                                           else "cubic resampling of the rendered image")}
-    if ca is not None:
-        extra["chromatic_aberration"] = ca.truth(cam)
-    raw = None
-    if fx.exposure is not None:
-        from synth.effects import exposure, noise
-
-        e = fx.exposure.for_shot(shot.shutter_s, shot.iso)
-        iso = e.iso if e.iso is not None else fx.sensor.base_iso
-        Nw = working_f_number(cam)
-        signal = exposure.mean_electrons(image, e, fx.sensor, Nw, fx.aperture.area_fraction)
-        lap("exposure")
-        if fx.mosaic is not None:
-            from synth.effects import mosaic
-
-            signal = mosaic.apply(signal, fx.mosaic)
-            lap("mosaic")
-        read = None
-        if fx.noise is not None:
-            signal, read = noise.draw(signal, fx.noise, fx.sensor.read_noise_e, noise.generator(r.seed, k))
-            lap("noise")
-        raw = exposure.readout(signal, fx.sensor, iso, read)
-        extra["exposure"] = exposure.truth(e, fx.sensor, Nw, fx.aperture.area_fraction)
-        lap("readout")
-    elif fx.mosaic is not None:
-        from synth.effects import mosaic
-
-        raw = quantise_16bit(mosaic.apply(image, fx.mosaic))
-        lap("mosaic")
-    return image, raw, extra, seconds
+    state = run_stages(ShotState(image, scene, shot, sp.method, k), lap)
+    return state.image, state.raw, state.extra, seconds
 
 
 def check_overrides(*, samples_per_pixel: int | None = None, supersampling: int | None = None,

@@ -1,7 +1,8 @@
 """Effects: the stages a scene may call for after the geometric (defocus) render.
 
 ``render.effects`` lists them; each has one module here with its model, parameters (units)
-and reference, and its parameters in a table of the same name in the scene (``[diffraction]``,
+and reference; its stage (what it costs, what it does to the image, what it records in the
+truth) is registered in ``synth.effects.stages``; its parameters are in a table of the same name in the scene (``[diffraction]``,
 ``[vignetting]``, ``[distortion]``, ``[chromatic_aberration]``, ``[exposure]`` with
 ``[sensor]``, ``[noise]``, ``[mosaic]``; the aperture's shape is ``lens.aperture``). An effect
 that is not listed has no stage: its code is not called, it draws no random numbers and costs
