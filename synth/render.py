@@ -26,6 +26,7 @@ from lensfit.outputs import provenance
 from synth.convolve import render_convolve
 from synth.raytrace import render_raytrace
 from synth.scene import Scene, load_scene
+from synth.seeds import raytrace_seed
 from synth.effects.stages import ShotState, quantise_16bit, run_stages, working_f_number
 from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan
 from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
@@ -71,10 +72,6 @@ class RenderResult:
     levels: dict[str, dict[str, int]] = field(default_factory=dict)
     exif: dict[str, dict[str, float]] = field(default_factory=dict)
     stage_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-def _shot_seed(seed: int, k: int) -> int:
-    return (seed * 1_000_003 + k * 7_919) % (1 << 32)
 
 
 def image_extension(fmt: str) -> str:
@@ -123,7 +120,7 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
         rows = (lambda n, _d=distinct: tick(n / _d)) if distinct > 1 else tick
         cam_kw = {} if ccam is cam else {"camera": ccam}
         if sp.method == "raytrace":
-            img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, _shot_seed(r.seed, k), rows,
+            img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
                                   **cam_kw, **kwargs_rt)
         else:
             img = render_convolve(shot, scene.background_value, r.supersampling, **cam_kw,
@@ -229,7 +226,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             "method": sp.method, "method_exact": sp.exact, "method_reason": sp.reason,
             "samples_per_pixel": r.samples_per_pixel if sp.method == "raytrace" else None,
             "supersampling": r.supersampling if sp.method == "convolve" else None,
-            "seed": _shot_seed(r.seed, k) if sp.method == "raytrace" else None,
+            "seed": raytrace_seed(r.seed, k) if sp.method == "raytrace" else None,
             "stages": list(sp.stages),
             **extra,
             "maps": map_file,

@@ -41,7 +41,10 @@ class Noise:
 
 
 def generator(seed: int, shot_index: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([seed, shot_index, STREAM]))
+    """This effect's stream of shot ``shot_index`` (``synth.seeds``)."""
+    from synth.seeds import generator as stream_generator
+
+    return stream_generator(seed, shot_index, STREAM)
 
 
 def draw(mean_e: np.ndarray, params: Noise, read_noise_e: float, rng: np.random.Generator):
