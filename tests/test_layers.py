@@ -24,7 +24,7 @@ PACKAGES = ("lensfit", "synth")
 #: Readable at once: about 500 lines. Modules still above it may not grow (a ratchet: lower a
 #: ceiling when a module shrinks, remove it when it is under the limit).
 MAX_LINES = 500
-OVERSIZE_CEILING = {"synth/lens.py": 600}
+OVERSIZE_CEILING: dict[str, int] = {}
 
 
 def modules() -> dict[str, Path]:
