@@ -83,8 +83,21 @@ def test_quick_report_is_complete(quick_report):
         assert f"plots/{name}.png" in md and (quick_report / "plots" / f"{name}.png").is_file()
 
 
+@pytest.mark.parametrize("hits, n", [(40, 40), (38, 40), (30, 40), (0, 5), (95, 100), (1, 1)])
+def test_coverage_uncertainty_is_the_wilson_interval(hits, n):
+    from scipy.stats import binomtest
+
+    from lensfit.bench.report import wilson_interval
+
+    ref = binomtest(hits, n).proportion_ci(confidence_level=0.95, method="wilson")
+    assert wilson_interval(hits, n) == pytest.approx([ref.low, ref.high], abs=1e-12)
+
+
 def test_quick_report_numbers_agree_with_the_cases(quick_report):
     doc = json.loads((quick_report / "results.json").read_text())
+    for q, c in doc["coverage"].items():  # every coverage with its binomial uncertainty
+        lo, hi = c["coverage95_ci95"]
+        assert lo <= c["coverage95"] <= hi and (hi - lo) > 0
     tol = doc["suite"]["tolerances"]
     for conf in doc["configurations"]:
         mine = [c for c in doc["cases"] if all(c[k] == conf[k] for k in ("scene", "render", "effects", "noise",

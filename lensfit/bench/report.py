@@ -50,6 +50,16 @@ def _rows(records: list[dict[str, Any]], tolerances: dict[str, float]) -> list[d
     return rows
 
 
+def wilson_interval(hits: int, n: int, z: float = 1.959963984540054) -> list[float]:
+    """95 % Wilson score interval of a coverage ``hits / n`` (a binomial proportion): how well a
+    benchmark of ``n`` intervals can tell 95 % coverage from 85 % (e.g. 40 intervals all holding
+    the truth: 91-100 %)."""
+    p = hits / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return [max(0.0, centre - half), min(1.0, centre + half)]
+
+
 #: Seeds a configuration needs before its scatter is estimated (two draws give a standard
 #: deviation with 100 % relative uncertainty; three, about 50 %).
 MIN_SEEDS_FOR_SCATTER = 3
@@ -113,7 +123,9 @@ def summarise(records: list[dict[str, Any]], suite: Suite) -> dict[str, Any]:
         n68 = [x["in68"] for x in rows if x["quantity"] == q and x["in68"] is not None]
         n95 = [x["in95"] for x in rows if x["quantity"] == q and x["in95"] is not None]
         coverage[q] = {"coverage68": float(np.mean(n68)) if n68 else None,
-                       "coverage95": float(np.mean(n95)) if n95 else None, "intervals": len(n95)}
+                       "coverage95": float(np.mean(n95)) if n95 else None, "intervals": len(n95),
+                       "coverage68_ci95": wilson_interval(int(np.sum(n68)), len(n68)) if n68 else None,
+                       "coverage95_ci95": wilson_interval(int(np.sum(n95)), len(n95)) if n95 else None}
     return {"rows": rows, "configurations": out, "coverage": coverage}
 
 
@@ -221,12 +233,16 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
     fig, ax = plt.subplots(figsize=(7, 3.8), layout="constrained")
     cov = summary["coverage"]
     x = np.arange(len(QUANTITIES))
-    ax.bar(x - 0.2, [100 * (cov[q]["coverage68"] or 0) for q in QUANTITIES], 0.4, label="68 % interval")
-    ax.bar(x + 0.2, [100 * (cov[q]["coverage95"] or 0) for q in QUANTITIES], 0.4, label="95 % interval")
+    for shift, level, colour in ((-0.2, "68", "C0"), (0.2, "95", "C1")):
+        values = [100 * (cov[q][f"coverage{level}"] or 0) for q in QUANTITIES]
+        ci = [cov[q][f"coverage{level}_ci95"] or [0.0, 0.0] for q in QUANTITIES]
+        err = np.array([[v - 100 * c[0] for v, c in zip(values, ci)], [100 * c[1] - v for v, c in zip(values, ci)]])
+        ax.bar(x + shift, values, 0.4, color=colour, label=f"{level} % interval",
+               yerr=np.maximum(err, 0.0), capsize=3, error_kw={"lw": 0.8})
     ax.axhline(68.27, color="C0", ls="--", lw=1)
     ax.axhline(95.45, color="C1", ls="--", lw=1)
     ax.set_xticks(x, [names[q] for q in QUANTITIES])
-    ax.set_ylabel("intervals holding the truth (%)")
+    ax.set_ylabel("intervals holding the truth (%)\n(bars: binomial 95 % interval)")
     ax.set_ylim(0, 105)
     ax.legend(fontsize=8, loc="lower right")
     ax.set_title("Calibration of the uncertainty")
@@ -297,8 +313,12 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
               _num(c["seconds_measure_fit"]), _pct(c["rms_relative_error"]).lstrip("+"),
               ("render " if c["pareto_seconds_render"] else "") + ("fit" if c["pareto_seconds_measure_fit"] else "")]
              for c in summary["configurations"]]
-    cov = [[q, _pct(v["coverage68"], 0).lstrip("+"), _pct(v["coverage95"], 0).lstrip("+"), str(v["intervals"])]
-           for q, v in summary["coverage"].items()]
+    def with_ci(v, level):
+        ci = v.get(f"coverage{level}_ci95")
+        text = _pct(v[f"coverage{level}"], 0).lstrip("+")
+        return text + (f" ({100 * ci[0]:.0f}-{100 * ci[1]:.0f})" if ci else "")
+
+    cov = [[q, with_ci(v, "68"), with_ci(v, "95"), str(v["intervals"])] for q, v in summary["coverage"].items()]
     tol = ", ".join(f"{q} {100 * v:g}%" for q, v in suite.tolerances.items())
     return [
         ("Estimated versus true, per case", ["scene", "render", "effects", "noise", "estimator", "solver", "seed", "setting",
@@ -311,8 +331,8 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
         ("The price of accuracy (median seconds per stack; Pareto front per scene marked)",
          ["scene", "render", "effects", "noise", "estimator", "solver", "render s", "measure+fit s", "RMS error",
           "Pareto"], price),
-        ("Calibration of the uncertainty (all cases)", ["quantity", "in 68% interval", "in 95% interval",
-                                                         "intervals"], cov),
+        ("Calibration of the uncertainty (all cases; in brackets the binomial 95 % interval of the coverage)",
+         ["quantity", "in 68% interval", "in 95% interval", "intervals"], cov),
     ]
 
 
