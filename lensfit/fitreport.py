@@ -101,13 +101,19 @@ def overlay_figure(image: np.ndarray, name: str, samples: list, blur: np.ndarray
     return fig
 
 
+def samples_by_image(table: SampleTable) -> dict[str, np.ndarray]:
+    """Image name -> indices of its samples in ``table`` (images in order of first sample)."""
+    groups: dict[str, list[int]] = {}
+    for i, s in enumerate(table.samples):
+        groups.setdefault(s.image, []).append(i)
+    return {name: np.array(idx) for name, idx in groups.items()}
+
+
 def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarray) -> list[dict[str, Any]]:
     """Per image: setting, edges found / measured / used, distance range, RMS residual / sigma and
     the number of suspicious edges."""
     rows = []
-    names = list(dict.fromkeys(s.image for s in table.samples))
-    for name in names:
-        idx = np.array([i for i, s in enumerate(table.samples) if s.image == name])
+    for name, idx in samples_by_image(table).items():
         d = np.array([table.samples[i].distance_mm for i in idx])
         zi = z[idx][np.isfinite(z[idx])]
         rows.append({"image": name, "setting": table.samples[idx[0]].setting, "edges": len(idx),
@@ -198,6 +204,7 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
                      f"<td>{r['rms_residual_sigma']:.2f}</td><td{flag}>{r['suspicious']}</td>"
                      f"<td>{r['down_weighted']}</td></tr>")
     parts.append("</table>")
+    groups = samples_by_image(table)
     if stack is not None:
         finite = blur[np.isfinite(blur)]
         blur_range = (0.0, float(np.percentile(finite, 99)) if finite.size else 1.0)
@@ -205,7 +212,7 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
         for k, r in enumerate(rows):
             if r["image"] not in by_name:
                 continue
-            idx = [i for i, s in enumerate(table.samples) if s.image == r["image"]]
+            idx = groups[r["image"]]
             image = stack.read(by_name[r["image"]])
             fig = overlay_figure(image, r["image"], [table.samples[i] for i in idx], blur[idx], z[idx], w[idx],
                                  table.corners_px.get(r["image"], []), blur_range)

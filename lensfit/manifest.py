@@ -156,7 +156,9 @@ def _pitch(records: list[CameraRecord], files: list[Path], width_px: int, pixel_
                      "pass --pixel-pitch MM, --sensor-width MM or --sensor NAME")
 
 
-def _targets(target_file: Path | None) -> tuple[list[dict[str, Any]], str | None]:
+def target_entries(target_file: Path | None) -> tuple[list[dict[str, Any]], str | None]:
+    """The [[target]] tables of a TOML file (``lensfit target --entry``, or a stack.toml), or
+    without one the board ``lensfit target`` draws by default with a note saying it was assumed."""
     if target_file is None:
         from lensfit.printable import charuco_page
 
@@ -225,7 +227,7 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
                      f"(e.g. {skipped[0]}); --prefer {'jpeg' if prefer == 'raw' else 'raw'} lists those instead")
     camera, pitch_source = _pitch(records, files, width, pixel_pitch_mm, sensor, sensor_width_mm, folder)
     notes.append(f"pixel pitch: {pitch_source}")
-    targets, target_note = _targets(Path(target_file) if target_file is not None else None)
+    targets, target_note = target_entries(Path(target_file) if target_file is not None else None)
     if target_note:
         notes.append(target_note)
 

@@ -113,18 +113,10 @@ def _plan_command(args: argparse.Namespace) -> int:
             if args.pixel_pitch is None or args.width_px is None or args.height_px is None:
                 raise CliError("give --sensor NAME, or --pixel-pitch MM with --width-px and --height-px")
             pitch, width_px, height_px = args.pixel_pitch, args.width_px, args.height_px
-        if args.target:
-            from lensfit.specs import load_toml
+        from lensfit.manifest import target_entries
 
-            entries = load_toml(args.target).get("target") or []
-            if not entries:
-                raise CliError(f"--target {args.target}: no [[target]] table; give the file lensfit target --entry wrote")
-            entry = entries[0]
-        else:
-            from lensfit.printable import charuco_page
-
-            entry = charuco_page().entry
-        board = Board.from_entry(entry)
+        entries, _ = target_entries(Path(args.target) if args.target else None)
+        board = Board.from_entry(entries[0])
         plan = plan_capture(args.focal_length, args.f_number, args.focus_distance, pixel_pitch_mm=pitch,
                             width_px=int(width_px), height_px=int(height_px), board=board, goal_rel=args.goal / 100,
                             max_shots=args.max_shots, edge_sigma_px=args.edge_sigma_px,

@@ -33,6 +33,7 @@ class ShotState:
     signal: np.ndarray | None = None
     read: np.ndarray | None = None
     raw: np.ndarray | None = None
+    exposure: Any = None  # the shot's exposure settings (ExposureStage), read out by ReadoutStage
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -183,8 +184,8 @@ class ExposureStage(Stage):
         from synth.effects import exposure
 
         fx = state.effects
-        e = fx.exposure.for_shot(state.shot.shutter_s, state.shot.iso)
-        state.signal = exposure.mean_electrons(state.image, e, fx.sensor, working_f_number(state.camera),
+        state.exposure = fx.exposure.for_shot(state.shot.shutter_s, state.shot.iso)
+        state.signal = exposure.mean_electrons(state.image, state.exposure, fx.sensor, working_f_number(state.camera),
                                                fx.aperture.area_fraction)
 
 
@@ -242,8 +243,7 @@ class ReadoutStage(Stage):
     def apply(self, state):
         from synth.effects import exposure
 
-        fx = state.effects
-        e = fx.exposure.for_shot(state.shot.shutter_s, state.shot.iso)
+        fx, e = state.effects, state.exposure
         iso = e.iso if e.iso is not None else fx.sensor.base_iso
         state.raw = exposure.readout(state.signal, fx.sensor, iso, state.read)
         state.extra["exposure"] = exposure.truth(e, fx.sensor, working_f_number(state.camera),
