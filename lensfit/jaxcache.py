@@ -1,8 +1,9 @@
 """JAX's persistent compilation cache, switched on by the command-line tools (not on import).
 
 Compiled kernels are stored under ``$LENSFIT_JAX_CACHE`` (default
-``~/.cache/lensfit/jax``), so that a second run of a CLI skips compilation. Set
-``LENSFIT_JAX_CACHE=off`` to disable.
+``~/.cache/lensfit/jax``), so that a second run of a CLI skips compilation, and the exported
+traces of the batched solvers under its ``traces/`` (``lensfit.aot``), so that it skips tracing
+too. Set ``LENSFIT_JAX_CACHE=off`` to disable both.
 """
 
 from __future__ import annotations
@@ -26,4 +27,12 @@ def enable_compilation_cache() -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    from lensfit import aot
+
+    traces = path / "traces"
+    try:
+        traces.mkdir(exist_ok=True)
+        aot.set_store(traces)
+    except OSError:
+        aot.set_store(None)
     return path

@@ -13,8 +13,10 @@ from __future__ import annotations
 import csv
 import json
 import math
-
+import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
@@ -64,6 +66,9 @@ class SampleTable:
     #: image file name -> (target id, detected corner positions (N, 2) px) of every target found
     #: (after refinement); kept in memory for the fit report's overlays, not written to files
     corners_px: dict[str, list[tuple[str, np.ndarray]]] = field(default_factory=dict)
+    #: seconds spent per stage (read, detect, calibrate, measure) by :func:`measure`; kept in
+    #: memory for ``lensfit bench-stages``, never written (files stay reproducible)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
 
     COLUMNS = SAMPLES_CSV_COLUMNS
 
@@ -315,6 +320,30 @@ def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> D
     return Detection(det.target_id, det.object_points_mm, points, det.ids)
 
 
+class _StageClock:
+    """Seconds per stage; reading images (which happens inside other stages) counted apart."""
+
+    def __init__(self):
+        self.seconds = {"read": 0.0, "detect": 0.0, "calibrate": 0.0, "measure": 0.0}
+
+    def reader(self, read: Callable[[int], np.ndarray]) -> Callable[[int], np.ndarray]:
+        def timed(i: int) -> np.ndarray:
+            t = time.perf_counter()
+            try:
+                return read(i)
+            finally:
+                self.seconds["read"] += time.perf_counter() - t
+        return timed
+
+    @contextmanager
+    def stage(self, name: str):
+        t, r = time.perf_counter(), self.seconds["read"]
+        try:
+            yield
+        finally:
+            self.seconds[name] += (time.perf_counter() - t) - (self.seconds["read"] - r)
+
+
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
             progress: Callable[[str, int, int], None] | None = None) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
@@ -347,6 +376,8 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                         "(kind, squares, square_mm, ...) so that they can be found")
     by_id = {t.id: t for t in targets}
     n = len(stack.images)
+    clock = _StageClock()
+    read = clock.reader(stack.read)
     total = 3 * n if refine else 2 * n
     step = [0]
 
@@ -366,8 +397,9 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             raise SpecError(stack.manifest_path, f"image[{i}].targets",
                             f"{entry.file.name} may show slanted-edge targets {', '.join(squares)}, which look alike; "
                             "list the one it shows (targets = [\"ID\"]); one slanted-edge square per image")
-        img = stack.read(i)
-        found = [d for d in (t.detect(img) for t in candidates) if d is not None]
+        img = read(i)
+        with clock.stage("detect"):
+            found = [d for d in (t.detect(img) for t in candidates) if d is not None]
         for d in found:
             _check_saturation(stack, i, img, d)
         detections[i] = found
@@ -397,14 +429,18 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                 meta.append((det.target_id, seg, z, pose))
         return tasks, meta
 
-    table.intrinsics = calibrate_all()
+    with clock.stage("calibrate"):
+        table.intrinsics = calibrate_all()
     first: dict[int, tuple[list, list, list]] = {}
     if refine or estimator == "edge":
+        # Every edge of the stack in one batched solve per pass; images read when needed.
+        with clock.stage("calibrate"):
+            work = {i: tasks_for(i, table.intrinsics) for i in range(n)}
+        with clock.stage("measure"):
+            per_image = edge_estimator.measure_images([(partial(read, i), work[i][0]) for i in range(n)],
+                                                      progress=lambda k: tick("edges"))
         for i in range(n):
-            tasks, meta = tasks_for(i, table.intrinsics)
-            estimates = edge_estimator.measure(stack.read(i), tasks) if tasks else []
-            first[i] = (tasks, meta, estimates)
-            tick("edges")
+            first[i] = (work[i][0], work[i][1], per_image[i])
     if refine:
         for i in range(n):
             tasks, meta, estimates = first[i]
@@ -414,22 +450,26 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                          if tid == det.target_id and est.line_px is not None}
                 refined.append(refine_corners(det, by_id[det.target_id], lines))
             detections[i] = refined
-        table.intrinsics = calibrate_all()
+        with clock.stage("calibrate"):
+            table.intrinsics = calibrate_all()
     for i in range(n):
         entry = stack.images[i]
         table.corners_px[entry.file.name] = [(d.target_id, np.asarray(d.image_points_px, np.float64))
                                              for d in detections[i]]
-        tasks, meta = tasks_for(i, table.intrinsics)
+        with clock.stage("calibrate"):
+            tasks, meta = tasks_for(i, table.intrinsics)
         if estimator == "edge" and i in first:
             # Blur from the first pass (the edge lines are located in the image itself, so the
             # refined poses move nothing); distances from the refined poses.
             by_key = {(m[0], m[1].id): e for m, e in zip(first[i][1], first[i][2])}
             estimates = [by_key.get((m[0], m[1].id)) for m in meta]
             if any(e is None for e in estimates):
-                again = edge_estimator.measure(stack.read(i), tasks)
+                with clock.stage("measure"):
+                    again = edge_estimator.measure(read(i), tasks)
                 estimates = [e if e is not None else a for e, a in zip(estimates, again)]
         else:
-            estimates = fn(stack.read(i), tasks) if tasks else []
+            with clock.stage("measure"):
+                estimates = fn(read(i), tasks) if tasks else []
         for (tid, seg, z, pose), task, est in zip(meta, tasks, estimates):
             table.poses[(entry.file.name, tid)] = pose
             flags = list(est.flags)
@@ -446,4 +486,5 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source))
         tick("measure")
+    table.stage_seconds = dict(clock.seconds)
     return table

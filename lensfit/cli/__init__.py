@@ -13,7 +13,8 @@ from typing import Sequence
 
 from lensfit import __version__
 from lensfit.errors import InputError
-from lensfit.cli.bench import _bench_command, _bench_fit_command, _bench_lenses_command, _bench_measure_command
+from lensfit.cli.bench import (_bench_command, _bench_fit_command, _bench_lenses_command, _bench_measure_command,
+                               _bench_stages_command)
 from lensfit.cli.capture import _init_command, _plan_command, _target_command
 from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
                                 _input_options, _number, _pupil)
@@ -218,6 +219,19 @@ def build_parser() -> argparse.ArgumentParser:
     bm.add_argument("--draws", type=int, default=3, help="noise draws per case (default 3)")
     bm.add_argument("--json", action="store_true", help="print JSON")
     bm.set_defaults(func=_bench_measure_command, prog="lensfit bench-measure")
+
+    bs = sub.add_parser("bench-stages", help="seconds per stage of measure + fit, cold and warm, by size",
+                        description="Benchmark: seconds per stage (read, detect, calibrate, measure, fit, "
+                                    "uncertainty) of a stack, cold (fresh process) and warm, for its first K "
+                                    "images and enlarged X times; the whole `lensfit fit` against OpenCV's own "
+                                    "detect + calibrate of the same files, as a ratio.")
+    bs.add_argument("stack", metavar="STACK", help="a stack folder (stack.toml) with ChArUco targets")
+    bs.add_argument("--images", type=int, nargs="+", default=[3, 6], metavar="K",
+                    help="also time the first K images (default 3 6; the whole stack always)")
+    bs.add_argument("--scale", type=_number, nargs="+", default=[1.0, 2.0], metavar="X",
+                    help="enlargements of the whole stack (bilinear, pitch / X; default 1 2)")
+    bs.add_argument("--json", action="store_true", help="print JSON")
+    bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
     return parser
 
 

@@ -1,4 +1,5 @@
-"""The benchmark commands: ``lensfit bench``, ``bench-fit``, ``bench-lenses``, ``bench-measure``."""
+"""The benchmark commands: ``lensfit bench``, ``bench-fit``, ``bench-lenses``, ``bench-measure``,
+``bench-stages``."""
 
 from __future__ import annotations
 
@@ -9,6 +10,24 @@ from pathlib import Path
 
 from lensfit.errors import InputError
 from lensfit.cli.common import EXIT_BENCH_FAILED, EXIT_OK, CliError, _progress_bar
+
+def _bench_stages_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from lensfit.bench.stages import run, table
+
+    folder = Path(args.stack)
+    if not (folder / "stack.toml").is_file():
+        raise CliError(f"STACK {folder}: no stack.toml there; give a stack folder (e.g. out/demo after make demo)")
+    if any(k < 1 for k in args.images) or any(x <= 0 for x in args.scale):
+        raise CliError("--images and --scale must be positive")
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        report = run(folder, tuple(args.images), tuple(args.scale),
+                     progress=lambda m, k, n: status.update(f"benchmarking: {m} ({k + 1}/{n})"))
+    print(json.dumps(report, indent=1) if args.json else table(report))
+    return EXIT_OK
+
 
 def _bench_measure_command(args: argparse.Namespace) -> int:
     import json

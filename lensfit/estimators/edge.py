@@ -22,19 +22,22 @@ What "blur diameter" means
 Method
     Pixels near a straight target edge are projected onto the edge normal, which super-samples
     the edge profile (ISO 12233 / MTF Mapper practice). The model
-    ``lo + (hi - lo) * ESF_pixel(d - d0; R, a, t)`` is fitted in float64 with optimistix
-    Levenberg-Marquardt (parameters: edge offset d0, radius R, the two levels, the line's turn),
-    started from a grid search over the radius with the levels solved linearly; first as a
-    uniform disk (a = 0), and where that misfits beyond the noise (RMS residual above
+    ``lo + (hi - lo) * ESF_pixel(d - d0; R, a, t)`` is fitted in float64 by Levenberg-Marquardt
+    (``lensfit.lm``; parameters: edge offset d0, R^2 (a smooth max(., 0)), the two levels, the
+    line's turn), started from a grid search over the radius with the levels solved linearly;
+    first as a uniform disk (a = 0), and where that misfits beyond the noise (RMS residual above
     ``SHAPE_RMS`` standard errors) again as two disks (a and t free, priors a ~ 0 +- 1 and
-    logit t ~ 0 +- 2), from two starts (a core, a rim), the better kept; flag ``shaped_spot``,
+    logit t ~ 0 +- 2), started from the best of a grid of cores and rims that keep the disk's
+    second moment (two disks have more than one local minimum); flag ``shaped_spot``,
     its sigma a 3 % model error in quadrature with the fit's own. Only on edges at one depth
     (within 1 %): along an edge across depth the profile mixes spots of several sizes, which
     the fit's model describes as the power mean of a uniform-disk reading. The window across the edge
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
     each side, and the ends of the segment are skipped by the window plus the blur, so that
-    neither truncates the PSF nor lets neighbouring squares in. Edges are fitted in batches
-    (``jax.vmap``), one compilation per batch shape.
+    neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
+    128 across a wider window. Every edge of a stack is fitted in one batched solve per pass
+    (``measure_images``; ``jax.vmap`` over chunks of ``CHUNK`` edges of ``NPIX`` bins): one
+    compiled shape per kind of fit, whatever the stack.
 Uncertainty
     1 sigma from the Gauss-Newton covariance ``(J^T W J)^-1`` with each profile bin weighted by
     its own standard error (from the spread of its pixels, never below a model-error floor of
@@ -48,7 +51,8 @@ Valid range
     the sigma says so) up to the clean room across the edge; beyond it the result is flagged
     ``window_truncated``.
 Cost
-    About 0.2-1 ms per edge after compilation (see the README's benchmark).
+    About 3 ms per edge warm on 2 cores, two passes and the shaped refits included (see the
+    README's stage table).
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
     W. J. Smith, *Modern Optical Engineering*.
@@ -58,242 +62,199 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lensfit import aot
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
+from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, select as _select
 from lensfit.psf import pixel_edge_profile
 
-MIN_PIXELS = 24
 RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
 OFFSET_GRID = np.linspace(-0.8, 0.8, 3)
-BATCH = 16
-QUANTISATION_VARIANCE = (1.0 / 65535.0) ** 2 / 12.0
-MODEL_FLOOR_INTENSITY = 3e-4
+#: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the
+#: solver's step limit: fixed, so that one compilation serves every stack.
+CHUNK = 64
+MAX_STEPS = 40
+#: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.aot).
+AOT_MODULES = ("lensfit.estimators.edge", "lensfit.psf", "lensfit.lm")  # (the profile is data)
+#: The solver stops when a step gains less than this in chi-square (parameters within 1e-3
+#: standard errors of the minimum).
+FTOL = 1e-6
 SUB_PIXEL_PX = 0.5
+RHO_SMOOTH_PX2 = 1e-6  # smoothing of R^2 >= 0 at 0 (px^2); see _squared_radius
 SUB_PIXEL_SIGMA_PX = 0.2
+#: A reading whose 1 sigma exceeds this multiple of max(c, 1 px) is no reading (flag
+#: ``blur_undetermined``, no value).
+UNDETERMINED_SIGMA = 3.0
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
 #: Prior 1 sigma of the inner disk's share of the light, a (about 0), and of logit t, the inner
 #: radius over the outer one (about 0: t = 1/2); weak, they hold the shape where the blur is too
 #: small to show one.
 SHARE_PRIOR = 1.0
 RATIO_PRIOR = 2.0
-#: Starts of the two-disk fit (a, logit t): a bright core in a halo, and a bright rim.
-SHAPE_STARTS = ((0.3, -0.5), (-0.5, 1.5))
+#: Candidate starts of the two-disk fit (a, logit t): cores in a halo (a > 0) and bright rims
+#: (a < 0, within the centre's intensity >= 0, a >= -t^2 / (1 - t^2)).
+SHAPE_GRID = ((0.3, -0.5), (0.6, -0.5), (0.3, 0.5), (0.6, -1.5), (0.8, 0.0),
+              (-0.5, 1.5), (-0.3, 0.5), (-1.0, 1.5), (-0.2, 0.0))
 #: RMS residual (in standard errors of the profile bins) of the uniform-disk fit above which the
 #: profile's shape is fitted too.
 SHAPE_RMS = 1.5
+#: Smallest blur diameter (disk reading) whose spot shape is read: below it the pixel footprint
+#: dominates the profile and two disks are not told from one (in noise the shape parameters then
+#: fit the noise; a 2 px core-and-halo spot already reads 12 % low, see the README).
+SHAPE_MIN_PX = 2.0
 #: Largest relative change of depth along an edge on which the spot's shape is read.
 SHAPE_MAX_DEPTH_SPAN = 0.01
 #: Model error (relative, 1 sigma) of the second moment read through the shaped profile.
 SHAPE_MODEL_REL = 0.03
 
 
-BIN_PX = 1.0 / 8.0  # super-sampling of the edge profile (ISO 12233 uses 1/4 px)
-STRIPS = 2
+NPIX = STRIPS * NBINS_ACROSS
 
 
-def _select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: float):
-    """Pixels within ``half_width`` of the edge line and at least ``end_margin`` from its ends,
-    with the line re-fitted to the image and the profile binned.
-
-    Returns (d, v, se, normal, length, shortened, pixels) or None: ``d`` the mean normal distance
-    and ``v`` the mean value of the pixels in each 1/8 px bin (per strip along the edge), ``se`` the standard error of that
-    mean from the spread within the bin (noise is often heteroscedastic: a render is noisy only
-    where the blur mixes two levels, a sensor more where it is bright), floored by the model
-    error and quantisation.
-    """
-    p0, p1 = np.asarray(task.start_px, float), np.asarray(task.end_px, float)
-    L = float(np.hypot(*(p1 - p0)))
-    t = (p1 - p0) / L
-    n = np.array([-t[1], t[0]])
-    h, w = image.shape
-    lo = np.floor(np.minimum(p0, p1) - half_width - 1).astype(int)
-    hi = np.ceil(np.maximum(p0, p1) + half_width + 1).astype(int)
-    x0, y0 = max(lo[0], 0), max(lo[1], 0)
-    x1, y1 = min(hi[0], w - 1), min(hi[1], h - 1)
-    if x1 < x0 or y1 < y0:
-        return None
-    yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-    rel_x, rel_y = xx - p0[0], yy - p0[1]
-    s = rel_x * t[0] + rel_y * t[1]
-    d = rel_x * n[0] + rel_y * n[1]
-    margin = min(end_margin, 0.45 * L)
-    keep = (np.abs(d) <= half_width) & (s >= margin) & (s <= L - margin)
-    if keep.sum() < MIN_PIXELS:
-        return None
-    s, d, v = s[keep], d[keep], image[y0:y1 + 1, x0:x1 + 1][keep].astype(np.float64)
-    line_a, line_b = _edge_line(s, d, v)
-    d = d - (line_a + line_b * s)
-    # Bin the super-sampled profile in strips along the edge (so that the fit can still turn
-    # the line); the bin's mean position keeps the binning exact to first order.
-    s_rel = s - 0.5 * L
-    strip = np.clip(np.floor((s - s.min()) / max(np.ptp(s), 1e-9) * STRIPS), 0, STRIPS - 1).astype(int)
-    idx = np.floor(d / BIN_PX).astype(int)
-    idx = (idx - idx.min()) * STRIPS + strip
-    count = np.bincount(idx)
-    used = count > 0
-    sum_d = np.bincount(idx, weights=d)[used]
-    sum_s = np.bincount(idx, weights=s_rel)[used]
-    sum_v = np.bincount(idx, weights=v)[used]
-    sum_v2 = np.bincount(idx, weights=v * v)[used]
-    count = count[used].astype(np.float64)
-    mean_v = sum_v / count
-    # Noise variance pooled over 1 px bands across the edge (noise is often heteroscedastic: a
-    # render is noisy only where the blur mixes two levels, a sensor more where it is bright);
-    # per-bin spreads of a few pixels would make noisy weights and bias the fit.
-    sq_dev = np.maximum(sum_v2 - count * mean_v**2, 0.0)
-    band = np.floor((sum_d / count) / 1.0).astype(int)
-    band -= band.min()
-    dof = np.bincount(band, weights=count - 1.0)
-    pooled = np.bincount(band, weights=sq_dev) / np.maximum(dof, 1.0)
-    overall = sq_dev.sum() / max((count - 1.0).sum(), 1.0)
-    spread = np.where(dof[band] >= 3, pooled[band], overall)
-    floor = (MODEL_FLOOR_INTENSITY * (np.percentile(v, 95) - np.percentile(v, 5))) ** 2 + QUANTISATION_VARIANCE
-    se = np.sqrt((spread + floor) / count)
-    # The edge line found in the image, before the fitted offset d0: d_pred = a + b s.
-    line = (p0 + line_a * n, p0 + L * t + (line_a + line_b * L) * n)
-    return sum_d / count, sum_s / count, mean_v, se, n, L, margin < end_margin, int(count.sum()), line
+def _squared_radius(xp, rho):
+    """R^2 from the solver's parameter: a smooth max(rho, 0) (within 1e-12 px^2 of rho for a blur
+    over 0.01 px). A sharp edge has its least-squares minimum at R = 0; ``|rho|`` (tried) puts a
+    kink there, on which the solver bounces instead of settling."""
+    return 0.5 * (rho + xp.sqrt(rho * rho + RHO_SMOOTH_PX2**2))
 
 
-def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, float]:
-    """Offset of the image's edge from the predicted line, ``a + b s`` (returns a, b).
-
-    In each of a few strips along the edge, the edge sits at the centroid of the profile's
-    derivative; a straight line through those centroids corrects small errors of the pose
-    (position and angle) before the profile is built.
-    """
-    edges = np.linspace(s.min(), s.max() + 1e-9, STRIPS + 1)
-    centres, positions = [], []
-    for k in range(STRIPS):
-        m = (s >= edges[k]) & (s < edges[k + 1])
-        if m.sum() < 8:
-            continue
-        order = np.argsort(d[m])
-        dd, vv = d[m][order], v[m][order]
-        # Smooth a little, then the centroid of |dv/dd| (robust to the sign of the step).
-        k_bins = np.arange(np.floor(dd.min()), np.ceil(dd.max()) + 1.0, 0.5)
-        if k_bins.size < 4:
-            continue
-        prof = np.interp(k_bins, dd, vv)
-        grad = np.abs(np.diff(prof))
-        if grad.sum() <= 0:
-            continue
-        mid = 0.5 * (k_bins[1:] + k_bins[:-1])
-        centres.append(0.5 * (edges[k] + edges[k + 1]))
-        positions.append(float(np.sum(grad * mid) / grad.sum()))
-    if len(centres) < 3:
-        return 0.0, 0.0
-    slope, offset = np.polyfit(centres, positions, 1)
-    return float(offset), float(slope)
+def _squared_radius_slope(rho: float) -> float:
+    """d R^2 / d rho of :func:`_squared_radius`."""
+    return 0.5 * (1.0 + rho / math.hypot(rho, RHO_SMOOTH_PX2))
 
 
-def _model(theta, d, s, nx, ny):
-    # theta = (d0, rho = R^2, lo, hi, turn, a, u): the squared radius keeps the model smooth and
+def _model(theta, d, s, nx, ny, shaped: bool):
+    # theta = (d0, rho = R^2, lo, hi, turn[, a, u]): the squared radius keeps the model smooth and
     # well-conditioned as the blur vanishes (the profile depends on R only to second order
     # there); `turn` rotates the edge line (radians) about the window's middle, so that the
-    # line's own uncertainty is part of the covariance; `a` is the inner disk's share of the
-    # light and t = sigmoid(u) its radius over R (a = 0: the uniform disk).
-    d0, rho, lo, hi, turn, a, u = (theta[i] for i in range(7))
-    R = jnp.sqrt(jnp.abs(rho) + 1e-12)
+    # line's own uncertainty is part of the covariance; when shaped, `a` is the inner disk's
+    # share of the light and t = sigmoid(u) its radius over R (a = 0: the uniform disk).
+    d0, rho, lo, hi, turn = (theta[i] for i in range(5))
+    R = jnp.sqrt(_squared_radius(jnp, rho) + 1e-12)
     x = d - d0 - turn * s
     outer = pixel_edge_profile(x, R, nx, ny)
+    if not shaped:
+        return lo + (hi - lo) * outer
+    a, u = theta[5], theta[6]
     inner = pixel_edge_profile(x, R * jax.nn.sigmoid(u), nx, ny)
     return lo + (hi - lo) * (outer + a * (inner - outer))
 
 
-def _residuals(theta, args):
-    d, s, v, w, nx, ny, shaped = args  # w = 1 / standard error of the bin mean; 0 for padding
-    # shaped = 0: the uniform disk (a does not enter the model). The shape has weak priors that
-    # hold it where the blur is too small to show one.
-    theta = theta.at[5].multiply(shaped)
-    return jnp.concatenate([w * (v - _model(theta, d, s, nx, ny)),
-                            jnp.stack([theta[5] / SHARE_PRIOR, theta[6] / RATIO_PRIOR])])
+def _residuals(theta, args, shaped: bool):
+    d, s, v, w, nx, ny = args  # w = 1 / standard error of the bin mean; 0 for padding
+    r = w * (v - _model(theta, d, s, nx, ny, shaped))
+    if not shaped:
+        return r
+    # The shape has weak priors that hold it where the blur is too small to show one.
+    return jnp.concatenate([r, jnp.stack([theta[5] / SHARE_PRIOR, theta[6] / RATIO_PRIOR])])
 
 
 def _grid_start(d, s, v, w, nx, ny):
-    """Best (offset, radius) on a grid, with the two levels solved by weighted linear least squares."""
+    """Best (offset, radius) on a grid, with the two levels solved by weighted linear least squares
+    (the 2 x 2 normal equations in closed form)."""
     radii, offsets = np.meshgrid(RADIUS_GRID, OFFSET_GRID)
     radii, offsets = jnp.asarray(radii.ravel()), jnp.asarray(offsets.ravel())
+    w2 = w * w
 
     def rss(radius, offset):
         p = pixel_edge_profile(d - offset, radius, nx, ny)
-        A = jnp.stack([w * (1 - p), w * p], axis=1)
-        coef, _, _, _ = jnp.linalg.lstsq(A, w * v)
-        r = w * v - A @ coef
-        return jnp.sum(r * r), coef
+        q = 1.0 - p
+        # Normal equations of v = lo q + hi p with weights w^2.
+        a11, a12, a22 = jnp.sum(w2 * q * q), jnp.sum(w2 * q * p), jnp.sum(w2 * p * p)
+        b1, b2 = jnp.sum(w2 * q * v), jnp.sum(w2 * p * v)
+        det = a11 * a22 - a12 * a12
+        ok = det > 1e-12 * (a11 * a22 + 1e-300)
+        det = jnp.where(ok, det, 1.0)
+        lo = jnp.where(ok, (a22 * b1 - a12 * b2) / det, 0.0)
+        hi = jnp.where(ok, (a11 * b2 - a12 * b1) / det, 0.0)
+        r = w * (v - lo * q - hi * p)
+        return jnp.where(ok, jnp.sum(r * r), jnp.inf), jnp.stack([lo, hi])
 
     costs, coefs = jax.vmap(rss)(radii, offsets)
     k = jnp.argmin(costs)
-    return jnp.stack([offsets[k], radii[k] ** 2, coefs[k][0], coefs[k][1], 0.0, 0.0, 0.0])
+    return jnp.stack([offsets[k], radii[k] ** 2, coefs[k][0], coefs[k][1], 0.0])
 
 
-@partial(jax.jit, static_argnames=("shaped",))
-def _fit_batch(d, s, v, w, nx, ny, shaped: bool):
-    import optimistix as optx
+def _shape_start(theta_disk, args):
+    """The two-disk start: on a grid of shapes (a, logit t) around the uniform disk's solution,
+    each with the outer radius that keeps the disk's second moment, the one of least cost."""
+    fn = partial(_residuals, shaped=True)
+    rho_disk = _squared_radius(jnp, theta_disk[1])
+    starts = []
+    for a, u in SHAPE_GRID:
+        t = 1.0 / (1.0 + math.exp(-u))
+        m = 1.0 - a * (1.0 - t * t)
+        starts.append(jnp.concatenate([theta_disk[:1], jnp.stack([rho_disk / m]), theta_disk[2:5], jnp.array([a, u])]))
+    starts = jnp.stack(starts)
+    costs = jax.vmap(lambda th: jnp.sum(fn(th, args) ** 2))(starts)
+    return starts[jnp.argmin(costs)]
 
-    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
-    shape = 1.0 if shaped else 0.0
 
-    def one(d, s, v, w, nx, ny):
-        args = (d, s, v, w, nx, ny, shape)
-        y0 = _grid_start(d, s, v, w, nx, ny)
+def _fit_batch(d, s, v, w, nx, ny, theta_disk, shaped: bool):
+    from lensfit import lm
 
-        def solve(start):
-            sol = optx.least_squares(_residuals, solver, start, args=args, max_steps=400, throw=False)
-            r = _residuals(sol.value, args)
-            return sol.value, jnp.sum(r * r), sol.result == optx.RESULTS.successful
-
-        # Two disks have more than one local minimum: start from a core and from a rim, keep the
-        # better; the uniform disk has one start.
-        runs = [solve(y0.at[5].set(a).at[6].set(u)) for a, u in SHAPE_STARTS] if shaped else [solve(y0)]
-        best = jnp.argmin(jnp.stack([c for _, c, _ in runs]))
-        theta = jnp.stack([t for t, _, _ in runs])[best]
-        ok = jnp.stack([o for _, _, o in runs])[best]
-        J = jax.jacfwd(_residuals)(theta, args)
-        r = _residuals(theta, args)[:-2]
+    def one(d, s, v, w, nx, ny, theta_disk):
+        args = (d, s, v, w, nx, ny)
+        fn = partial(_residuals, shaped=shaped)
+        # The uniform disk starts from a grid over the radius; two disks (which have more than one
+        # local minimum: a core in a halo, a bright rim) from the best of a grid of shapes at the
+        # disk's solution.
+        start = _shape_start(theta_disk, args) if shaped else _grid_start(d, s, v, w, nx, ny)
+        theta, cost, converged = lm.least_squares(fn, start, args, max_steps=MAX_STEPS, rtol=1e-8, atol=1e-10,
+                                                  ftol=FTOL)
+        # A uniform disk that has not converged is a failed reading; two disks (slow to settle in
+        # their shape, which moves c little) keep their best point, which the covariance and
+        # chi-square describe.
+        ok = jnp.isfinite(cost) & jnp.all(jnp.isfinite(theta)) & (converged | shaped)
+        J = jax.jacfwd(fn)(theta, args)
+        r = fn(theta, args)[:d.shape[0]]
         n_eff = jnp.sum(w > 0)  # bins
         # Residuals are in units of each bin's own standard error; a reduced chi-square above 1
         # (model misfit) inflates the covariance, one below 1 does not shrink it.
-        dof = jnp.maximum(n_eff - 5 - 2 * shape, 1)  # a and t are parameters only when shaped
-        chi2 = jnp.maximum(jnp.sum(r * r) / dof, 1.0)
-        JTJ = J.T @ J
-        cov = chi2 * jnp.linalg.pinv(JTJ, rtol=1e-14)
+        dof = jnp.maximum(n_eff - theta.shape[0], 1)
         s2 = jnp.sum(r * r) / dof
+        cov = jnp.maximum(s2, 1.0) * lm.covariance(J)
+        if not shaped:  # the same layout as the shaped fit's: a = 0, u = 0, no covariance
+            theta = jnp.concatenate([theta, jnp.zeros(2)])
+            cov = jnp.pad(cov, ((0, 2), (0, 2)))
         return theta, cov, jnp.sqrt(s2), ok
 
-    return jax.vmap(one)(d, s, v, w, nx, ny)
+    return jax.vmap(one)(d, s, v, w, nx, ny, theta_disk)
 
 
-def _bucket(n: int, minimum: int) -> int:
-    return max(minimum, 1 << int(math.ceil(math.log2(max(n, 1)))))
+def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], shaped: bool = True,
+         disk: list[np.ndarray] | None = None):
+    """Fit a list of (d, s, values, standard errors, normal); returns theta, cov, rms, ok per item.
+    The two-disk fit (``shaped``) starts from each item's uniform-disk solution, ``disk``.
 
-
-def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], shaped: bool = True):
-    """Fit a list of (d, s, values, standard errors, normal); returns theta, cov, rms, ok per item."""
+    Every problem is padded to ``NPIX`` bins and the list to whole chunks of ``CHUNK``: one
+    compiled shape per kind of fit for any stack; the chunks are dispatched back to back and
+    their results moved to the host once."""
     if not samples:
         return []
-    npix = _bucket(max(len(s[0]) for s in samples), 128)
-    nbatch = BATCH * math.ceil(len(samples) / BATCH)
-    D = np.tile(np.linspace(-4.0, 4.0, npix), (nbatch, 1))  # padding rows: a harmless dummy problem
-    V = np.zeros((nbatch, npix))
-    S = np.zeros((nbatch, npix))
-    W = np.zeros((nbatch, npix))
-    NX = np.ones(nbatch)
-    NY = np.zeros(nbatch)
-    for i, (d, s_along, v, se, n) in enumerate(samples):
+    n = CHUNK * math.ceil(len(samples) / CHUNK)
+    D = np.tile(np.linspace(-4.0, 4.0, NPIX), (n, 1))  # padding rows: a harmless dummy problem
+    V = np.zeros((n, NPIX))
+    S = np.zeros((n, NPIX))
+    W = np.zeros((n, NPIX))
+    NX = np.ones(n)
+    NY = np.zeros(n)
+    T = np.tile([0.0, 1.0, 0.0, 1.0, 0.0], (n, 1))
+    for i, theta in enumerate(disk or []):
+        T[i] = theta[:5]
+    for i, (d, s_along, v, se, nrm) in enumerate(samples):
         D[i, :len(d)], S[i, :len(d)], V[i, :len(d)], W[i, :len(d)] = d, s_along, v, 1.0 / se
-        NX[i], NY[i] = n
-    parts = []
+        NX[i], NY[i] = nrm
     with jax.enable_x64(True):
-        for k in range(0, nbatch, BATCH):  # fixed batch shape: one compilation per pixel bucket
-            sl = slice(k, k + BATCH)
-            parts.append([np.asarray(x) for x in _fit_batch(jnp.asarray(D[sl]), jnp.asarray(S[sl]), jnp.asarray(V[sl]),
-                                                            jnp.asarray(W[sl]), jnp.asarray(NX[sl]),
-                                                            jnp.asarray(NY[sl]), shaped=shaped)])
-    theta, cov, rms, ok = (np.concatenate([p[j] for p in parts]) for j in range(4))
+        parts = [aot.call("edge-fit", _fit_batch, tuple(jnp.asarray(x[k:k + CHUNK]) for x in (D, S, V, W, NX, NY, T)),
+                          {"shaped": shaped}, AOT_MODULES)
+                 for k in range(0, n, CHUNK)]
+        theta, cov, rms, ok = jax.device_get([jnp.concatenate([p[j] for p in parts]) for j in range(4)])
     return [(theta[i], cov[i], float(rms[i]), bool(ok[i])) for i in range(len(samples))]
 
 
@@ -321,9 +282,22 @@ def _windows(task: EdgeTask, radius: float | None):
 
 
 def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True) -> list[BlurEstimate]:
-    """Blur diameter at each edge (see the module docstring): the second-moment diameter, or with
-    ``second_moment=False`` the diameter of the best-fitting uniform disk."""
-    image = np.asarray(image, np.float64)
+    """Blur diameter at each edge of one image (see the module docstring): the second-moment
+    diameter, or with ``second_moment=False`` the diameter of the best-fitting uniform disk."""
+    return measure_images([(image, tasks)], second_moment)[0]
+
+
+def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool = True,
+                   progress: Callable[[int], None] | None = None) -> list[list[BlurEstimate]]:
+    """:func:`measure` on the edges of many images in one batched solve per pass.
+
+    ``items``: (image, tasks) pairs; an image may be given as a zero-argument callable that
+    returns it, called once per pass (twice in all), so that a stack need not be held in memory.
+    ``progress(k)`` is called as item k's edges are ready for the last solve. Returns the
+    estimates per item, in order."""
+    items = list(items)
+    owner = [k for k, (_, ts) in enumerate(items) for _ in ts]
+    tasks = [t for _, ts in items for t in ts]
     results: list[BlurEstimate | None] = [None] * len(tasks)
     radius: list[float | None] = [None] * len(tasks)
     flags: list[list[str]] = [[] for _ in tasks]
@@ -331,11 +305,16 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
     lines: list = [None] * len(tasks)
     for attempt in range(2):
         batch, index = [], []
+        images: dict[int, np.ndarray] = {}
         for i, task in enumerate(tasks):
             if results[i] is not None and attempt == 1 and radius[i] is None:
                 continue
+            if owner[i] not in images:
+                images.clear()  # one image in memory at a time
+                source = items[owner[i]][0]
+                images[owner[i]] = np.asarray(source() if callable(source) else source, np.float64)
             half, margin, truncated = _windows(task, radius[i] if attempt else None)
-            sel = _select(image, task, half, margin)
+            sel = _select(images[owner[i]], task, half, margin)
             if sel is None or len(sel[0]) < 8:
                 results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
                 radius[i] = None
@@ -350,23 +329,29 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
             batch.append((d, s_along, v, se, n))
             npixels[i] = pixels
             index.append(i)
+        images.clear()
+        if progress and attempt == 1:
+            for k in range(len(items)):
+                progress(k)
         fits = _fit(batch, False)
         shaped: list[int] = []
         if second_moment and attempt == 1:
             # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
             # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
-            shaped = [j for j, (_, _, rms, _) in enumerate(fits)
-                      if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])]
-            for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True)):
+            shaped = [j for j, (theta, _, rms, _) in enumerate(fits)
+                      if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])
+                      and 2.0 * math.sqrt(_squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
+            for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True, [fits[j][0] for j in shaped])):
                 fits[j] = refit
         is_shaped = set(shaped)
         for j, (i, (theta, cov, rms, ok)) in enumerate(zip(index, fits)):
-            rho = abs(float(theta[1]))
+            rho = float(_squared_radius(np, float(theta[1])))
+            slope = _squared_radius_slope(float(theta[1]))
             r = math.sqrt(rho)
             a = float(theta[5]) if j in is_shaped else 0.0
             t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
             m = 1.0 - a * (1.0 - t * t)  # variance of two disks over that of the outer one
-            var_rho = float(cov[1, 1])
+            var_rho = slope * slope * float(cov[1, 1])
             if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > 0.05):
                 results[i] = BlurEstimate(None, None, tuple(flags[i]) + ("fit_failed",), npixels[i])
                 radius[i] = None
@@ -385,7 +370,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
             if j in is_shaped:
                 g = np.array([-r * (1.0 - t * t) / k, 2.0 * r * a * t * t * (1.0 - t) / k])
                 C = np.asarray(cov[5:7, 5:7], np.float64)
-                var_c += float(g @ C @ g) + 2.0 * (k / max(r, 1e-6)) * float(g @ np.asarray(cov[1, 5:7]))
+                var_c += float(g @ C @ g) + 2.0 * (k / max(r, 1e-6)) * slope * float(g @ np.asarray(cov[1, 5:7]))
             sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
             if "shaped_spot" in f:
                 # A spot that is no uniform disk: the fit's chi-square inflation measures how far
@@ -393,6 +378,12 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
                 # that is stated by the family's model error instead.
                 sigma_c = math.hypot(sigma_c / max(rms, 1.0), SHAPE_MODEL_REL * c)
             sigma = with_model_floor(sigma_c, c)
+            if not sigma <= UNDETERMINED_SIGMA * max(c, 1.0):
+                # The profile does not determine the blur: an edge along a pixel axis whose few
+                # pixel phases trade the radius against the edge's offset and turn (in noise), or
+                # a sharp edge whose profile changes with R only at a few pixel corners.
+                results[i] = BlurEstimate(None, None, tuple(f) + ("blur_undetermined",), npixels[i])
+                continue
             if c < SUB_PIXEL_PX:
                 # Below about half a pixel the pixel footprint dominates the profile and the fit's
                 # curvature overstates what is known about c (seen on ray-traced edges).
@@ -407,4 +398,8 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
             line_px = (tuple(float(x) for x in q0 + (d0 - turn * half_len) * n),
                        tuple(float(x) for x in q1 + (d0 + turn * half_len) * n))
             results[i] = BlurEstimate(c, sigma, tuple(f), npixels[i], rms, line_px)
-    return [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
+    flat = [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
+    out: list[list[BlurEstimate]] = [[] for _ in items]
+    for k, r in zip(owner, flat):
+        out[k].append(r)
+    return out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -108,6 +109,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
 
     labels, m, p = data.labels, len(data.labels), data.pixel_pitch_mm
     n = len(data.coc_px)
+    t_start = time.perf_counter()
     warnings: list[str] = []
     if data.dropped:
         warnings.append(f"{data.dropped} sample(s) without a measured blur were left out")
@@ -237,6 +239,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     n_out = int(np.sum(np.abs(u[used]) > 5 * math.sqrt(scale2)))
 
     # ---- covariance, condition, correlations
+    t_solved = time.perf_counter()
     names = _parameter_names(labels)
     fnames = [names[i] for i in free_idx]
     cov, cond, corr = _covariance(jac, scale2)
@@ -276,4 +279,5 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                      chi2_red, float(np.sqrt(np.mean(resid[used] ** 2))) if n_used else 0.0, loss, warnings, data,
                      resid, weights, theta.copy(),
                      dict(free_idx=free_idx, fpx=fpx, fpx_w=fpx_w, floor_w=floor_w, row_on=row_on, p_prior=p_prior),
-                     p_est, p_source)
+                     p_est, p_source,
+                     stage_seconds={"fit": t_solved - t_start, "uncertainty": time.perf_counter() - t_solved})

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+import math
 
 import numpy as np
 
@@ -26,48 +26,74 @@ def _residuals(theta_free, args):
     return jnp.concatenate([r_blur, r_fpx, r_floor, r_p])
 
 
-_SOLVERS: dict[Any, Any] = {}
+#: The modules whose source defines the compiled solver (a change traces it afresh; lensfit.aot).
+AOT_MODULES = ("lensfit.fit.solve", "lensfit.fit.model", "lensfit.fit.constants")
 
 
-def _solver(m: int):
-    """Jit-compiled functions for ``m`` settings (cached per m; compiled once per shape and kept
-    in the persistent cache by the CLI): ``solve(theta0, args) -> (theta, converged)`` (LM),
-    ``evaluate(theta, args) -> (residuals, Jacobian)`` and ``derived(theta_full) -> (values,
-    Jacobians)`` of the reported quantities."""
-    if m in _SOLVERS:
-        return _SOLVERS[m]
-    import jax
+def _optx_solve(theta0, args, m: int):
     import optimistix as optx
 
     solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
+    sol = optx.least_squares(_solver_residual_fn(m), solver, theta0, args=args, max_steps=400, throw=False)
+    return sol.value, sol.result == optx.RESULTS.successful
+
+
+def _evaluate(theta, args, m: int):
+    import jax
+
     fn = _solver_residual_fn(m)
+    return fn(theta, args), jax.jacfwd(fn)(theta, args)
 
-    @jax.jit
-    def solve(theta0, args):
-        sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=400, throw=False)
-        return sol.value, sol.result == optx.RESULTS.successful
 
-    @jax.jit
-    def evaluate(theta, args):
-        return fn(theta, args), jax.jacfwd(fn)(theta, args)
+def _quantities(t, m: int):
+    import jax.numpy as jnp
 
-    def quantities(t):
-        import jax.numpy as jnp
+    log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(t, m)
+    f = jnp.exp(log_f)
+    s = _pinhole_distance(jnp, f, inv_focus_per_m / 1000.0, jnp.exp(log_p))
+    return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
+            "log_K": log_f + jnp.log(s) - log_n, "inv_focus_per_m": inv_focus_per_m, "floor": floor, "s": s,
+            "N": jnp.exp(log_n),
+            "f": f, "log_P": log_p, "log_sx": log_p + jnp.log(s)}
 
-        log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(t, m)
-        f = jnp.exp(log_f)
-        s = _pinhole_distance(jnp, f, inv_focus_per_m / 1000.0, jnp.exp(log_p))
-        return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
-                "log_K": log_f + jnp.log(s) - log_n, "inv_focus_per_m": inv_focus_per_m, "floor": floor, "s": s,
-                "N": jnp.exp(log_n),
-                "f": f, "log_P": log_p, "log_sx": log_p + jnp.log(s)}
 
-    @jax.jit
-    def derived(t):
-        return quantities(t), jax.jacfwd(quantities)(t)
+def _derived(t, m: int):
+    import jax
 
-    _SOLVERS[m] = (solve, evaluate, derived)
-    return _SOLVERS[m]
+    return _quantities(t, m), jax.jacfwd(_quantities)(t, m)
+
+
+class _Solver:
+    """The compiled functions for ``m`` settings, each traced once per installation where the CLI
+    keeps a store (``lensfit.aot``), else jit-compiled per process: ``solve(theta0, args) ->
+    (theta, converged)`` (optimistix Levenberg-Marquardt), ``evaluate(theta, args) ->
+    (residuals, Jacobian)`` and ``derived(theta_full) -> (values, Jacobians)`` of the reported
+    quantities. Indexable as (solve, evaluate, derived)."""
+
+    def __init__(self, m: int):
+        self.m = m
+
+    def _call(self, name, fn, *args):
+        from lensfit import aot
+
+        return aot.call(f"fit-{name}", fn, args, {"m": self.m}, AOT_MODULES)
+
+    def solve(self, theta0, args):
+        return self._call("solve", _optx_solve, theta0, args)
+
+    def evaluate(self, theta, args):
+        return self._call("evaluate", _evaluate, theta, args)
+
+    def derived(self, t):
+        return self._call("derived", _derived, t)
+
+    def __getitem__(self, k):
+        return (self.solve, self.evaluate, self.derived)[k]
+
+
+def _solver(m: int) -> _Solver:
+    """The compiled solver functions for ``m`` settings (see :class:`_Solver`)."""
+    return _Solver(m)
 
 
 def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
@@ -88,9 +114,7 @@ def _robust_scale(u: np.ndarray) -> float:
 def _padded_size(n: int) -> int:
     """Samples are padded to a power of two (zero weight), so that stacks of similar size share
     one compiled solver."""
-    from lensfit.estimators.edge import _bucket
-
-    return _bucket(n, 64)
+    return max(64, 1 << int(math.ceil(math.log2(max(n, 1)))))
 
 
 def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w, p_prior=(0.0, 0.0)):

@@ -1,0 +1,170 @@
+"""Where a fit's time goes (``lensfit bench-stages``): seconds per stage, cold and warm, against
+image count and megapixels, and the whole ``lensfit fit`` against OpenCV's own detect+calibrate.
+
+Stages (``SampleTable.stage_seconds`` and ``FitResult.stage_seconds``): read (decode and
+linearise), detect (targets), calibrate (intrinsics, poses, edge geometry), measure (the blur
+of every edge), fit (the solver), uncertainty (covariance, jackknife, every reported quantity).
+
+Each configuration runs in a fresh process (``cold``: imports, loading the stored traces and
+compiled code of ``lensfit.aot`` / the persistent cache) and again in that process (``warm``).
+Sizes: the first k images of the stack, and the whole stack enlarged by a factor (bilinear, the
+pixel pitch divided by it: the same scene at more pixels). The OpenCV reference reads the same
+files, detects the ChArUco board and calibrates (cv2.aruco + cv2.calibrateCamera, nothing of
+lensfit) in a fresh process; its ratio to a whole ``lensfit fit`` is the figure of merit.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+STAGES = ("read", "detect", "calibrate", "measure", "fit", "uncertainty")
+
+_CHILD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+from lensfit.jaxcache import enable_compilation_cache
+enable_compilation_cache()
+from lensfit.measure import measure
+from lensfit.fit import fit
+out = {}
+for run in ("cold", "warm"):
+    t = time.perf_counter()
+    table = measure(sys.argv[1])
+    result = fit(table)
+    secs = {**table.stage_seconds, **result.stage_seconds}
+    secs["total"] = time.perf_counter() - t
+    out[run] = secs
+    out[run + "_edges"] = len(table)
+out["process_start"] = t0
+print(json.dumps(out))
+"""
+
+_OPENCV = r"""
+import sys, time, tomllib
+from pathlib import Path
+import cv2, numpy as np
+folder = Path(sys.argv[1])
+spec = tomllib.loads((folder / "stack.toml").read_text())
+detectors = []
+for t in spec["target"]:
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, t["dictionary"]))
+    board = cv2.aruco.CharucoBoard(tuple(t["squares"]), t["square_mm"], t["marker_mm"], d)
+    board.setLegacyPattern(bool(t.get("legacy_pattern", False)))
+    detectors.append((board, cv2.aruco.CharucoDetector(board)))
+obj, img, size = [], [], None
+for entry in spec["image"]:
+    im = cv2.imread(str(folder / entry["file"]), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    if im.dtype != np.uint8:  # linear 16-bit: a display gamma for the detector
+        im = (255.0 * np.sqrt(im / max(float(im.max()), 1.0))).astype(np.uint8)
+    size = im.shape[::-1]
+    for board, det in detectors:
+        corners, ids, _, _ = det.detectBoard(im)
+        if ids is not None and len(ids) >= 6:
+            o, i = board.matchImagePoints(corners, ids)
+            obj.append(o); img.append(i)
+rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, size, None, None)
+print(len(obj), K[0, 0])
+"""
+
+
+def _python() -> str:
+    return sys.executable
+
+
+def _run(code: str, *args: str, env: dict | None = None) -> tuple[float, str]:
+    t = time.perf_counter()
+    out = subprocess.run([_python(), "-c", code, *args], capture_output=True, text=True, env=env, check=True)
+    return time.perf_counter() - t, out.stdout
+
+
+def _subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
+    """A copy of the stack with its first ``count`` images, enlarged ``scale`` times."""
+    import cv2
+    import tomli_w
+
+    spec = tomllib.loads((src / "stack.toml").read_text())
+    images = spec["image"][:count] if count else spec["image"]
+    dst.mkdir(parents=True)
+    for entry in images:
+        if scale == 1.0:
+            (dst / entry["file"]).write_bytes((src / entry["file"]).read_bytes())
+        else:
+            im = cv2.imread(str(src / entry["file"]), cv2.IMREAD_UNCHANGED)
+            big = cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
+            cv2.imwrite(str(dst / entry["file"]), big)
+    spec["image"] = images
+    camera = spec.get("camera", {})
+    if scale != 1.0:
+        for key in ("pixel_pitch_mm",):
+            if key in camera:
+                camera[key] = camera[key] / scale
+        for key in ("width_px", "height_px"):
+            if key in camera:
+                camera[key] = int(round(camera[key] * scale))
+        spec.pop("intrinsics", None)
+    (dst / "stack.toml").write_text(tomli_w.dumps(spec))
+    return dst
+
+
+def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[float, ...] = (1.0, 1.5, 2.0),
+        progress=None) -> dict:
+    """Rows of seconds per stage (cold and warm) per configuration; the OpenCV ratio per scale.
+
+    Returns {"rows": [...], "provenance": ...}; each row: images, megapixels, edges, cold and warm
+    seconds per stage and in total, the whole-process seconds of ``lensfit fit`` and of the
+    OpenCV reference, and their ratio (scales only)."""
+    from lensfit.outputs import provenance
+
+    stack = Path(stack)
+    n_all = len(tomllib.loads((stack / "stack.toml").read_text())["image"])
+    configs = [(c, 1.0) for c in counts if c < n_all] + [(n_all, s) for s in scales]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, (count, scale) in enumerate(configs):
+            if progress:
+                progress(f"{count} images x{scale:g}", k, len(configs))
+            folder = _subset(stack, Path(tmp) / f"s{k}", count, scale)
+            _, out = _run(_CHILD, str(folder))
+            child = json.loads(out.strip().splitlines()[-1])
+            h, w = _shape(folder)
+            row = {"images": count, "megapixels": round(h * w / 1e6, 3), "edges": child["cold_edges"],
+                   "cold": {s: child["cold"].get(s, 0.0) for s in (*STAGES, "total")},
+                   "warm": {s: child["warm"].get(s, 0.0) for s in (*STAGES, "total")}}
+            if count == n_all:  # whole process: lensfit fit against OpenCV's detect + calibrate
+                out_json = Path(tmp) / f"r{k}.json"
+                t_fit, _ = _run("from lensfit.cli import main; import sys; sys.exit(main())", "fit", str(folder),
+                                "--out", str(out_json))
+                t_cv, _ = _run(_OPENCV, str(folder))
+                row.update(lensfit_fit_process_s=t_fit, opencv_process_s=t_cv, ratio=t_fit / t_cv)
+            rows.append(row)
+    if progress:
+        progress("done", len(configs), len(configs))
+    return {"rows": rows, "provenance": provenance("lensfit bench-stages")}
+
+
+def _shape(folder: Path) -> tuple[int, int]:
+    from lensfit.stack import image_size
+
+    spec = tomllib.loads((folder / "stack.toml").read_text())
+    w, h = image_size(folder / spec["image"][0]["file"])
+    return h, w
+
+
+def table(report: dict) -> str:
+    """The rows as a Markdown table (seconds; cold / warm)."""
+    head = ("| images | MP | edges | " + " | ".join(STAGES) + " | total | `lensfit fit` process | OpenCV "
+            "detect+calibrate | ratio |")
+    lines = [head, "|" + "---|" * (len(STAGES) + 7)]
+    for r in report["rows"]:
+        cells = [f"{r['cold'][s]:.2f} / {r['warm'][s]:.2f}" for s in (*STAGES, "total")]
+        extra = ([f"{r['lensfit_fit_process_s']:.1f} s", f"{r['opencv_process_s']:.1f} s", f"{r['ratio']:.1f}x"]
+                 if "ratio" in r else ["", "", ""])
+        lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {r['edges']} | " + " | ".join(cells + extra) + " |")
+    return "\n".join(lines)
+

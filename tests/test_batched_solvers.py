@@ -1,0 +1,130 @@
+"""The batched Levenberg-Marquardt (lensfit.lm) against scipy's independent solver and analytic
+minima, and the trace store (lensfit.aot): same numbers with it, without it, and from a
+corrupted file."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import least_squares as scipy_least_squares
+
+from lensfit import aot, lm
+
+
+def _rosenbrock(theta, args):
+    x, y = theta[0], theta[1]
+    return jnp.stack([1.0 - x, 10.0 * (y - x * x)])
+
+
+def test_rosenbrock_reaches_the_analytic_minimum():
+    with jax.enable_x64(True):
+        theta, cost, ok = lm.least_squares(_rosenbrock, jnp.array([-1.2, 1.0]), None, max_steps=200,
+                                           rtol=1e-12, atol=1e-14)
+    assert bool(ok)
+    np.testing.assert_allclose(np.asarray(theta), [1.0, 1.0], atol=1e-8)
+    assert float(cost) < 1e-16
+
+
+def _decay(theta, args):
+    t, y, w = args
+    # Parameters on scales 1e5 apart: amplitude ~1e4, rate ~0.1 per unit, offset ~1.
+    return w * (theta[0] * jnp.exp(-theta[1] * t) + theta[2] - y)
+
+
+def test_batched_fits_equal_scipy_on_badly_scaled_problems():
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 40.0, 60)
+    truths = np.column_stack([rng.uniform(5e3, 2e4, 12), rng.uniform(0.05, 0.3, 12), rng.uniform(0.5, 2.0, 12)])
+    ys = np.array([a * np.exp(-k * t) + c for a, k, c in truths]) + rng.normal(0, 5.0, (12, t.size))
+    w = np.full(t.size, 1.0 / 5.0)
+    start = np.array([1e4, 0.1, 1.0])
+    with jax.enable_x64(True):
+        solve = jax.jit(jax.vmap(lambda y: lm.least_squares(_decay, jnp.asarray(start), (jnp.asarray(t), y,
+                                                                                          jnp.asarray(w)),
+                                                            max_steps=100, rtol=1e-12, atol=1e-14)))
+        theta, cost, ok = (np.asarray(a) for a in solve(jnp.asarray(ys)))
+    assert ok.all()
+    for i in range(len(ys)):
+        ref = scipy_least_squares(lambda p: w * (p[0] * np.exp(-p[1] * t) + p[2] - ys[i]), start, method="lm",
+                                  xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        # Equal to within 1e-4 of each parameter's standard error (the precision a minimum has).
+        sigma = np.sqrt(np.diag(np.linalg.inv(ref.jac.T @ ref.jac)))
+        assert np.all(np.abs(theta[i] - ref.x) < 1e-4 * sigma)
+        assert cost[i] == pytest.approx(2 * ref.cost, rel=1e-9)  # scipy's cost is half the sum of squares
+
+
+def test_a_parameter_the_data_do_not_determine_stays_put_with_a_huge_variance():
+    def residuals(theta, args):
+        return jnp.stack([theta[0] - 3.0, 2.0 * (theta[0] - 3.0), 0.0 * theta[1]])
+
+    with jax.enable_x64(True):
+        theta, cost, ok = lm.least_squares(residuals, jnp.array([0.0, 0.7]), None, max_steps=50)
+        cov = np.asarray(lm.covariance(jax.jacfwd(residuals)(theta, None)))
+    assert bool(ok) and np.isfinite(np.asarray(theta)).all()
+    assert float(theta[0]) == pytest.approx(3.0, abs=1e-10)
+    assert float(theta[1]) == 0.7
+    assert cov[0, 0] == pytest.approx(1.0 / 5.0, rel=1e-6)  # 1 / sum of squared derivatives
+    assert cov[1, 1] > 1e100  # undetermined: no false precision (a pseudo-inverse would say 0)
+
+
+def _affine(x, scale, shift: float):
+    return {"y": scale * x + shift, "sum": jnp.sum(x)}
+
+
+def test_trace_store_gives_the_same_numbers_and_survives_a_broken_file(tmp_path):
+    x = jnp.arange(6.0)
+    plain = _affine(x, 2.0, shift=1.0)
+    try:
+        aot.set_store(tmp_path)
+        first = aot.call("affine", _affine, (x, 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
+        files = list(tmp_path.glob("affine-*.jaxexport"))
+        assert len(files) == 1  # traced and stored once
+        aot.set_store(tmp_path)  # a new process: nothing loaded yet
+        again = aot.call("affine", _affine, (x, 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
+        files[0].write_bytes(b"not an export")
+        aot.set_store(tmp_path)
+        broken = aot.call("affine", _affine, (x, 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
+        other = aot.call("affine", _affine, (x, 2.0), {"shift": 5.0}, ("tests.test_batched_solvers",))
+    finally:
+        aot.set_store(None)
+    for got in (first, again, broken):
+        np.testing.assert_array_equal(np.asarray(got["y"]), np.asarray(plain["y"]))
+        assert float(got["sum"]) == float(plain["sum"])
+    np.testing.assert_array_equal(np.asarray(other["y"]), 2.0 * np.arange(6.0) + 5.0)  # the static argument keys it
+    assert files[0].read_bytes() != b"not an export"  # the broken file was traced afresh
+
+
+def _edge_image(radius_px: float, angle_deg: float, size: int = 96):
+    """A step edge through the image centre blurred by a disk, from brute-force sub-pixel
+    sampling of the disk's edge-spread function (independent of lensfit.psf)."""
+    from lensfit.estimators import EdgeTask
+
+    a = np.radians(angle_deg)
+    n = np.array([np.cos(a), np.sin(a)])
+    q = (np.arange(8) + 0.5) / 8 - 0.5
+    yy, xx = np.mgrid[0:size, 0:size].astype(float)
+    img = np.zeros((size, size))
+    for dy in q:
+        for dx in q:
+            d = (xx + dx - size / 2) * n[0] + (yy + dy - size / 2) * n[1]
+            x = np.clip(d / radius_px, -1, 1)
+            img += 0.1 + 0.8 * (0.5 + (x * np.sqrt(1 - x * x) + np.arcsin(x)) / np.pi)
+    img /= q.size ** 2
+    t = np.array([-n[1], n[0]])
+    c = np.array([size / 2, size / 2])
+    task = EdgeTask(c - 30 * t, c + 30 * t, 40.0, 40.0)
+    return img, task
+
+
+def test_a_stack_batched_in_one_solve_reads_each_edge_as_alone():
+    from lensfit.estimators import edge
+
+    cases = [_edge_image(r, ang) for r, ang in ((2.0, 7.0), (5.5, 33.0), (9.0, 61.0))]
+    together = edge.measure_images([(lambda im=im: im, [task]) for im, task in cases])
+    for (im, task), batch, r in zip(cases, together, (2.0, 5.5, 9.0)):
+        alone = edge.measure(im, [task])[0]
+        assert batch[0].coc_diameter_px == pytest.approx(alone.coc_diameter_px, rel=1e-9)
+        assert batch[0].sigma_px == pytest.approx(alone.sigma_px, rel=1e-6)
+        assert alone.coc_diameter_px == pytest.approx(2 * r, rel=0.02)
