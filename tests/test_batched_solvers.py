@@ -128,3 +128,22 @@ def test_a_stack_batched_in_one_solve_reads_each_edge_as_alone():
         assert batch[0].coc_diameter_px == pytest.approx(alone.coc_diameter_px, rel=1e-9)
         assert batch[0].sigma_px == pytest.approx(alone.sigma_px, rel=1e-6)
         assert alone.coc_diameter_px == pytest.approx(2 * r, rel=0.02)
+
+
+def test_a_sharp_edge_reads_sub_pixel_and_noise_without_an_edge_reads_nothing():
+    from lensfit.estimators import edge
+
+    sharp, task = _edge_image(0.02, 7.0)  # slanted: the pixel phases sample the profile finely
+    got = edge.measure(sharp, [task])[0]
+    assert got.coc_diameter_px is not None and got.coc_diameter_px < 0.5
+    assert "sub_pixel_blur" in got.flags and got.sigma_px == pytest.approx(0.2)
+    # Along a pixel axis through pixel centres a disk up to 1 px never reaches the next pixel:
+    # any c below 1 px fits the same, and the reading must say so rather than give a number.
+    aligned, task0 = _edge_image(0.02, 0.0)
+    got = edge.measure(aligned, [task0])[0]
+    assert got.coc_diameter_px is None and "blur_undetermined" in got.flags
+    # Flat grey with noise: no edge to read. Whatever the solver lands on, no confident number.
+    rng = np.random.default_rng(7)
+    flat = 0.5 + rng.normal(0.0, 0.01, sharp.shape)
+    for est in edge.measure(flat, [task]):
+        assert est.coc_diameter_px is None or est.sigma_px > est.coc_diameter_px or "low_contrast" in est.flags

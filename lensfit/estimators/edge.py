@@ -47,12 +47,15 @@ Uncertainty
     images do not claim impossible precision. Edges within 2 degrees of a pixel axis are
     barely super-sampled and flagged ``axis_aligned``; their sigma is larger, as it should be.
 Valid range
-    c from about 0.5 px (below that the pixel footprint dominates and c is weakly determined:
-    the sigma says so) up to the clean room across the edge; beyond it the result is flagged
-    ``window_truncated``.
+    c from about 0.5 px (below that the pixel footprint dominates: a sub-pixel reading is
+    stated with 0.2 px, flag ``sub_pixel_blur``) up to the clean room across the edge; beyond
+    it the result is flagged ``window_truncated``. A profile that does not determine c gives
+    no value (flag ``blur_undetermined``): 1 sigma above 3 c (the covariance is inverted with a
+    ridge, so an undetermined direction shows as a huge variance, not as none), or for a
+    sub-pixel reading a blur of 1 px fitting less than 4 in chi-square worse.
 Cost
-    About 3 ms per edge warm on 2 cores, two passes and the shaped refits included (see the
-    README's stage table).
+    About 6 ms per edge warm on 2 cores, two passes, the shaped refits and the profiles
+    included (``lensfit bench-stages``; the README's stage table).
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
     W. J. Smith, *Modern Optical Engineering*.
@@ -87,9 +90,12 @@ FTOL = 1e-6
 SUB_PIXEL_PX = 0.5
 RHO_SMOOTH_PX2 = 1e-6  # smoothing of R^2 >= 0 at 0 (px^2); see _squared_radius
 SUB_PIXEL_SIGMA_PX = 0.2
-#: A reading whose 1 sigma exceeds this multiple of max(c, 1 px) is no reading (flag
-#: ``blur_undetermined``, no value).
+#: A reading (c >= SUB_PIXEL_PX) whose 1 sigma exceeds this multiple of c is no reading (flag
+#: ``blur_undetermined``, no value); a sub-pixel one is none unless a blur of PROBE_C_PX fits
+#: worse by PROBE_DCHI2 in chi-square.
 UNDETERMINED_SIGMA = 3.0
+PROBE_C_PX = 1.0
+PROBE_DCHI2 = 4.0
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
 #: Prior 1 sigma of the inner disk's share of the light, a (about 0), and of logit t, the inner
 #: radius over the outer one (about 0: t = 1/2); weak, they hold the shape where the blur is too
@@ -219,10 +225,12 @@ def _fit_batch(d, s, v, w, nx, ny, theta_disk, shaped: bool):
         dof = jnp.maximum(n_eff - theta.shape[0], 1)
         s2 = jnp.sum(r * r) / dof
         cov = jnp.maximum(s2, 1.0) * lm.covariance(J)
+        # How much worse a 1 px blur fits (the rest held): what a sub-pixel reading is worth.
+        probe = jnp.sum(fn(theta.at[1].set(PROBE_C_PX**2 / 4.0), args) ** 2) - cost
         if not shaped:  # the same layout as the shaped fit's: a = 0, u = 0, no covariance
             theta = jnp.concatenate([theta, jnp.zeros(2)])
             cov = jnp.pad(cov, ((0, 2), (0, 2)))
-        return theta, cov, jnp.sqrt(s2), ok
+        return theta, cov, jnp.sqrt(s2), ok, probe
 
     return jax.vmap(one)(d, s, v, w, nx, ny, theta_disk)
 
@@ -254,8 +262,8 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
         parts = [aot.call("edge-fit", _fit_batch, tuple(jnp.asarray(x[k:k + CHUNK]) for x in (D, S, V, W, NX, NY, T)),
                           {"shaped": shaped}, AOT_MODULES)
                  for k in range(0, n, CHUNK)]
-        theta, cov, rms, ok = jax.device_get([jnp.concatenate([p[j] for p in parts]) for j in range(4)])
-    return [(theta[i], cov[i], float(rms[i]), bool(ok[i])) for i in range(len(samples))]
+        theta, cov, rms, ok, probe = jax.device_get([jnp.concatenate([p[j] for p in parts]) for j in range(5)])
+    return [(theta[i], cov[i], float(rms[i]), bool(ok[i]), float(probe[i])) for i in range(len(samples))]
 
 
 def _at_one_depth(task: EdgeTask) -> bool:
@@ -338,13 +346,13 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         if second_moment and attempt == 1:
             # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
             # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
-            shaped = [j for j, (theta, _, rms, _) in enumerate(fits)
+            shaped = [j for j, (theta, _, rms, _, _) in enumerate(fits)
                       if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])
                       and 2.0 * math.sqrt(_squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
             for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True, [fits[j][0] for j in shaped])):
                 fits[j] = refit
         is_shaped = set(shaped)
-        for j, (i, (theta, cov, rms, ok)) in enumerate(zip(index, fits)):
+        for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):
             rho = float(_squared_radius(np, float(theta[1])))
             slope = _squared_radius_slope(float(theta[1]))
             r = math.sqrt(rho)
@@ -378,17 +386,20 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 # that is stated by the family's model error instead.
                 sigma_c = math.hypot(sigma_c / max(rms, 1.0), SHAPE_MODEL_REL * c)
             sigma = with_model_floor(sigma_c, c)
-            if not sigma <= UNDETERMINED_SIGMA * max(c, 1.0):
-                # The profile does not determine the blur: an edge along a pixel axis whose few
-                # pixel phases trade the radius against the edge's offset and turn (in noise), or
-                # a sharp edge whose profile changes with R only at a few pixel corners.
-                results[i] = BlurEstimate(None, None, tuple(f) + ("blur_undetermined",), npixels[i])
-                continue
             if c < SUB_PIXEL_PX:
                 # Below about half a pixel the pixel footprint dominates the profile and the fit's
-                # curvature overstates what is known about c (seen on ray-traced edges).
-                sigma = max(sigma, SUB_PIXEL_SIGMA_PX)
+                # curvature says nothing useful (none at R = 0): the reading is "sharp", stated
+                # with 0.2 px, if the profile rules out a 1 px blur (by chi-square PROBE_DCHI2); else
+                # it says nothing (an edge along a pixel axis in noise, whose few pixel phases
+                # trade the radius against the edge's position).
+                undetermined = not probe >= PROBE_DCHI2
+                sigma = SUB_PIXEL_SIGMA_PX
                 f.append("sub_pixel_blur")
+            else:
+                undetermined = not sigma <= UNDETERMINED_SIGMA * c
+            if undetermined:
+                results[i] = BlurEstimate(None, None, tuple(f) + ("blur_undetermined",), npixels[i])
+                continue
             contrast = abs(float(theta[3] - theta[2]))
             if contrast < 10 * max(rms, 1e-12) * float(np.median(batch[j][3])):
                 f.append("low_contrast")
