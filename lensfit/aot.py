@@ -23,6 +23,7 @@ from typing import Any, Callable
 
 _DIR: list[Path | None] = [None]
 _LOADED: dict[str, Callable] = {}
+_HASHES: dict[tuple[str, ...], str] = {}  # the source of a running process does not change
 
 
 def set_store(path: Path | None) -> None:
@@ -32,13 +33,16 @@ def set_store(path: Path | None) -> None:
 
 
 def _source_hash(modules: tuple[str, ...]) -> str:
+    if modules in _HASHES:
+        return _HASHES[modules]
     h = hashlib.sha256()
     for name in modules:
         spec = importlib.util.find_spec(name)
         h.update(name.encode())
         if spec is not None and spec.origin:
             h.update(Path(spec.origin).read_bytes())
-    return h.hexdigest()[:16]
+    _HASHES[modules] = h.hexdigest()[:16]
+    return _HASHES[modules]
 
 
 def _key(name: str, args, static: dict[str, Any], modules: tuple[str, ...]) -> str:
