@@ -52,7 +52,8 @@ Valid range
     it the result is flagged ``window_truncated``. A profile that does not determine c gives
     no value (flag ``blur_undetermined``): 1 sigma above 3 c (the covariance is inverted with a
     ridge, so an undetermined direction shows as a huge variance, not as none), or for a
-    sub-pixel reading a blur of 1 px fitting less than 4 in chi-square worse.
+    sub-pixel reading a blur of 1 px fitting less than 4 in chi-square worse (the other
+    parameters held: a lenient test, which keeps a reading rather than refuses it).
 Cost
     About 4 ms per edge warm on 2 cores, two passes, the shaped refits and the profiles
     included (``lensfit bench-stages``; the README's stage table).
