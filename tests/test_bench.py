@@ -178,3 +178,12 @@ def test_a_case_outside_the_tolerances_makes_the_exit_status_non_zero(tmp_path, 
     assert main(["bench", "--suite", str(path), "--out", str(tmp_path / "a")]) == 4
     assert "outside the suite's tolerances" in capsys.readouterr().err
     assert main(["bench", "--suite", str(path), "--out", str(tmp_path / "a"), "--resume", "--allow-fail"]) == 0
+
+
+def test_bench_stages_refuses_what_it_cannot_compare(tmp_path, capsys):
+    assert main(["bench-stages", str(tmp_path)]) == 2
+    assert "no stack.toml" in capsys.readouterr().err
+    (tmp_path / "stack.toml").write_text('[camera]\npixel_pitch_mm = 0.006\n[[target]]\nid = "s"\nkind = "slanted-edge"\n')
+    assert main(["bench-stages", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "slanted-edge" in err and "ChArUco" in err and len(err.strip().splitlines()) == 1

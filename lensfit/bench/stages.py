@@ -92,6 +92,7 @@ def _subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
     images = spec["image"][:count] if count else spec["image"]
     dst.mkdir(parents=True)
     for entry in images:
+        (dst / entry["file"]).parent.mkdir(parents=True, exist_ok=True)
         if scale == 1.0:
             (dst / entry["file"]).write_bytes((src / entry["file"]).read_bytes())
         else:

@@ -19,6 +19,12 @@ def _bench_stages_command(args: argparse.Namespace) -> int:
     folder = Path(args.stack)
     if not (folder / "stack.toml").is_file():
         raise CliError(f"STACK {folder}: no stack.toml there; give a stack folder (e.g. out/demo after make demo)")
+    import tomllib
+
+    kinds = {t.get("kind") for t in tomllib.loads((folder / "stack.toml").read_text()).get("target", [])}
+    if kinds != {"charuco"}:
+        raise CliError(f"STACK {folder}: targets {sorted(str(k) for k in kinds)}; bench-stages compares with OpenCV's "
+                       "ChArUco detection and needs ChArUco targets only (e.g. out/demo after make demo)")
     if any(k < 1 for k in args.images) or any(x <= 0 for x in args.scale):
         raise CliError("--images and --scale must be positive")
     console = Console(stderr=True)
