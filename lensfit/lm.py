@@ -36,29 +36,39 @@ LAMBDA_MAX = 1e12
 DIAG_FLOOR_REL = 1e-12
 
 
-def _scaled_solve(A, g, lam):
-    """``(A + lam D)^-1 g`` by Cholesky of the column-equilibrated matrix, ``D`` the diagonal of A
-    floored at ``DIAG_FLOOR_REL`` of its largest element: parameters whose scales differ by 1e10
-    (an edge's level and its blur's squared radius) would otherwise lose every digit of the small
-    ones, and the floor keeps a direction the data do not determine (curvature at rounding level)
-    from taking huge steps on rounding noise."""
+def _equilibrated_cholesky(A, lam, floor_rel: float):
+    """``(s, L)``: ``s`` = 1 / sqrt of the diagonal of A (floored at ``floor_rel`` of its largest
+    element) and ``L`` the Cholesky factor of ``s A s + lam I``: parameters whose scales differ by
+    1e10 (an edge's level and its blur's squared radius) would otherwise lose every digit of the
+    small ones."""
     diag = jnp.diag(A)
-    s = 1.0 / jnp.sqrt(jnp.maximum(diag, DIAG_FLOOR_REL * jnp.max(diag) + 1e-300))
+    s = 1.0 / jnp.sqrt(jnp.maximum(diag, floor_rel * jnp.max(diag) + 1e-300))
     M = s[:, None] * A * s[None, :] + lam * jnp.eye(A.shape[0], dtype=A.dtype)
-    L = jnp.linalg.cholesky(M)
+    return s, jnp.linalg.cholesky(M)
+
+
+def _scaled_solve(A, g, lam):
+    """``(A + lam D)^-1 g``, ``D`` the diagonal of A floored at ``DIAG_FLOOR_REL`` of its largest
+    element: the floor keeps a direction the data do not determine (curvature at rounding level)
+    from taking huge steps on rounding noise."""
+    s, L = _equilibrated_cholesky(A, lam, DIAG_FLOOR_REL)
     return s * jax.scipy.linalg.cho_solve((L, True), s * g)
 
 
 def covariance(J, ridge: float = 1e-10):
-    """``(J^T J)^-1`` by Cholesky of the column-equilibrated matrix with a ``ridge`` (relative to
-    each parameter's own curvature): a direction the data do not determine gets a huge variance,
-    where a truncated pseudo-inverse would give it none (and a reading a false precision)."""
+    """``(J^T J)^-1`` with a ``ridge`` relative to each parameter's own curvature: a direction the
+    data do not determine gets a huge variance, where a truncated pseudo-inverse would give it
+    none (and a reading a false precision)."""
     A = J.T @ J
-    s = 1.0 / jnp.sqrt(jnp.maximum(jnp.diag(A), 1e-300))
-    M = s[:, None] * A * s[None, :] + ridge * jnp.eye(A.shape[0], dtype=A.dtype)
-    L = jnp.linalg.cholesky(M)
+    s, L = _equilibrated_cholesky(A, ridge, 0.0)
     inv = jax.scipy.linalg.cho_solve((L, True), jnp.eye(A.shape[0], dtype=A.dtype))
     return s[:, None] * inv * s[None, :]
+
+
+def residuals_and_jacobian(residuals: Callable[[Any, Any], Any], theta, args):
+    """``(r, J)`` at ``theta`` in one forward-mode pass."""
+    J, r = jax.jacfwd(lambda t: (residuals(t, args),) * 2, has_aux=True)(theta)
+    return r, J
 
 
 def least_squares(residuals: Callable[[Any, Any], Any], theta0, args, *, max_steps: int = 60,
@@ -76,8 +86,7 @@ def least_squares(residuals: Callable[[Any, Any], Any], theta0, args, *, max_ste
 
     def step(state):
         theta, lam, cost, i, done = state
-        r = residuals(theta, args)
-        J = jax.jacfwd(residuals)(theta, args)
+        r, J = residuals_and_jacobian(residuals, theta, args)
         A = J.T @ J
         g = J.T @ r
         delta = -_scaled_solve(A, g, lam)
@@ -108,8 +117,7 @@ def least_squares(residuals: Callable[[Any, Any], Any], theta0, args, *, max_ste
     theta, _, cost, _, done = jax.lax.while_loop(more, step, state)
     # Out of steps: still converged if no quadratic-model step could gain more than ``gtol`` of
     # the cost (a flat valley, where any point is as good: the covariance shows it).
-    r = residuals(theta, args)
-    J = jax.jacfwd(residuals)(theta, args)
+    r, J = residuals_and_jacobian(residuals, theta, args)
     A = J.T @ J
     g = J.T @ r
     decrement = g @ _scaled_solve(A, g, 1e-9)

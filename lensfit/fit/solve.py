@@ -27,7 +27,7 @@ def _residuals(theta_free, args):
 
 
 #: The modules whose source defines the compiled solver (a change traces it afresh; lensfit.aot).
-AOT_MODULES = ("lensfit.fit.solve", "lensfit.fit.model", "lensfit.fit.constants")
+AOT_MODULES = ("lensfit.fit.solve", "lensfit.fit.model", "lensfit.fit.constants", "lensfit.lm")
 
 
 def _optx_solve(theta0, args, m: int):
@@ -39,10 +39,9 @@ def _optx_solve(theta0, args, m: int):
 
 
 def _evaluate(theta, args, m: int):
-    import jax
+    from lensfit.lm import residuals_and_jacobian
 
-    fn = _solver_residual_fn(m)
-    return fn(theta, args), jax.jacfwd(fn)(theta, args)
+    return residuals_and_jacobian(_solver_residual_fn(m), theta, args)
 
 
 def _quantities(t, m: int):
