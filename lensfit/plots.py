@@ -47,10 +47,11 @@ def plot_fit(result: FitResult, path, *, title: str | None = None, image_format:
         pad = 0.05 * (x1 - x0 or 1.0)
         grid = np.linspace(max(x0 - pad, 1e-6), x1 + pad, 400)
         if inv.value is not None:
-            c = result.predict_px(label, 1000.0 / grid)
+            # In the samples' frame: pose distances carry the calibration's scale (fit notes).
+            c = result.predict_px(label, 1000.0 / grid, pose=bool(data.pose[sel].any()))
             text = _describe(result, label)
             ax.plot(grid, c, "-", color=col, lw=1.5, label=text)
-            ax.axvline(inv.value, color=col, ls=":", lw=1)
+            ax.axvline(grid[int(np.argmin(c))], color=col, ls=":", lw=1)
         axr.plot(w[good], result.residuals_px[sel][good] / data.sigma_px[sel][good], "o", ms=3, color=col, alpha=0.7)
         if (~good).any():
             axr.plot(w[~good], result.residuals_px[sel][~good] / data.sigma_px[sel][~good], "o", mfc="none",

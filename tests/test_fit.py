@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from helpers import assert_recovered_or_refused
 from lensfit.errors import InputError
 from lensfit.fit import fit, inverse_distance_moments
+from lensfit.fit.constants import BLUR_SCALE_SIGMA
 
 PITCH = 0.005
 
@@ -30,12 +31,14 @@ def thin_lens_coc_px(f, N, D, d, pitch=PITCH):
 
 
 def simulate(f, N, D, distances, rng, *, noise_px=0.05, rel_noise=0.005, floor_px=0.0, setting="a",
-             fpx_rel_sigma=1e-4, pitch=PITCH):
-    """Sample rows as lensfit.measure writes them, plus the calibrated f_px = s/p with noise."""
+             fpx_rel_sigma=1e-4, pitch=PITCH, scale_sigma=0.0):
+    """Sample rows as lensfit.measure writes them, plus the calibrated f_px = s/p with noise;
+    ``scale_sigma``: a blur estimator's scale error shared by every sample (relative)."""
     c, s = thin_lens_coc_px(f, N, D, distances, pitch)
     c = np.sqrt(c**2 + floor_px**2)
     sigma = np.sqrt(noise_px**2 + (rel_noise * c) ** 2)
-    measured = np.abs(c + rng.normal(0.0, sigma))
+    scale = 1.0 + scale_sigma * rng.normal() if scale_sigma else 1.0
+    measured = np.abs(c * scale + rng.normal(0.0, sigma))
     rows = [{"setting": setting, "distance_mm": float(d), "coc_diameter_px": float(m), "sigma_px": float(sg)}
             for d, m, sg in zip(distances, measured, sigma)]
     fpx_true = s / pitch
@@ -351,7 +354,8 @@ def test_intervals_cover_the_truth_at_their_stated_rate():
     truth = {"f_number": N, "focus_distance_mm": D, "focal_length_mm": f}
     trials = 150
     for _ in range(trials):
-        rows, fpx, fsig = simulate(f, N, D, d, rng, noise_px=0.1, rel_noise=0.01, fpx_rel_sigma=3e-4)
+        rows, fpx, fsig = simulate(f, N, D, d, rng, noise_px=0.1, rel_noise=0.01, fpx_rel_sigma=3e-4,
+                                   scale_sigma=BLUR_SCALE_SIGMA)  # the estimator's shared scale error
         r = run_fit(rows, fpx, fsig)
         for q, (n68, n95) in hits.items():
             e = r.settings["a"][q]

@@ -74,6 +74,14 @@ def _write_fit_outputs(args, source: Path, table, result, document, stack=None) 
     return write_all(files, force=args.force)
 
 
+def _budget_text(shares: dict[str, float] | None) -> str:
+    """The sources carrying at least a tenth of a variance, largest first: "calibration 75%"."""
+    if not shares:
+        return ""
+    big = sorted(((v, k) for k, v in shares.items() if v >= 0.1), reverse=True)
+    return ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f}%" for v, k in big)
+
+
 def _print_fit(result, document) -> None:
     """Per setting a table of estimates (and truth, when known); diagnostics; reasons."""
     from rich.console import Console
@@ -100,6 +108,10 @@ def _print_fit(result, document) -> None:
                           if r else ["", ""])
             t.add_row(*cells)
         out.print(t)
+        budget = [f"{qn} {text}" for qn in ("focal_length_mm", "f_number", "focus_distance_mm")
+                  if (text := _budget_text(qs[qn].shares if qs[qn].value is not None else None))]
+        if budget:
+            print("variance from: " + "; ".join(budget))
     d = document["diagnostics"]
 
     def num(x, spec):

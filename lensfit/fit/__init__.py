@@ -44,6 +44,23 @@ focus distance ``1000/D_k`` (dioptres, 0 at infinity, allowed to cross it), ``lo
 ``b_k``; ``log P`` (held where assumed; a log-normal prior where a range is given, a very weak
 one where it is fitted).
 
+Distances from target poses: a pose solved with a calibrated ``f_px`` that is ``1 + e`` times
+the true ``S / p`` puts the board ``1 + e`` times too far (its size in the image is ``f_px``
+times its size over its distance), so the calibration's error moves every pose distance of a
+setting together. The model therefore reads a sample whose ``distance_source`` is ``"pose"``
+at the inverse distance ``(p f_px / S_k) / d``, ``f_px`` the calibrated value and ``S_k`` the
+fitted pinhole distance: the calibration's uncertainty reaches the focus distance (one for one)
+and the f-number (through f; the aperture ``A`` is the blur slope over the calibrated ``f_px``,
+an angle, and does not depend on it). Distances measured otherwise (a manifest's
+``distance_mm``, rows without ``distance_source``) are taken as they are.
+
+Error budget: each reported variance is split into its sources (``Estimate.shares``,
+results.json ``variance_shares``): the blur readings' scatter, the calibration, what an image's
+edges share beyond that (the leave-one-image-out jackknife's excess), the blur estimator's
+shared scale error (``BLUR_SCALE_SIGMA``: a scale on every blur moves ``A``, ``N``, the slope
+and the floor alike, and nothing else) and the priors. The model covariance splits exactly as
+``H^-1 J_g^T J_g H^-1`` over the row groups ``g`` of the Jacobian.
+
 Solver: a closed-form start (for each candidate vertex on a grid spanning the data, linear
 least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix
 Levenberg-Marquardt, inside iteratively reweighted least squares for a robust loss (Huber by

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -19,7 +20,8 @@ from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
 from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robust_weights, _solver, _solver_args,
                                _solver_residual_fn)
 from lensfit.fit.start import _vertex_search
-from lensfit.fit.uncertainty import _covariance, _derive, _jackknife, _null_direction, _positive
+from lensfit.fit.uncertainty import (BUDGET_SOURCES, _budget_parts, _covariance, _derive, _jackknife,
+                                     _null_direction, _positive)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
@@ -89,6 +91,13 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         return _refused(data, loss, "the fit produced non-finite numbers; the samples span magnitudes no lens "
                         "produces: check their units (mm, px) and the pixel pitch")
     return result
+
+
+def _full_size(c: np.ndarray, free_idx: np.ndarray, m: int) -> np.ndarray:
+    """A covariance of the free parameters as one of all parameters (zeros where held)."""
+    out = np.zeros((_size(m), _size(m)))
+    out[np.ix_(free_idx, free_idx)] = c
+    return out
 
 
 def _refused(data: FitData, loss: str, reason: str) -> FitResult:
@@ -243,10 +252,10 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     names = _parameter_names(labels)
     fnames = [names[i] for i in free_idx]
     cov, cond, corr = _covariance(jac, scale2)
+    parts = {src: _full_size(c, free_idx, m) for src, c in _budget_parts(jac, cov, npad, m, scale2).items()}
     z = (1.0, _Z95)
     cov, z = _jackknife(cov, corr, z, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior)
-    full_cov = np.zeros((_size(m), _size(m)))
-    full_cov[np.ix_(free_idx, free_idx)] = cov
+    full_cov = _full_size(cov, free_idx, m)
 
     degenerate = cond > MAX_CONDITION
     weak: set[str] = set()
@@ -262,14 +271,21 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     settings: dict[str, dict[str, Estimate]] = {}
     reasons: list[str] = []
     thin = p_source == "assumed" and theta[i_p] == 0.0
+    scale_sigma = data.blur_scale_sigma(weights * row_on)
     f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons, z,
-                    thin)
+                    thin, parts, scale_sigma**2)
     if p_source == "assumed":
         p_est = Estimate(P0, 0.0, (P0, P0), (P0, P0),
                          "assumed (a thin lens)" if thin else "assumed (given as pupil_magnification)")
     else:
         sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
         p_est = _positive(math.exp(theta[i_p]), sd_p, z)
+        if parts:
+            v = {src: max(float(c[i_p, i_p]), 0.0) for src, c in parts.items()}
+            v["images"] = max(sd_p**2 - sum(v.values()), 0.0)
+            total = sum(v.values())
+            if total > 0:
+                p_est = dataclasses.replace(p_est, shares={src: v.get(src, 0.0) / total for src in BUDGET_SOURCES})
         if p_source == "fitted" and ("log_P" in weak or sd_p > MAX_RELATIVE_SIGMA):
             p_est = Estimate(None, reason=f"the pupil magnification is poorly constrained (relative 1 sigma "
                              f"{100 * sd_p:.0f}%): focus the settings farther apart")

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import (DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX,
+from lensfit.fit.constants import (BLUR_SCALE_SIGMA, BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX,
                                    PIXEL_PITCH_RANGE_MM, _NODES_T)
 
 
@@ -34,6 +34,20 @@ class FitData:
     group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     #: index of each used sample in the input rows (unmeasured rows are dropped)
     row: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    #: True where the sample's distances come from a target pose solved with its setting's
+    #: calibrated focal length (``distance_source`` "pose"): they scale with that calibration's
+    #: error, which the fit carries (lensfit.fit.model._distance_scale)
+    pose: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    #: the estimator's shared scale error that applies to each sample (relative 1 sigma;
+    #: BLUR_SCALE_SIGMA, or BLUR_SCALE_SIGMA_SHAPED for a ``shaped_spot`` reading)
+    scale_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def blur_scale_sigma(self, weights: np.ndarray | None = None) -> float:
+        """The estimator's shared relative scale error for this fit: each sample's weighted by
+        the information it carries about a scale, ``(c / sigma)^2`` (times ``weights``)."""
+        info = (self.coc_px / self.sigma_px) ** 2 * (1.0 if weights is None else weights)
+        total = float(np.sum(info))
+        return float(np.sum(info * self.scale_sigma) / total) if total > 0 else 0.0
 
 
 def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -142,4 +156,12 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
                    np.array([float(r["coc_diameter_px"]) for r in used]),
                    np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
-                   np.array([image_index[name] for name in images], int), np.array(used_rows, int))
+                   np.array([image_index[name] for name in images], int), np.array(used_rows, int),
+                   np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
+                   np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r) else BLUR_SCALE_SIGMA
+                             for r in used]))
+
+
+def _flags(row: dict[str, Any]) -> set[str]:
+    f = row.get("flags") or ()
+    return set(f.split(";")) if isinstance(f, str) else set(f)

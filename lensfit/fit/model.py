@@ -64,8 +64,18 @@ def _edge_blur(xp, slope_px, x, w_nodes, floor):
     return (local**BLUR_POWER_MEAN @ _NODES_W) ** (1.0 / BLUR_POWER_MEAN)
 
 
-def _model(theta, m, setting, w_nodes, pitch):
-    """Blur diameter in px of each sample (JAX)."""
+def _distance_scale(xp, s, pitch, fpx_cal):
+    """``p f_px / S`` per setting: the factor that takes an inverse distance measured from a
+    target's pose to the true one. A pose solved with a calibrated ``f_px`` that is ``1 + e``
+    times the true ``S / p`` puts every board ``1 + e`` times too far (the board's size in the
+    image is ``f_px`` times its size over its distance), so the calibration's error moves all
+    of a setting's pose distances together (module notes). 1 where ``f_px`` is unknown (0)."""
+    return xp.where(fpx_cal > 0, pitch * fpx_cal / s, 1.0)
+
+
+def _model(theta, m, setting, w_nodes, pitch, fpx_cal, pose):
+    """Blur diameter in px of each sample (JAX); ``pose`` (0/1 per sample): its distances come
+    from a target pose solved with the setting's calibrated ``fpx_cal`` (and scale with it)."""
     import jax.numpy as jnp
 
     log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(theta, m)
@@ -74,15 +84,18 @@ def _model(theta, m, setting, w_nodes, pitch):
     s = _pinhole_distance(jnp, f, x, jnp.exp(log_p))
     slope_px = f * s / jnp.exp(log_n) / pitch  # K/p = A S / p
     k = setting
-    return _edge_blur(jnp, slope_px[k], x[k], w_nodes, floor[k]), s
+    mu = 1.0 + pose * (_distance_scale(jnp, s, pitch, fpx_cal)[k] - 1.0)
+    return _edge_blur(jnp, slope_px[k], x[k], w_nodes * mu[:, None], floor[k]), s
 
 
-def _model_np(theta, m, k, w_nodes, pitch):
-    """The same for the samples of setting ``k`` (NumPy)."""
+def _model_np(theta, m, k, w_nodes, pitch, fpx_cal=0.0, pose=0.0):
+    """The same for the samples of setting ``k`` (NumPy); ``fpx_cal`` that setting's calibrated
+    focal length in px (0: none), ``pose`` 0/1 per sample or one for all."""
     log_f, inv_focus_per_m, log_n, floor, log_p = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
     f = math.exp(log_f)
     x = inv_focus_per_m[k] / 1000.0
     s = float(_pinhole_distance(np, f, x, math.exp(log_p)))
     n = len(w_nodes)
-    return _edge_blur(np, np.full(n, f * s / math.exp(log_n[k]) / pitch), np.full(n, x), w_nodes,
-                      np.full(n, floor[k]))
+    mu = 1.0 + np.asarray(pose, float) * (float(_distance_scale(np, s, pitch, np.float64(fpx_cal))) - 1.0)
+    return _edge_blur(np, np.full(n, f * s / math.exp(log_n[k]) / pitch), np.full(n, x),
+                      w_nodes * np.broadcast_to(mu, (n,))[:, None], np.full(n, floor[k]))

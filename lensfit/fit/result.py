@@ -36,6 +36,9 @@ class Estimate:
     ci95: tuple[float | None, float | None] | None = None
     reason: str | None = None
     infinite: bool = False
+    #: the share of the variance each source carries (``lensfit.fit.uncertainty.BUDGET_SOURCES``;
+    #: they sum to 1); None where not computed
+    shares: dict[str, float] | None = None
 
     @property
     def determined(self) -> bool:
@@ -72,6 +75,8 @@ class Estimate:
             out["infinite"] = True
         if self.reason:
             out["reason"] = self.reason
+        if self.shares and self.value is not None:
+            out["variance_shares"] = {k: round(float(v), 4) for k, v in self.shares.items()}
         return out
 
 
@@ -125,12 +130,16 @@ class FitResult:
     def ok(self) -> bool:
         return self.code == Outcome.OK
 
-    def predict_px(self, setting: str, distance_mm: np.ndarray) -> np.ndarray:
-        """Model blur diameter (px) of a fronto-parallel edge at ``distance_mm`` from the lens."""
+    def predict_px(self, setting: str, distance_mm: np.ndarray, pose: bool = False) -> np.ndarray:
+        """Model blur diameter (px) of a fronto-parallel edge at ``distance_mm`` from the lens;
+        ``pose``: a distance as the setting's target poses measure it (scaled by its
+        calibration's focal length, as the samples' are), not the true one."""
         k = self.samples.labels.index(setting)
         w = 1.0 / np.asarray(distance_mm, np.float64).reshape(-1)
         nodes = np.repeat(w[:, None], EDGE_NODES, axis=1)
-        return _model_np(self._full, len(self.samples.labels), k, nodes, self.samples.pixel_pitch_mm)
+        fpx = float(np.nan_to_num(self.samples.focal_length_px[k], nan=0.0))
+        return _model_np(self._full, len(self.samples.labels), k, nodes, self.samples.pixel_pitch_mm, fpx,
+                         float(pose))
 
     def to_json_dict(self) -> dict[str, Any]:
         """The results file (data_specs/schemas/results.schema.json); finite numbers or null throughout."""

@@ -31,6 +31,26 @@ def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float, np.n
     return cov, cond, np.clip(corr, -1, 1)
 
 
+#: The sources a reported variance is split into (results.json ``variance_shares``): the
+#: blur readings' own scatter ("blur"); the calibrated focal length in px and with it the scale
+#: of every pose distance ("calibration"); what the edges of one image share beyond that (its
+#: pose, its noise), the excess of the leave-one-image-out jackknife ("images"); the blur
+#: estimator's shared scale error ("estimator_scale", ``BLUR_SCALE_SIGMA``); the priors on the
+#: blur floor and the pupil magnification ("priors").
+BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "priors")
+
+
+def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int, scale2: float) -> dict[str, np.ndarray]:
+    """The model covariance of the free parameters split by the rows that carry it:
+    ``H^-1 J_g^T J_g H^-1`` for each row group ``g`` (``H = J^T J``), which sum to ``H^-1``.
+    Rows: blur samples (``npad``), the focal lengths in px (``m``), then the priors."""
+    if jac.shape[1] == 0:
+        return {}
+    h_inv = cov / scale2
+    groups = {"blur": slice(0, npad), "calibration": slice(npad, npad + m), "priors": slice(npad + m, None)}
+    return {name: scale2 * h_inv @ jac[sl].T @ jac[sl] @ h_inv for name, sl in groups.items()}
+
+
 def _null_direction(jac: np.ndarray) -> np.ndarray:
     norms = np.linalg.norm(jac, axis=0)
     norms = np.where(norms > 0, norms, 1.0)
@@ -86,12 +106,58 @@ _FROM_SENSOR_UNKNOWN = ("not determined for a thick lens: it needs the distance 
                         "from the entrance pupil)")
 
 
+#: Reported quantity -> the solver quantity whose variance it carries.
+_CARRIER = {"focal_length_mm": "log_f", "f_number": "log_N", "focus_distance_mm": "inv_focus_per_m",
+            "focus_distance_from_sensor_mm": "inv_focus_per_m", "inverse_focus_distance_per_m": "inv_focus_per_m",
+            "sensor_distance_mm": "log_sx", "aperture_diameter_mm": "log_A", "blur_slope_mm2": "log_K",
+            "blur_floor_px": "floor"}
+
+
+class _Variance:
+    """Variances of the solver's derived quantities (delta method), the estimator's shared
+    scale error added where it acts, and their split into ``BUDGET_SOURCES``."""
+
+    def __init__(self, q, jacs, cov, parts, scale_var):
+        self.q, self.jacs, self.cov, self.parts, self.scale_var = q, jacs, cov, parts, scale_var
+
+    def _grad(self, name, k):
+        return self.jacs[name] if k is None else self.jacs[name][k]
+
+    def _scale_term(self, name, k):
+        """Variance from the shared blur scale: it multiplies A, the slope and the floor."""
+        if name in ("log_N", "log_A", "log_K"):
+            return self.scale_var
+        if name == "floor":
+            return self.scale_var * float(self.q["floor"][k]) ** 2
+        return 0.0
+
+    def var(self, name, k=None) -> float:
+        g = self._grad(name, k)
+        return max(float(g @ self.cov @ g), 0.0) + self._scale_term(name, k)
+
+    def sd(self, name, k=None) -> float:
+        return math.sqrt(self.var(name, k))
+
+    def shares(self, name, k=None) -> dict[str, float] | None:
+        if not self.parts:
+            return None
+        g = self._grad(name, k)
+        v = {src: max(float(g @ c @ g), 0.0) for src, c in self.parts.items()}
+        v["estimator_scale"] = self._scale_term(name, k)
+        v["images"] = max(self.var(name, k) - sum(v.values()), 0.0)  # the jackknife's excess
+        total = sum(v.values())
+        return {src: v.get(src, 0.0) / total for src in BUDGET_SOURCES} if total > 0 else None
+
+
 def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
-            z: tuple[float, float] = (1.0, _Z95), thin: bool = True) -> Estimate:
+            z: tuple[float, float] = (1.0, _Z95), thin: bool = True, parts=None, scale_var: float = 0.0
+            ) -> Estimate:
     """Fill ``settings`` with every reported quantity; returns the shared focal length. ``z``:
     the multiples of sigma for the 68 % and 95 % intervals. ``thin``: the lens is taken as thin
     (P = 1 assumed), so the entrance pupil is the lens plane and the focus distance from the
-    sensor plane is known; otherwise that distance is not determined."""
+    sensor plane is known; otherwise that distance is not determined. ``parts``: the model
+    covariance split by source (:func:`_budget_parts`, full size); ``scale_var``: the variance
+    of the estimator's shared relative scale error."""
     import jax
     import jax.numpy as jnp
 
@@ -99,10 +165,8 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
         values, grads = _solver(m)[2](jnp.asarray(theta))
         q = {k: np.asarray(v) for k, v in values.items()}
         jacs = {k: np.asarray(v) for k, v in grads.items()}
-
-    def sd(name, k=None):
-        g = jacs[name] if k is None else jacs[name][k]
-        return float(math.sqrt(max(g @ cov @ g, 0.0)))
+    variance = _Variance(q, jacs, cov, parts or {}, scale_var)
+    sd = variance.sd
 
     f_val = float(q["f"])
     f_reason = None
@@ -188,8 +252,15 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                 out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), z)
                 out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k), z)
         out["focal_length_mm"] = f_est
-        settings[label] = {qn: out[qn] for qn in QUANTITIES}
-    return f_est
+        settings[label] = {qn: _with_shares(out[qn], variance.shares(_CARRIER[qn], None if qn == "focal_length_mm"
+                                                                      else k)) for qn in QUANTITIES}
+    return settings[data.labels[0]]["focal_length_mm"] if data.labels else f_est
+
+
+def _with_shares(est: Estimate, shares: dict[str, float] | None) -> Estimate:
+    import dataclasses
+
+    return dataclasses.replace(est, shares=shares) if est.value is not None and shares else est
 
 
 def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tuple[float, float]]

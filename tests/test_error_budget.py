@@ -1,0 +1,98 @@
+"""The error budget: sources that move all samples together, against Monte Carlo captures
+simulated here, independently of lensfit.
+
+A capture is the thin-lens V, ``c = (f/N) s |1/X - 1/d| / p``, observed the way a calibrated
+camera observes it: the calibration's focal length in px is off by a relative ``e`` (stated as
+its 1 sigma), and every distance comes from a target pose solved with it, so every distance is
+off by the same ``1 + e``; each image's pose adds its own shared error; the blur readings carry
+independent noise and the estimator's shared scale error. Intervals must hold the truth at
+their stated rate; the same captures with the distances taken as exact (the way the fit read
+them before the budget) must not, which shows the test can fail.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lensfit.fit import fit
+from lensfit.fit.constants import BLUR_SCALE_SIGMA
+from lensfit.fit.uncertainty import BUDGET_SOURCES
+
+PITCH = 0.004
+F, N, X = 35.0, 4.0, 1500.0
+IMAGES, EDGES = 12, 16
+
+
+def capture(rng, *, fpx_rel_sigma=0.002, pose_rel_sigma=0.001, noise_px=0.04, scale_sigma=BLUR_SCALE_SIGMA,
+            distance_source="pose"):
+    """Rows, calibrated f_px and its sigma for one Monte Carlo capture."""
+    s = 1.0 / (1.0 / F - 1.0 / X)
+    e = fpx_rel_sigma * rng.normal()
+    scale = 1.0 + scale_sigma * rng.normal()
+    rows = []
+    for i in range(IMAGES):
+        pose = 1.0 + pose_rel_sigma * rng.normal()
+        d_image = X * math.exp(rng.uniform(-0.6, 0.8))  # boards in front of and behind the focus plane
+        for j in range(EDGES):
+            d = d_image * (1.0 + 0.05 * (j - EDGES / 2) / EDGES)
+            c = (F / N) * s * abs(1.0 / X - 1.0 / d) / PITCH
+            sigma = math.hypot(noise_px, 0.003 * c)
+            rows.append({"setting": "a", "image": f"img{i}.png", "distance_mm": d * (1 + e) * pose,
+                         "coc_diameter_px": abs(c * scale + sigma * rng.normal()), "sigma_px": sigma,
+                         "distance_source": distance_source})
+    return rows, s / PITCH * (1 + e), fpx_rel_sigma * s / PITCH
+
+
+def truths():
+    return {"focal_length_mm": F, "f_number": N, "focus_distance_mm": X}
+
+
+def coverage(draws, seed, **kw):
+    rng = np.random.default_rng(seed)
+    hits = {q: 0 for q in truths()}
+    for _ in range(draws):
+        rows, fpx, fsg = capture(rng, **kw)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        assert r.ok, r.reasons
+        for q, t in truths().items():
+            lo, hi = r.settings["a"][q].ci95
+            hits[q] += lo <= t <= hi
+    return {q: h / draws for q, h in hits.items()}
+
+
+def test_intervals_hold_the_truth_with_calibration_pose_and_estimator_errors():
+    # 120 draws: a 95 % rate reads 0.95 +- 0.02; 85 % would read 0.85 +- 0.03.
+    cov = coverage(120, 11)
+    for q, rate in cov.items():
+        assert 0.90 <= rate <= 0.995, f"{q}: 95 % interval held the truth in {100 * rate:.0f} % of captures"
+
+
+def test_without_the_distance_scale_the_focus_interval_is_too_short():
+    # The same captures with the distances taken as measured independently of the calibration:
+    # the calibration's 0.2 % then moves the focus distance with nothing in its interval for it.
+    cov = coverage(40, 11, distance_source="")
+    assert cov["focus_distance_mm"] < 0.85, cov
+
+
+def test_shares_name_the_source_that_dominates():
+    rng = np.random.default_rng(3)
+    # A precise calibration and low noise: the f-number's variance is the estimator's scale.
+    rows, fpx, fsg = capture(rng, fpx_rel_sigma=1e-5, pose_rel_sigma=0.0, noise_px=0.005)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    shares = r.settings["a"]["f_number"].shares
+    assert set(shares) == set(BUDGET_SOURCES) and math.isclose(sum(shares.values()), 1.0, rel_tol=1e-9)
+    assert shares["estimator_scale"] > 0.8, shares
+    assert r.settings["a"]["f_number"].sigma / N == pytest.approx(BLUR_SCALE_SIGMA, rel=0.15)
+    # A loose calibration: the focus distance's and the focal length's variance is the calibration's.
+    rows, fpx, fsg = capture(rng, fpx_rel_sigma=0.01, pose_rel_sigma=0.0, noise_px=0.005)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    for q in ("focal_length_mm", "focus_distance_mm"):
+        assert r.settings["a"][q].shares["calibration"] > 0.8, (q, r.settings["a"][q].shares)
+        assert r.settings["a"][q].sigma / truths()[q] == pytest.approx(0.01, rel=0.2)
+    # Large shared per-image pose errors: the jackknife's excess, reported as the images' share.
+    rows, fpx, fsg = capture(rng, fpx_rel_sigma=1e-5, pose_rel_sigma=0.01, noise_px=0.005)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    assert r.settings["a"]["focus_distance_mm"].shares["images"] > 0.5, r.settings["a"]["focus_distance_mm"].shares
