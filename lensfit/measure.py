@@ -23,7 +23,7 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, project
-from lensfit.errors import SpecError
+from lensfit.errors import InputError, SpecError
 from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.stack import Stack, load_stack
@@ -110,8 +110,10 @@ class SampleTable:
         if not path.is_file():
             raise SpecError(path, "", "no such file; write samples with lensfit measure --out")
         if path.suffix.lower() == ".csv":
+            from lensfit.samples_csv import csv_calibration, read_samples_csv
+
             rows = read_samples_csv(path)
-            doc: dict[str, Any] = {"samples": rows, **_csv_calibration(path, rows)}
+            doc: dict[str, Any] = {"samples": rows, **csv_calibration(path, rows)}
         else:
             try:
                 doc = json.loads(path.read_text())
@@ -176,65 +178,6 @@ class SampleTable:
                            focal_length_px=None if k is None else repr(k.focal_length_px),
                            focal_length_sigma_px=None if k is None else repr(k.focal_length_sigma_px))
                 writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
-
-
-def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
-    """Rows of a samples CSV written by ``lensfit measure`` (numbers parsed, blanks None)."""
-    path = Path(path)
-    try:
-        return _read_samples_csv(path)
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise SpecError(path, "", f"not a readable CSV ({exc}); write samples with lensfit measure") from None
-
-
-def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
-    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
-               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
-    rows = []
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in (reader.fieldnames
-                                                                                                      or [])]
-        if missing:
-            raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
-        for i, r in enumerate(reader, start=2):
-            row: dict[str, Any] = dict(r)
-            for c in numeric:
-                if c in row:
-                    v = (row[c] or "").strip()
-                    try:
-                        row[c] = float(v) if v else None
-                    except ValueError:
-                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a number") from None
-                    if row[c] is not None and not math.isfinite(row[c]):
-                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a finite number; leave the cell "
-                                        "empty where an edge has no measurement")
-            rows.append(row)
-    return rows
-
-
-def _csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """The pixel pitch and per-setting focal lengths a samples CSV repeats on its rows (empty
-    where the columns are absent); rows of one setting must agree."""
-    out: dict[str, Any] = {}
-    pitches = {r["pixel_pitch_mm"] for r in rows if r.get("pixel_pitch_mm") is not None}
-    if len(pitches) > 1:
-        raise SpecError(path, "pixel_pitch_mm", f"rows disagree ({sorted(pitches)[:2]}); one stack has one pitch")
-    if pitches:
-        out["pixel_pitch_mm"] = pitches.pop()
-    intrinsics: dict[str, dict[str, float]] = {}
-    for i, r in enumerate(rows, start=2):
-        if r.get("focal_length_px") is None:
-            continue
-        entry = {"focal_length_px": r["focal_length_px"], "source": "samples CSV",
-                 "focal_length_sigma_px": r.get("focal_length_sigma_px") or 0.0}
-        first = intrinsics.setdefault(str(r["setting"]), entry)
-        if first["focal_length_px"] != entry["focal_length_px"]:
-            raise SpecError(path, f"line {i}: focal_length_px", f"{entry['focal_length_px']} differs from the earlier "
-                            f"{first['focal_length_px']} of setting {r['setting']!r}; a setting has one calibration")
-    if intrinsics:
-        out["intrinsics"] = intrinsics
-    return out
 
 
 def _check_saturation(stack: Stack, index: int, image: np.ndarray, det: Detection) -> None:
@@ -345,7 +288,8 @@ class _StageClock:
 
 
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
-            progress: Callable[[str, int, int], None] | None = None) -> SampleTable:
+            progress: Callable[[str, int, int], None] | None = None,
+            airy_px: dict[str, float] | None = None) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
 
     Parameters
@@ -355,6 +299,9 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     refine : refine the detected corners by intersecting the measured edge lines, then
         calibrate and solve the poses again (more precise intrinsics and distances)
     progress : callable(stage, done, total), optional
+    airy_px : per setting label, the Airy pattern's scale ``lambda N_w / p`` in px: the edge
+        estimators then model diffraction and read the defocus blur alone (flag
+        ``diffraction_modelled``; ``lensfit.diffraction``, ``lensfit.pipeline``)
 
     Returns
     -------
@@ -368,8 +315,18 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     from lensfit.estimators import edge as edge_estimator
 
     fn = get_estimator(estimator)
+    if airy_px is not None and estimator not in ("edge", "edge-disk"):
+        raise InputError("estimator", estimator, "edge or edge-disk where diffraction is modelled",
+                         "the target estimator has no diffraction model")
     if not isinstance(stack, Stack):
         stack = load_stack(stack)
+    if airy_px is not None:
+        missing = sorted({e.setting for e in stack.images} - set(airy_px))
+        if missing:
+            raise InputError("airy_px", missing[0], "an Airy scale for every setting of the stack")
+
+    def airy(i):
+        return None if airy_px is None else float(airy_px[stack.images[i].setting])
     targets = [Target(spec) for spec in stack.targets]
     if not targets:
         raise SpecError(stack.manifest_path, "target", "no [[target]] tables; describe the calibration targets "
@@ -438,7 +395,8 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             work = {i: tasks_for(i, table.intrinsics) for i in range(n)}
         with clock.stage("measure"):
             per_image = edge_estimator.measure_images([(partial(read, i), work[i][0]) for i in range(n)],
-                                                      progress=lambda k: tick("edges"))
+                                                      progress=lambda k: tick("edges"),
+                                                      airy_px=None if airy_px is None else [airy(i) for i in range(n)])
         for i in range(n):
             first[i] = (work[i][0], work[i][1], per_image[i])
     if refine:
@@ -465,16 +423,24 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             estimates = [by_key.get((m[0], m[1].id)) for m in meta]
             if any(e is None for e in estimates):
                 with clock.stage("measure"):
-                    again = edge_estimator.measure(read(i), tasks)
+                    again = edge_estimator.measure(read(i), tasks, airy_px=airy(i))
                 estimates = [e if e is not None else a for e, a in zip(estimates, again)]
         else:
             with clock.stage("measure"):
-                estimates = fn(read(i), tasks) if tasks else []
+                if not tasks:
+                    estimates = []
+                elif airy_px is not None:
+                    estimates = edge_estimator.measure(read(i), tasks, second_moment=estimator == "edge",
+                                                       airy_px=airy(i))
+                else:
+                    estimates = fn(read(i), tasks)
         for (tid, seg, z, pose), task, est in zip(meta, tasks, estimates):
             table.poses[(entry.file.name, tid)] = pose
             flags = list(est.flags)
             if pose.ambiguous:
                 flags.append("pose_ambiguous")
+            if airy_px is not None:
+                flags.append("diffraction_modelled")
             source = "pose"
             if entry.distance_mm is not None:
                 z = np.full(3, float(entry.distance_mm))

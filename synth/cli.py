@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Sequence
 
 from lensfit import __version__
-from lensfit.errors import InputError, SpecError
+from lensfit.errors import InputError
 
 EXIT_OK = 0
 EXIT_USAGE = 2

@@ -161,6 +161,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
                          "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
                          "fitted from two or more focus settings, else 1 (thin lens) with a warning")
+    ft.add_argument("--diffraction", type=_number, nargs="?", const=550.0, metavar="NM",
+                    help="model diffraction in the blur readings (the Airy pattern of each setting's working "
+                         "f-number, at this effective wavelength; default 550 nm): for lenses stopped down to "
+                         "f/8 and beyond on small pixels, where the Airy pattern reaches a pixel or more. "
+                         "Measures again once or twice (about 3-5x the measuring time)")
     ft.add_argument("--pixel-pitch", type=_number, metavar="MM",
                     help="pixel pitch, mm (for samples without it, e.g. a CSV of your own)")
     ft.add_argument("--focal-length-px", type=_number, metavar="PX",

@@ -11,20 +11,28 @@ from pathlib import Path
 from lensfit.errors import InputError
 from lensfit.cli.common import (EXIT_NOT_IDENTIFIABLE, EXIT_OK, CliError, _max_pixels, _progress_bar)
 
-def _measure_with_progress(stack, args: argparse.Namespace):
-    """``lensfit.measure.measure`` with a progress bar on stderr."""
+def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | None = None):
+    """``lensfit.measure.measure`` with a progress bar on stderr; with ``fit_options`` measure and
+    fit (``lensfit.pipeline``: diffraction modelled where ``--diffraction`` asks) and return
+    (samples, result, rounds)."""
     from rich.console import Console
 
     from lensfit.jaxcache import enable_compilation_cache
     from lensfit.measure import measure
+    from lensfit.pipeline import measure_and_fit
 
     enable_compilation_cache()
     console = Console(stderr=True)
     with _progress_bar(console, args.progress) as bar:
         task = bar.add_task("measuring", total=None)
-        return measure(stack, args.estimator,
-                       progress=lambda stage, done, total: bar.update(task, description=stage, completed=done,
-                                                                      total=total))
+
+        def progress(stage, done, total):
+            bar.update(task, description=stage, completed=done, total=total)
+
+        if fit_options is None:
+            return measure(stack, args.estimator, progress=progress)
+        return measure_and_fit(stack, args.estimator, wavelength_nm=getattr(args, "diffraction", None),
+                               fit_options=fit_options, progress=progress)
 
 
 def _measure_command(args: argparse.Namespace) -> int:
@@ -173,7 +181,10 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
 
     source = Path(args.stack)
     console = Console(stderr=True)
-    truth = stack = None
+    truth = stack = result = None
+    rounds: list = []
+    options = dict(pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
+                   blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification)
     if source.suffix.lower() in (".csv", ".json") and not source.exists():
         raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
                        "or a stack folder")
@@ -181,29 +192,41 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         from lensfit.jaxcache import enable_compilation_cache
         from lensfit.measure import SampleTable
 
+        if args.diffraction is not None:
+            raise CliError("--diffraction measures the images again; give the stack folder, not a samples file")
         enable_compilation_cache()
         table = SampleTable.read(source)
     else:
         from lensfit.stack import load_stack
 
         stack = load_stack(source, max_pixels=_max_pixels(args), allow_outside=args.allow_outside_stack)
-        table = _measure_with_progress(stack, args)
+        if args.diffraction is not None:
+            table, result, rounds = _measure_with_progress(stack, args, options)
+        else:
+            table = _measure_with_progress(stack, args)
         truth = _read_truth(stack)
     for w in table.warnings:
         print(f"warning: {w}", file=sys.stderr)
 
     from lensfit.fit import fit, results_document
 
-    with console.status("fitting"):
-        result = fit(table, pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
-                     blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification)
+    if result is None:
+        with console.status("fitting"):
+            result = fit(table, **options)
     document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
+    if rounds:
+        document["diffraction"] = {"wavelength_nm": args.diffraction, "airy_scale_px": rounds[-1],
+                                   "rounds": len(rounds)}
 
     written = _write_fit_outputs(args, source, table, result, document, stack)
     if args.json:
         print(json.dumps(document, indent=1))
     else:
         _print_fit(result, document)
+        if rounds:
+            scales = ", ".join(f"{k} {v:.2f} px" for k, v in rounds[-1].items())
+            print(f"diffraction modelled at {args.diffraction:g} nm: Airy scale lambda N_w / p {scales} "
+                  f"({len(rounds)} round(s) of measuring)")
         if written:
             print(f"wrote {', '.join(str(p) for p in written)}")
     return EXIT_OK if result.ok else EXIT_NOT_IDENTIFIABLE

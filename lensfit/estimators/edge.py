@@ -83,11 +83,14 @@ RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
 CHUNK = 64
 MAX_STEPS = 40
 #: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.aot).
-AOT_MODULES = ("lensfit.estimators.edge", "lensfit.psf", "lensfit.lm")  # (the profile is data)
+AOT_MODULES = ("lensfit.estimators.edge", "lensfit.psf", "lensfit.lm", "lensfit.diffraction")  # (the profile is data)
 #: The solver stops when a step gains less than this in chi-square (parameters within 1e-3
 #: standard errors of the minimum).
 FTOL = 1e-6
 SUB_PIXEL_PX = 0.5
+#: Largest Airy scale (px) the diffraction model takes: beyond it the pattern spans more than
+#: the windows the profile has (f/64 at 550 nm on 1 um pixels is 35 px).
+MAX_AIRY_PX = 64.0
 RHO_SMOOTH_PX2 = 1e-6  # smoothing of R^2 >= 0 at 0 (px^2); see _squared_radius
 SUB_PIXEL_SIGMA_PX = 0.2
 #: A reading (c >= SUB_PIXEL_PX) whose 1 sigma exceeds this multiple of c is no reading (flag
@@ -134,7 +137,18 @@ def _squared_radius_slope(rho: float) -> float:
     return 0.5 * (1.0 + rho / math.hypot(rho, RHO_SMOOTH_PX2))
 
 
-def _model(theta, d, s, nx, ny, shaped: bool):
+def _profile(x, radius, nx, ny, airy):
+    """The pixel-integrated disk ESF, convolved with the Airy LSF of scale ``airy`` px where that
+    is given (an array; None: no diffraction): quadrature over ``lensfit.diffraction``'s nodes."""
+    if airy is None:
+        return pixel_edge_profile(x, radius, nx, ny)
+    from lensfit.diffraction import airy_lsf_nodes
+
+    xi, w = airy_lsf_nodes()
+    return pixel_edge_profile(x[..., None] - airy * jnp.asarray(xi), radius, nx, ny) @ jnp.asarray(w)
+
+
+def _model(theta, d, s, nx, ny, shaped: bool, airy=None):
     # theta = (d0, rho = R^2, lo, hi, turn[, a, u]): the squared radius keeps the model smooth and
     # well-conditioned as the blur vanishes (the profile depends on R only to second order
     # there); `turn` rotates the edge line (radians) about the window's middle, so that the
@@ -143,24 +157,31 @@ def _model(theta, d, s, nx, ny, shaped: bool):
     d0, rho, lo, hi, turn = (theta[i] for i in range(5))
     R = jnp.sqrt(_squared_radius(jnp, rho) + 1e-12)
     x = d - d0 - turn * s
-    outer = pixel_edge_profile(x, R, nx, ny)
+    outer = _profile(x, R, nx, ny, airy)
     if not shaped:
+        if airy is not None:
+            # A ramp across the window: the Airy tails (1/x^2) of the target's neighbouring edges
+            # reach into it, a slope the levels alone cannot follow (unmodelled, an edge 8-16 px
+            # away biased a 2-6 px reading 1-10 % low).
+            return lo + (hi - lo) * outer + theta[5] * x
         return lo + (hi - lo) * outer
     a, u = theta[5], theta[6]
-    inner = pixel_edge_profile(x, R * jax.nn.sigmoid(u), nx, ny)
+    inner = _profile(x, R * jax.nn.sigmoid(u), nx, ny, airy)
     return lo + (hi - lo) * (outer + a * (inner - outer))
 
 
 def _residuals(theta, args, shaped: bool):
-    d, s, v, w, nx, ny = args  # w = 1 / standard error of the bin mean; 0 for padding
-    r = w * (v - _model(theta, d, s, nx, ny, shaped))
+    # w = 1 / standard error of the bin mean (0 for padding); an Airy scale last where diffraction
+    # is modelled
+    d, s, v, w, nx, ny = args[:6]
+    r = w * (v - _model(theta, d, s, nx, ny, shaped, args[6] if len(args) > 6 else None))
     if not shaped:
         return r
     # The shape has weak priors that hold it where the blur is too small to show one.
     return jnp.concatenate([r, jnp.stack([theta[5] / SHARE_PRIOR, theta[6] / RATIO_PRIOR])])
 
 
-def _grid_start(d, s, v, w, nx, ny):
+def _grid_start(d, s, v, w, nx, ny, airy=None):
     """Best radius on a grid, with the two levels solved by weighted linear least squares (the
     2 x 2 normal equations in closed form); the edge at d = 0, where the profile put the line it
     found in the image (a grid over the offset as well, tried, moved the demo's f, N and focus
@@ -169,7 +190,7 @@ def _grid_start(d, s, v, w, nx, ny):
     w2 = w * w
 
     def rss(radius):
-        p = pixel_edge_profile(d, radius, nx, ny)
+        p = _profile(d, radius, nx, ny, airy)
         q = 1.0 - p
         # Normal equations of v = lo q + hi p with weights w^2.
         a11, a12, a22 = jnp.sum(w2 * q * q), jnp.sum(w2 * q * p), jnp.sum(w2 * p * p)
@@ -202,16 +223,19 @@ def _shape_start(theta_disk, args):
     return starts[jnp.argmin(costs)]
 
 
-def _fit_batch(d, s, v, w, nx, ny, theta_disk, shaped: bool):
+def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: bool = False):
     from lensfit import lm
 
-    def one(d, s, v, w, nx, ny, theta_disk):
-        args = (d, s, v, w, nx, ny)
+    def one(d, s, v, w, nx, ny, theta_disk, airy):
+        args = (d, s, v, w, nx, ny, airy) if diffraction else (d, s, v, w, nx, ny)
         fn = partial(_residuals, shaped=shaped)
         # The uniform disk starts from a grid over the radius; two disks (which have more than one
         # local minimum: a core in a halo, a bright rim) from the best of a grid of shapes at the
         # disk's solution.
-        start = _shape_start(theta_disk, args) if shaped else _grid_start(d, s, v, w, nx, ny)
+        start = (_shape_start(theta_disk, args) if shaped
+                 else _grid_start(d, s, v, w, nx, ny, airy if diffraction else None))
+        if diffraction and not shaped:
+            start = jnp.concatenate([start, jnp.zeros(1)])  # the ramp
         theta, cost, converged = lm.least_squares(fn, start, args, max_steps=MAX_STEPS, rtol=1e-8, atol=1e-10,
                                                   ftol=FTOL)
         # A uniform disk that has not converged is a failed reading; two disks (slow to settle in
@@ -229,18 +253,20 @@ def _fit_batch(d, s, v, w, nx, ny, theta_disk, shaped: bool):
         # How much worse a 1 px blur fits (the rest held): what a sub-pixel reading is worth.
         probe = jnp.sum(fn(theta.at[1].set(PROBE_C_PX**2 / 4.0), args) ** 2) - cost
         if not shaped:  # the same layout as the shaped fit's: a = 0, u = 0, no covariance
-            theta = jnp.concatenate([theta, jnp.zeros(2)])
-            cov = jnp.pad(cov, ((0, 2), (0, 2)))
+            k = 7 - theta.shape[0]  # (the ramp of a diffraction fit takes a's place: not shaped)
+            theta = jnp.concatenate([theta, jnp.zeros(k)])
+            cov = jnp.pad(cov, ((0, k), (0, k)))
         return theta, cov, jnp.sqrt(s2), ok, probe
 
-    return jax.vmap(one)(d, s, v, w, nx, ny, theta_disk)
+    return jax.vmap(one)(d, s, v, w, nx, ny, theta_disk, airy)
 
 
 def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], shaped: bool = True,
-         disk: list[np.ndarray] | None = None):
+         disk: list[np.ndarray] | None = None, airy: list[float] | None = None):
     """Fit a list of (d, s, values, standard errors, normal); returns theta, cov, rms, ok and the
     chi-square cost of a 1 px blur (``probe``) per item.
-    The two-disk fit (``shaped``) starts from each item's uniform-disk solution, ``disk``.
+    The two-disk fit (``shaped``) starts from each item's uniform-disk solution, ``disk``;
+    ``airy``: each item's Airy scale in px (diffraction modelled; None: not).
 
     Every problem is padded to ``NPIX`` bins and the list to whole chunks of ``CHUNK``: one
     compiled shape per kind of fit for any stack; the chunks are dispatched back to back and
@@ -255,14 +281,18 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
     NX = np.ones(n)
     NY = np.zeros(n)
     T = np.tile([0.0, 1.0, 0.0, 1.0, 0.0], (n, 1))
+    A = np.zeros(n)
+    if airy is not None:
+        A[:len(airy)] = airy
     for i, theta in enumerate(disk or []):
         T[i] = theta[:5]
     for i, (d, s_along, v, se, nrm) in enumerate(samples):
         D[i, :len(d)], S[i, :len(d)], V[i, :len(d)], W[i, :len(d)] = d, s_along, v, 1.0 / se
         NX[i], NY[i] = nrm
     with jax.enable_x64(True):
-        parts = [aot.call("edge-fit", _fit_batch, tuple(jnp.asarray(x[k:k + CHUNK]) for x in (D, S, V, W, NX, NY, T)),
-                          {"shaped": shaped}, AOT_MODULES)
+        parts = [aot.call("edge-fit", _fit_batch,
+                          tuple(jnp.asarray(x[k:k + CHUNK]) for x in (D, S, V, W, NX, NY, T, A)),
+                          {"shaped": shaped, "diffraction": airy is not None}, AOT_MODULES)
                  for k in range(0, n, CHUNK)]
         theta, cov, rms, ok, probe = jax.device_get([jnp.concatenate([p[j] for p in parts]) for j in range(5)])
     return [(theta[i], cov[i], float(rms[i]), bool(ok[i]), float(probe[i])) for i in range(len(samples))]
@@ -291,21 +321,29 @@ def _windows(task: EdgeTask, radius: float | None):
     return half, half + radius + 1.0, truncated
 
 
-def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True) -> list[BlurEstimate]:
+def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True,
+            airy_px: float | None = None) -> list[BlurEstimate]:
     """Blur diameter at each edge of one image (see the module docstring): the second-moment
-    diameter, or with ``second_moment=False`` the diameter of the best-fitting uniform disk."""
-    return measure_images([(image, tasks)], second_moment)[0]
+    diameter, or with ``second_moment=False`` the diameter of the best-fitting uniform disk.
+    ``airy_px``: the Airy pattern's scale ``lambda N_w / p`` where diffraction is modelled
+    (``lensfit.diffraction``); the reading is then the defocus blur alone."""
+    return measure_images([(image, tasks)], second_moment, airy_px=None if airy_px is None else [airy_px])[0]
 
 
 def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool = True,
-                   progress: Callable[[int], None] | None = None) -> list[list[BlurEstimate]]:
+                   progress: Callable[[int], None] | None = None,
+                   airy_px: list[float] | None = None) -> list[list[BlurEstimate]]:
     """:func:`measure` on the edges of many images in one batched solve per pass.
 
     ``items``: (image, tasks) pairs; an image may be given as a zero-argument callable that
     returns it, called once per pass (twice in all), so that a stack need not be held in memory.
-    ``progress(k)`` is called as item k's edges are ready for the last solve. Returns the
+    ``progress(k)`` is called as item k's edges are ready for the last solve. ``airy_px``: per
+    item, the Airy scale in px where diffraction is modelled (None: nowhere). Returns the
     estimates per item, in order."""
     items = list(items)
+    if airy_px is not None:
+        if len(airy_px) != len(items) or not all(math.isfinite(a) and 0.0 <= a <= MAX_AIRY_PX for a in airy_px):
+            raise ValueError(f"airy_px: one scale per image, each between 0 and {MAX_AIRY_PX} px")
     owner = [k for k, (_, ts) in enumerate(items) for _ in ts]
     tasks = [t for _, ts in items for t in ts]
     results: list[BlurEstimate | None] = [None] * len(tasks)
@@ -343,15 +381,17 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         if progress and attempt == 1:
             for k in range(len(items)):
                 progress(k)
-        fits = _fit(batch, False)
+        airy = None if airy_px is None else [float(airy_px[owner[i]]) for i in index]
+        fits = _fit(batch, False, airy=airy)
         shaped: list[int] = []
-        if second_moment and attempt == 1:
+        if second_moment and attempt == 1 and airy is None:
             # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
             # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
             shaped = [j for j, (theta, _, rms, _, _) in enumerate(fits)
                       if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])
                       and 2.0 * math.sqrt(_squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
-            for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True, [fits[j][0] for j in shaped])):
+            for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True, [fits[j][0] for j in shaped],
+                                             None if airy is None else [airy[j] for j in shaped])):
                 fits[j] = refit
         is_shaped = set(shaped)
         for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):

@@ -1,0 +1,70 @@
+"""The samples CSV that ``lensfit measure`` writes, read back: rows with numbers parsed, and the
+calibration (pixel pitch, focal length in px per setting) its rows repeat."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+from lensfit.errors import SpecError
+
+
+def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
+    """Rows of a samples CSV written by ``lensfit measure`` (numbers parsed, blanks None)."""
+    path = Path(path)
+    try:
+        return _read_samples_csv(path)
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise SpecError(path, "", f"not a readable CSV ({exc}); write samples with lensfit measure") from None
+
+
+def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
+    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
+               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
+    rows = []
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in (reader.fieldnames
+                                                                                                      or [])]
+        if missing:
+            raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
+        for i, r in enumerate(reader, start=2):
+            row: dict[str, Any] = dict(r)
+            for c in numeric:
+                if c in row:
+                    v = (row[c] or "").strip()
+                    try:
+                        row[c] = float(v) if v else None
+                    except ValueError:
+                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a number") from None
+                    if row[c] is not None and not math.isfinite(row[c]):
+                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a finite number; leave the cell "
+                                        "empty where an edge has no measurement")
+            rows.append(row)
+    return rows
+
+
+def csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The pixel pitch and per-setting focal lengths a samples CSV repeats on its rows (empty
+    where the columns are absent); rows of one setting must agree."""
+    out: dict[str, Any] = {}
+    pitches = {r["pixel_pitch_mm"] for r in rows if r.get("pixel_pitch_mm") is not None}
+    if len(pitches) > 1:
+        raise SpecError(path, "pixel_pitch_mm", f"rows disagree ({sorted(pitches)[:2]}); one stack has one pitch")
+    if pitches:
+        out["pixel_pitch_mm"] = pitches.pop()
+    intrinsics: dict[str, dict[str, float]] = {}
+    for i, r in enumerate(rows, start=2):
+        if r.get("focal_length_px") is None:
+            continue
+        entry = {"focal_length_px": r["focal_length_px"], "source": "samples CSV",
+                 "focal_length_sigma_px": r.get("focal_length_sigma_px") or 0.0}
+        first = intrinsics.setdefault(str(r["setting"]), entry)
+        if first["focal_length_px"] != entry["focal_length_px"]:
+            raise SpecError(path, f"line {i}: focal_length_px", f"{entry['focal_length_px']} differs from the earlier "
+                            f"{first['focal_length_px']} of setting {r['setting']!r}; a setting has one calibration")
+    if intrinsics:
+        out["intrinsics"] = intrinsics
+    return out
