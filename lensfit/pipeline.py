@@ -23,14 +23,22 @@ SETTLED_REL = 1e-3
 
 
 def airy_per_setting(table: Any, result: Any, wavelength_nm: float) -> dict[str, float]:
-    """Each setting's Airy scale ``lambda N_w / p`` (px) from a fit: ``N_w = f_px p / A``. A setting
-    whose aperture the fit could not determine takes the median scale of the others (0 if none)."""
+    """Each setting's Airy scale ``lambda N_w / p`` (px) from a fit: ``N_w = f_px p / A``. Where
+    the fit reported no aperture (the Airy pattern itself can make the f-number too uncertain to
+    report before diffraction is modelled) its solution's ``A = f / N`` serves as the start; a
+    setting without one takes the median scale of the others (0 if none)."""
+    from lensfit.fit.model import Layout
+
     pitch = table.pixel_pitch_mm
+    at = Layout(len(result.samples.labels))
     out: dict[str, float] = {}
     for label, qs in result.settings.items():
         intr = table.intrinsics.get(label)
         a = qs["aperture_diameter_mm"].value
-        if intr is not None and a:
+        if a is None and len(result._full) == at.size:
+            k = result.samples.labels.index(label)
+            a = math.exp(result._full[at.LOG_F] - result._full[at.log_n(k)])
+        if intr is not None and a and math.isfinite(a) and a > 0:
             out[label] = airy_scale_px(wavelength_nm, working_f_number(intr.focal_length_px * pitch, a), pitch)
     known = sorted(out.values())
     fill = known[len(known) // 2] if known else 0.0

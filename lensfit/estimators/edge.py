@@ -88,6 +88,10 @@ AOT_MODULES = ("lensfit.estimators.edge", "lensfit.psf", "lensfit.lm", "lensfit.
 #: standard errors of the minimum).
 FTOL = 1e-6
 SUB_PIXEL_PX = 0.5
+#: Prior 1 sigma of the diffraction fit's ramp, per px as a share of the edge's contrast: the
+#: Airy tails of a neighbouring edge 8-16 px away slope the window by about 1e-3 of the
+#: contrast per px; held near that, the ramp does not trade with a small blur.
+RAMP_PRIOR = 2e-3
 #: Largest Airy scale (px) the diffraction model takes: beyond it the pattern spans more than
 #: the windows the profile has (f/64 at 550 nm on 1 um pixels is 35 px).
 MAX_AIRY_PX = 64.0
@@ -174,8 +178,11 @@ def _residuals(theta, args, shaped: bool):
     # w = 1 / standard error of the bin mean (0 for padding); an Airy scale last where diffraction
     # is modelled
     d, s, v, w, nx, ny = args[:6]
-    r = w * (v - _model(theta, d, s, nx, ny, shaped, args[6] if len(args) > 6 else None))
+    airy = args[6] if len(args) > 6 else None
+    r = w * (v - _model(theta, d, s, nx, ny, shaped, airy))
     if not shaped:
+        if airy is not None:  # the ramp, held near 0 where the profile does not ask for one
+            return jnp.concatenate([r, (theta[5] / (RAMP_PRIOR * jnp.abs(theta[3] - theta[2]) + 1e-12))[None]])
         return r
     # The shape has weak priors that hold it where the blur is too small to show one.
     return jnp.concatenate([r, jnp.stack([theta[5] / SHARE_PRIOR, theta[6] / RATIO_PRIOR])])
@@ -381,7 +388,9 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         if progress and attempt == 1:
             for k in range(len(items)):
                 progress(k)
-        airy = None if airy_px is None else [float(airy_px[owner[i]]) for i in index]
+        # The first pass only sizes the window: a uniform disk (which takes the Airy pattern for
+        # blur, so the window comes out wider, never narrower) at a 52nd of the cost.
+        airy = None if airy_px is None or attempt == 0 else [float(airy_px[owner[i]]) for i in index]
         fits = _fit(batch, False, airy=airy)
         shaped: list[int] = []
         if second_moment and attempt == 1 and airy is None:

@@ -1,0 +1,160 @@
+"""Diffraction: synth's Airy filter, the edge estimator's Airy model and the fit that uses it,
+each against something independent of the code under test: the edge-spread function of a
+circular pupil written out here from its transfer function (Goodman, *Introduction to Fourier
+Optics*, sec. 6.3; the uniform disk's and the pixel's transfer functions beside it), and the
+truth a stack was rendered from.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.special import j1
+
+from lensfit.estimators import EdgeTask
+from lensfit.estimators.edge import measure_images
+
+
+def esf(d, radius_px, airy_px, nx, ny, numax=8.0, n=16000):
+    """Edge-spread function (rising towards +d) of a disk of ``radius_px`` convolved with the Airy
+    pattern of scale ``airy_px = lambda N_w / p`` and a unit square pixel seen along the normal
+    (nx, ny): ``1/2 + int M(nu) sin(2 pi nu d) / (pi nu) dnu``, M the product of the transfer
+    functions."""
+    nu = (np.arange(n) + 0.5) * (numax / n)
+    x = 2 * np.pi * radius_px * nu
+    disk = np.where(x < 1e-9, 1.0, 2 * j1(np.maximum(x, 1e-9)) / np.maximum(x, 1e-9))
+    v = np.clip(nu * airy_px, 0, 1)
+    pupil = (2 / np.pi) * (np.arccos(v) - v * np.sqrt(1 - v * v)) if airy_px > 0 else 1.0
+    m = disk * pupil * np.sinc(abs(nx) * nu) * np.sinc(abs(ny) * nu)
+    d = np.asarray(d, float)
+    out = np.empty(d.size)
+    for i in range(0, d.size, 2000):
+        out[i:i + 2000] = 0.5 + np.sin(2 * np.pi * np.outer(d.ravel()[i:i + 2000], nu)) @ (m / (np.pi * nu)) * (numax / n)
+    return out.reshape(d.shape)
+
+
+def edge_image(c_px, airy_px, angle_deg=7.0, neighbour_px=None):
+    """A slanted edge (dark 0.2 to bright 0.8) blurred by a disk of diameter c and the Airy
+    pattern; with ``neighbour_px``, the bright side ends in another dark edge that far away (a
+    marker next to a board's square)."""
+    half = int(max(30, 1.5 * c_px + 24))
+    size = 2 * half + 1
+    th = math.radians(angle_deg)
+    t = np.array([math.cos(th + math.pi / 2), math.sin(th + math.pi / 2)])
+    n = np.array([-t[1], t[0]])
+    yy, xx = np.mgrid[0:size, 0:size].astype(float)
+    d = (xx - half) * n[0] + (yy - half) * n[1]
+    profile = esf(d, c_px / 2, airy_px, n[0], n[1])
+    if neighbour_px is not None:
+        profile = profile - esf(d - neighbour_px, c_px / 2, airy_px, n[0], n[1])
+    length = 0.8 * size
+    centre = np.array([half, half], float)
+    clear = half - 2.0 if neighbour_px is None else float(neighbour_px)
+    return 0.2 + 0.6 * profile, EdgeTask(centre - t * length / 2, centre + t * length / 2, half - 2.0, clear)
+
+
+def test_the_edge_model_reads_the_defocus_through_the_airy_pattern():
+    a = 1.5  # lambda N_w / p: f/16 at 550 nm on 6 um pixels
+    cs = (2.0, 4.0, 8.0, 16.0)
+    items = [edge_image(c, a) for c in cs]
+    plain = measure_images([(im, [task]) for im, task in items])
+    modelled = measure_images([(im, [task]) for im, task in items], airy_px=[a] * len(items))
+    for c, p, m in zip(cs, plain, modelled):
+        assert p[0].coc_diameter_px > 1.05 * c  # the uniform disk takes the Airy pattern for blur
+        assert m[0].coc_diameter_px == pytest.approx(c, rel=0.015, abs=0.05), (c, m[0])
+        assert "diffraction_modelled" not in m[0].flags  # (the stack's measure adds that flag)
+
+
+def test_neighbouring_edges_whose_airy_tails_reach_the_window():
+    a = 1.5
+    items = [edge_image(c, a, neighbour_px=g) for c, g in ((3.0, 12.0), (6.0, 16.0))]
+    got = measure_images([(im, [task]) for im, task in items], airy_px=[a] * len(items))
+    for (c, _), r in zip(((3.0, 12.0), (6.0, 16.0)), got):
+        assert r[0].coc_diameter_px == pytest.approx(c, rel=0.03), (c, r[0])
+
+
+def test_synth_diffraction_is_the_pupil_transfer_function():
+    # An edge at the focus plane: its image is the step through the Airy pattern and the pixel.
+    from synth.render import render
+    from synth.scene import scene_from_dict
+
+    f, N, D, pitch, size = 50.0, 22.0, 2000.0, 0.005, 121
+    s = 1 / (1 / f - 1 / D)
+    mm = pitch * D / s
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": pitch, "width_px": size, "height_px": size},
+        "lens": {"focal_length_mm": f, "f_number": N, "focus_distance_mm": D},
+        "render": {"samples_per_pixel": 256, "effects": ["defocus", "diffraction"], "method": "raytrace"},
+        "diffraction": {"wavelength_nm": 550.0},
+        "background": {"value": 0.5},
+        "object": [{"id": "edge", "target": "slanted-edge", "distance_mm": D, "angle_deg": 5.0,
+                    "edge_mm": 80 * mm, "size_mm": [size * mm * 1.2] * 2}],
+    })
+    result = render(scene)
+    image = next(iter(result.images.values())).astype(np.float64)
+    a = 550e-6 * N * (s / f) / pitch  # the working f-number s/A
+    edge = result.truth["images"][0]["targets"][0]["edges"][0]
+    p0, p1 = np.array(edge["start_px"]), np.array(edge["end_px"])
+    t = (p1 - p0) / np.linalg.norm(p1 - p0)
+    n = np.array([-t[1], t[0]])
+    yy, xx = np.mgrid[0:size, 0:size].astype(float)
+    d = (xx - p0[0]) * n[0] + (yy - p0[1]) * n[1]
+    along = (xx - p0[0]) * t[0] + (yy - p0[1]) * t[1]
+    near = (np.abs(d) < 10) & (along > 15) & (along < np.linalg.norm(p1 - p0) - 15)
+    values = image[near]
+    # Levels and the edge's side fitted linearly against the independent profile.
+    model = esf(d[near], 0.0, a, n[0], n[1])
+    if np.corrcoef(model, values)[0, 1] < 0:
+        model = 1 - model
+    A = np.stack([model, np.ones_like(model)], axis=1)
+    coef, *_ = np.linalg.lstsq(A, values, rcond=None)
+    resid = values - A @ coef
+    assert np.max(np.abs(resid)) / abs(coef[0]) < 0.02
+    # The same edge read with an Airy pattern 20 % smaller or larger misfits several times worse.
+    for wrong in (0.8 * a, 1.2 * a):
+        m2 = esf(d[near], 0.0, wrong, n[0], n[1])
+        m2 = m2 if np.corrcoef(m2, values)[0, 1] > 0 else 1 - m2
+        B = np.stack([m2, np.ones_like(m2)], axis=1)
+        c2, *_ = np.linalg.lstsq(B, values, rcond=None)
+        assert np.sqrt(np.mean((values - B @ c2) ** 2)) > 2 * np.sqrt(np.mean(resid**2))
+
+
+@pytest.fixture(scope="module")
+def diffraction_stack(tmp_path_factory):
+    """The demo scene at f/16 with diffraction rendered (Airy scale lambda N_w / p = 1.5 px)."""
+    import tomllib
+    from pathlib import Path
+
+    from synth.render import render
+    from synth.scene import scene_from_dict
+    from synth.stack import write_stack
+
+    spec = tomllib.loads((Path(__file__).resolve().parent.parent / "data_specs/scenes/demo.toml").read_text())
+    spec["lens"]["f_number"] = 16.0
+    spec["render"]["effects"] = ["defocus", "diffraction"]
+    spec["diffraction"] = {"wavelength_nm": 550.0}
+    out = tmp_path_factory.mktemp("diffraction") / "stack"
+    write_stack(render(scene_from_dict(spec)), out)
+    return out
+
+
+def test_the_fit_with_diffraction_recovers_the_f_number(diffraction_stack):
+    from lensfit.pipeline import measure_and_fit
+
+    truth = json.loads((diffraction_stack / "truth.json").read_text())
+    lens = truth["settings"]["a"]
+    _, plain, _ = measure_and_fit(diffraction_stack)
+    _, result, rounds = measure_and_fit(diffraction_stack, wavelength_nm=550.0)
+    assert rounds and 1 <= len(rounds) <= 4
+    n_true = float(lens["f_number"])
+    n = result.settings["a"]["f_number"]
+    assert n.value == pytest.approx(n_true, rel=0.01)
+    assert n.ci95[0] <= n_true <= n.ci95[1]
+    s = float(lens["sensor_distance_mm"])
+    assert rounds[-1]["a"] == pytest.approx(550e-6 * n_true * s / truth["focal_length_mm"] / truth["pixel_pitch_mm"],
+                                            rel=0.02)
+    # Without the model the blur floor takes the Airy pattern and N's interval is several times wider.
+    assert plain.settings["a"]["f_number"].sigma > 2 * n.sigma
