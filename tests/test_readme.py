@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()
 #: Placeholder words of the README's option lists -> a value of the right kind.
 PLACEHOLDERS = {"MM": "0.005", "N": "2", "PX": "1.5", "MP": "50", "NAME": "full-frame", "FILE": "x.json",
-                "PCT": "1", "HOST:PORT": "localhost:8786"}
+                "PCT": "1", "HOST:PORT": "localhost:8786", "NM": "550"}
 #: Commands that take minutes: parsed, not run here.
 SLOW = ("bench", "bench-fit", "bench-lenses", "bench-measure")
 
