@@ -38,6 +38,14 @@ Method
     128 across a wider window. Every edge of a stack is fitted in one batched solve per pass
     (``measure_images``; ``jax.vmap`` over chunks of ``CHUNK`` edges of ``NPIX`` bins): one
     compiled shape per kind of fit, whatever the stack.
+Diffraction
+    Where the caller gives the Airy scale ``a = lambda N_w / p`` (``airy_px``; the pipeline of
+    ``lensfit fit --diffraction``), the model profile is the one above convolved with the Airy
+    line-spread function (``lensfit.diffraction``: 52 nodes), plus a ramp across the window
+    (weak prior) for the Airy tails of the target's neighbouring edges; the reading is then the
+    defocus blur alone. The spot's shape is not read there (the Airy core and rings are the
+    shape; a lens stopped down that far has little aberration left), and the first pass, which
+    only sizes the window, reads a uniform disk.
 Uncertainty
     1 sigma from the Gauss-Newton covariance ``(J^T W J)^-1`` with each profile bin weighted by
     its own standard error (from the spread of its pixels, never below a model-error floor of
