@@ -124,20 +124,15 @@ def test_synth_diffraction_is_the_pupil_transfer_function():
 
 @pytest.fixture(scope="module")
 def diffraction_stack(tmp_path_factory):
-    """The demo scene at f/16 with diffraction rendered (Airy scale lambda N_w / p = 1.5 px)."""
-    import tomllib
-    from pathlib import Path
-
+    """data_specs/scenes/stopped_down.toml: the demo scene at f/16 with diffraction rendered
+    (Airy scale lambda N_w / p = 1.5 px)."""
+    from lensfit.specs import specs_dir
     from synth.render import render
-    from synth.scene import scene_from_dict
+    from synth.scene import load_scene
     from synth.stack import write_stack
 
-    spec = tomllib.loads((Path(__file__).resolve().parent.parent / "data_specs/scenes/demo.toml").read_text())
-    spec["lens"]["f_number"] = 16.0
-    spec["render"]["effects"] = ["defocus", "diffraction"]
-    spec["diffraction"] = {"wavelength_nm": 550.0}
     out = tmp_path_factory.mktemp("diffraction") / "stack"
-    write_stack(render(scene_from_dict(spec)), out)
+    write_stack(render(load_scene(specs_dir() / "scenes" / "stopped_down.toml")), out)
     return out
 
 
