@@ -471,10 +471,9 @@ def _unread_shape_error(samples: list[Sample], ratios: list[tuple[int, float]]) 
     the second moment of an aberrated spot by about as much as the shape readings of the same
     setting moved from their own disks: the RMS of ``c / disk - 1`` over them (``ratios``: sample
     index, ratio) is added to each such reading's sigma, relative to its c (flag
-    ``shape_unread``). On the shipped retrofocus at f/5.6 this took N (against the real-ray
-    f-number) from 3.9-5.6 % high to -1.6 to +2.9 % (README, "Real (thick) lenses"); on thin-lens
-    stacks the shape readings stay within the 0.3 % model floor of their disks and nothing
-    changes."""
+    ``shape_unread``). On the shipped real lenses at full aperture this took N from 3.1-4.3 %
+    high (intervals excluding the truth) to within about 2 %; on thin-lens stacks the shape
+    readings stay within a fraction of a per cent of their disks and little changes."""
     by_setting: dict[str, list[float]] = {}
     for i, r in ratios:
         by_setting.setdefault(samples[i].setting, []).append(r)
