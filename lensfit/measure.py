@@ -15,7 +15,7 @@ import json
 import math
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable
@@ -25,7 +25,7 @@ import numpy as np
 from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, project
 from lensfit.errors import InputError, SpecError
 from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
-from lensfit.estimators import MODEL_FLOOR_REL, EdgeTask, get_estimator
+from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.stack import Stack, load_stack
 from lensfit.targets import Detection, Target
 
@@ -410,7 +410,6 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             detections[i] = refined
         with clock.stage("calibrate"):
             table.intrinsics = calibrate_all()
-    shape_ratios: list[tuple[int, float]] = []
     for i in range(n):
         entry = stack.images[i]
         table.corners_px[entry.file.name] = [(d.target_id, np.asarray(d.image_points_px, np.float64))
@@ -446,8 +445,6 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             if entry.distance_mm is not None:
                 z = np.full(3, float(entry.distance_mm))
                 source = "manifest"
-            if est.disk_diameter_px and est.coc_diameter_px:
-                shape_ratios.append((len(table.samples), est.coc_diameter_px / est.disk_diameter_px))
             table.samples.append(Sample(
                 image=entry.file.name, setting=entry.setting, target=tid, edge=seg.id,
                 distance_mm=float(z[1]), distance_start_mm=float(z[0]), distance_end_mm=float(z[2]),
@@ -455,38 +452,5 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source))
         tick("measure")
-    _unread_shape_error(table.samples, shape_ratios)
     table.stage_seconds = dict(clock.seconds)
     return table
-
-
-#: Fewest shape-model readings in a setting from which its spots' departure from disks is taken.
-MIN_SHAPED_READINGS = 5
-
-
-def _unread_shape_error(samples: list[Sample], ratios: list[tuple[int, float]]) -> None:
-    """Where a setting's spots are visibly no uniform disks, its other readings get that as a
-    model error. A reading that could not read the spot's shape (too small for it to show, an
-    edge across depth, a faint halo hidden in noise) is a uniform disk's diameter, which misses
-    the second moment of an aberrated spot by about as much as the shape readings of the same
-    setting moved from their own disks: the RMS of ``c / disk - 1`` over them (``ratios``: sample
-    index, ratio) is added to each such reading's sigma, relative to its c (flag
-    ``shape_unread``). On the shipped real lenses at full aperture this took N from 3.1-4.3 %
-    high (intervals excluding the truth) to within about 2 %; on thin-lens stacks the shape
-    readings stay within a fraction of a per cent of their disks and little changes."""
-    by_setting: dict[str, list[float]] = {}
-    for i, r in ratios:
-        by_setting.setdefault(samples[i].setting, []).append(r)
-    for setting, rs in by_setting.items():
-        if len(rs) < MIN_SHAPED_READINGS:
-            continue
-        rel = math.sqrt(sum((r - 1.0) ** 2 for r in rs) / len(rs))
-        if rel <= MODEL_FLOOR_REL:  # within the model-error floor every reading already carries
-            continue
-        for k, smp in enumerate(samples):
-            flags = smp.flags.split(";") if smp.flags else []
-            if (smp.setting != setting or smp.coc_diameter_px is None or smp.sigma_px is None
-                    or "shaped_spot" in flags or "sub_pixel_blur" in flags):
-                continue
-            samples[k] = replace(smp, sigma_px=math.hypot(smp.sigma_px, rel * smp.coc_diameter_px),
-                                 flags=";".join(flags + ["shape_unread"]))

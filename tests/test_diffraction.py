@@ -32,8 +32,7 @@ def esf(d, radius_px, airy_px, nx, ny, numax=8.0, n=16000):
     d = np.asarray(d, float)
     out = np.empty(d.size)
     for i in range(0, d.size, 2000):
-        block = d.ravel()[i:i + 2000]
-        out[i:i + 2000] = 0.5 + np.sin(2 * np.pi * np.outer(block, nu)) @ (m / (np.pi * nu)) * (numax / n)
+        out[i:i + 2000] = 0.5 + np.sin(2 * np.pi * np.outer(d.ravel()[i:i + 2000], nu)) @ (m / (np.pi * nu)) * (numax / n)
     return out.reshape(d.shape)
 
 

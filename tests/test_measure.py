@@ -336,32 +336,3 @@ def test_slanted_edge_squares_of_different_sizes_are_told_apart_by_the_image_ent
     manifest.write_text(text.replace('targets = [\n    "s10",\n]', 'targets = [\n    "s45",\n]', 1))
     with pytest.raises(SpecError, match=r"image\[0\]\.targets\[0\].*s45"):
         load_stack(out)
-
-
-def test_readings_that_could_not_read_the_spot_shape_carry_the_stacks_shape_error():
-    # A setting whose shape-model readings moved 4-8 % from their uniform disks (an aberrated
-    # lens): its disk readings may miss the second moment by as much, and say so; a setting
-    # whose shaped readings stay within the model floor of their disks (a thin lens) is left alone.
-    import dataclasses
-    import math
-
-    from lensfit.measure import Sample, _unread_shape_error
-
-    def sample(setting, c, flags=""):
-        return Sample(image="a.png", setting=setting, target="t", edge="e", distance_mm=1000.0,
-                      distance_start_mm=1000.0, distance_end_mm=1000.0, coc_diameter_px=c, sigma_px=0.05,
-                      estimator="edge", flags=flags, start_px=(0.0, 0.0), end_px=(1.0, 0.0), distance_source="pose")
-
-    aberrated = ([sample("a", 6.0, "shaped_spot") for _ in range(5)]
-                 + [sample("a", 4.0), sample("a", 0.3, "sub_pixel_blur")])
-    thin = [sample("b", 6.0, "shaped_spot") for _ in range(5)] + [sample("b", 4.0)]
-    samples = aberrated + thin
-    ratios = [(i, r) for i, r in zip(range(5), (1.04, 1.08, 1.06, 1.05, 1.07))]
-    ratios += [(len(aberrated) + i, 1.001) for i in range(5)]
-    before = [dataclasses.replace(s) for s in samples]
-    _unread_shape_error(samples, ratios)
-    rel = math.sqrt(sum((r - 1) ** 2 for r in (1.04, 1.08, 1.06, 1.05, 1.07)) / 5)
-    assert samples[5].sigma_px == pytest.approx(math.hypot(0.05, rel * 4.0))
-    assert "shape_unread" in samples[5].flags
-    assert samples[6] == before[6]  # a sub-pixel reading keeps its stated 0.2 px
-    assert samples[:5] == before[:5] and samples[7:] == before[7:]  # the shaped, and the thin lens's

@@ -39,9 +39,6 @@ class BlurEstimate:
     pixels: int = 0
     rms_residual: float | None = None
     line_px: tuple[tuple[float, float], tuple[float, float]] | None = None
-    #: for a reading through a spot-shape model (flag ``shaped_spot``): the uniform disk's
-    #: diameter the same profile gave, so that a stack can tell how far its spots are from disks
-    disk_diameter_px: float | None = None
 
 
 #: Model-error floor shared by the estimators: perspective across a segment and the limits of

@@ -401,14 +401,12 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         airy = None if airy_px is None or attempt == 0 else [float(airy_px[owner[i]]) for i in index]
         fits = _fit(batch, False, airy=airy)
         shaped: list[int] = []
-        disk_px: dict[int, float] = {}
         if second_moment and attempt == 1 and airy is None:
             # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
             # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
             shaped = [j for j, (theta, _, rms, _, _) in enumerate(fits)
                       if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])
                       and 2.0 * math.sqrt(_squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
-            disk_px = {j: 2.0 * math.sqrt(_squared_radius(np, float(fits[j][0][1]))) for j in shaped}  # before the refit
             for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True, [fits[j][0] for j in shaped],
                                              None if airy is None else [airy[j] for j in shaped])):
                 fits[j] = refit
@@ -469,8 +467,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             half_len = 0.5 * float(np.linalg.norm(q1 - q0))
             line_px = (tuple(float(x) for x in q0 + (d0 - turn * half_len) * n),
                        tuple(float(x) for x in q1 + (d0 + turn * half_len) * n))
-            results[i] = BlurEstimate(c, sigma, tuple(f), npixels[i], rms, line_px,
-                                      disk_px[j] if j in is_shaped else None)
+            results[i] = BlurEstimate(c, sigma, tuple(f), npixels[i], rms, line_px)
     flat = [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
     out: list[list[BlurEstimate]] = [[] for _ in items]
     for k, r in zip(owner, flat):
