@@ -5,7 +5,7 @@ Airy pattern in the edge model and fit again, until the f-number settles.
 The Airy pattern's scale depends on the working f-number ``N_w = S / A`` (``S = f_px p`` the
 calibration's pinhole distance, ``A`` the fitted entrance-pupil diameter), which the first fit
 gives with the diffraction still in the blur (several per cent off at ``a`` of 1-2 px); each
-round takes ``A`` from the last fit. Two or three rounds settle it within 0.1 %.
+round takes ``A`` from the last fit. Two to four rounds settle it within 0.1 %.
 """
 
 from __future__ import annotations

@@ -153,3 +153,16 @@ def test_the_fit_with_diffraction_recovers_the_f_number(diffraction_stack):
                                             rel=0.02)
     # Without the model the blur floor takes the Airy pattern and N's interval is several times wider.
     assert plain.settings["a"]["f_number"].sigma > 2 * n.sigma
+
+
+def test_the_command_line_refuses_an_absurd_wavelength_and_a_samples_file(tmp_path, capsys):
+    from lensfit.cli import main
+
+    assert main(["fit", str(tmp_path), "--diffraction", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--diffraction" in err[0] and "550" in err[0]
+    samples = tmp_path / "samples.csv"
+    samples.write_text("setting,distance_mm,coc_diameter_px,sigma_px\na,1000,2,0.1\n")
+    assert main(["fit", str(samples), "--diffraction"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "stack folder" in err[0]

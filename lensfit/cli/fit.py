@@ -167,6 +167,9 @@ def _fit_command(args: argparse.Namespace) -> int:
 
     if args.estimator not in ESTIMATORS:
         raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
+    if args.diffraction is not None and not (math.isfinite(args.diffraction) and 200.0 <= args.diffraction <= 2000.0):
+        raise CliError(f"--diffraction must be an effective wavelength between 200 and 2000 nm (e.g. 550), "
+                       f"got {args.diffraction:g}")
     fpx = None
     if args.focal_length_px is not None:
         if not (args.focal_length_px > 0 and math.isfinite(args.focal_length_px)):
