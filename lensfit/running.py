@@ -18,25 +18,40 @@ def check_interrupted() -> None:
     """Raise :class:`Interrupted` if a stop signal arrived (even one whose exception was
     swallowed by a C callback); writers call it before putting anything in place."""
     if _RECEIVED:
+        import signal
+
+        if _RECEIVED[-1] == signal.SIGINT:
+            raise KeyboardInterrupt
         raise Interrupted(_RECEIVED[-1])
 
 
 @contextlib.contextmanager
 def signals_as_exceptions() -> Iterator[None]:
     """Turn SIGTERM (and SIGHUP) into :class:`lensfit.errors.Interrupted` inside the block, so
-    that the ``finally`` clauses of the writers run and remove their temporary files and locks."""
+    that the ``finally`` clauses of the writers run and remove their temporary files and locks;
+    Ctrl-C (SIGINT) stays a KeyboardInterrupt but is recorded, so that one a C callback swallowed
+    still stops the command (:func:`check_interrupted`)."""
     import signal
 
     def handler(signum, frame):
         _RECEIVED.append(signum)  # kept: a raise inside a C callback (e.g. JAX's gc hook) is swallowed
         raise Interrupted(signum)
 
+    def interrupt(signum, frame):
+        # Ctrl-C stays a KeyboardInterrupt, but is kept too: raised inside a C callback it is
+        # swallowed, and the command would finish and write as if never interrupted (seen: exit 0).
+        _RECEIVED.append(signum)
+        raise KeyboardInterrupt
+
     previous = {}
-    for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+    handlers = [(signal.SIGTERM, handler), (getattr(signal, "SIGHUP", None), handler)]
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        handlers.append((signal.SIGINT, interrupt))
+    for sig, fn in handlers:
         if sig is None:
             continue
         try:
-            previous[sig] = signal.signal(sig, handler)
+            previous[sig] = signal.signal(sig, fn)
         except ValueError:  # not the main thread
             pass
     try:

@@ -576,3 +576,21 @@ def test_stack_toml_typos_are_refused_naming_the_key(calibration_stack, tmp_path
     with pytest.raises(SpecError) as err:
         load_stack(folder)
     assert f"{field}:" in str(err.value) and says in str(err.value), str(err.value)
+
+
+def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command():
+    # A KeyboardInterrupt raised inside a C callback (JAX's, during a render) is swallowed there;
+    # the command must still end with 130 instead of finishing as if nothing happened.
+    code = ("import os, signal, sys, time\n"
+            "from lensfit.running import run_guarded\n"
+            "def body():\n"
+            "    try:\n"
+            "        os.kill(os.getpid(), signal.SIGINT)\n"
+            "        time.sleep(0.5)\n"
+            "    except KeyboardInterrupt:\n"
+            "        pass  # what a C callback does with it\n"
+            "    return 0\n"
+            "sys.exit(run_guarded('x', body))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert "interrupted" in proc.stderr
