@@ -196,6 +196,12 @@ def _cli(name: str) -> list[str]:
     return [str(BIN / name)]
 
 
+def _default_sigint() -> None:
+    """For a child that is to be sent Ctrl-C: an ignored SIGINT is inherited (a shell's background
+    job, or a test runner whose worker pools set it), and a program rightly keeps ignoring it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_two_renders_to_one_new_folder_one_wins_intact(tmp_path):
     scene = scene_file(tmp_path)
     out = tmp_path / "stack"
@@ -234,7 +240,8 @@ def test_signal_during_render_exits_cleanly_and_leaves_nothing(tmp_path, sig, co
         .replace("samples_per_pixel = 16", "samples_per_pixel = 1024") + '\n[[shot]]\n[[shot]]\n[[shot]]\n'
     scene = scene_file(tmp_path, slow.replace("[render]", '[render]\nmethod = "raytrace"'))
     out = tmp_path / "stack"
-    proc = subprocess.Popen(_cli("synth") + ["render", str(scene), "--out", str(out)], stdout=subprocess.PIPE,
+    proc = subprocess.Popen(_cli("synth") + ["render", str(scene), "--out", str(out)], preexec_fn=_default_sigint,
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     lock = tmp_path / ".stack.lock"
     deadline = time.time() + 120
@@ -591,6 +598,7 @@ def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command():
             "        pass  # what a C callback does with it\n"
             "    return 0\n"
             "sys.exit(run_guarded('x', body))\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          preexec_fn=_default_sigint)
     assert proc.returncode == 130, (proc.returncode, proc.stderr)
     assert "interrupted" in proc.stderr
