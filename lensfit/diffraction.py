@@ -29,7 +29,8 @@ import numpy as np
 #: Default wavelength (nm): the middle of the visible band, where a grey or green-weighted
 #: image has its effective wavelength.
 DEFAULT_WAVELENGTH_NM = 550.0
-#: Cell boundaries of the quadrature for a = 1 (one side; mirrored): 1/4 up to 2, then x 1.5.
+#: Cell boundaries of the quadrature for a = 1 (one side; mirrored): 1/8 up to 2, then x 1.4 up to
+#: 41 (26 cells a side with the tail beyond: 52 nodes).
 _INNER = np.arange(0.0, 2.0 + 1e-9, 0.125)
 _OUTER = 2.0 * 1.4 ** np.arange(1, 10)
 

@@ -20,8 +20,8 @@ from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
 from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robust_weights, _solver, _solver_args,
                                _solver_residual_fn)
 from lensfit.fit.start import _vertex_search
-from lensfit.fit.uncertainty import (BUDGET_SOURCES, _budget_parts, _covariance, _derive, _jackknife,
-                                     _null_direction, _positive)
+from lensfit.fit.uncertainty import (_budget_parts, _covariance, _derive, _jackknife, _null_direction, _positive,
+                                     _shares)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
@@ -281,11 +281,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
         p_est = _positive(math.exp(theta[i_p]), sd_p, z)
         if parts:
-            v = {src: max(float(c[i_p, i_p]), 0.0) for src, c in parts.items()}
-            v["images"] = max(sd_p**2 - sum(v.values()), 0.0)
-            total = sum(v.values())
-            if total > 0:
-                p_est = dataclasses.replace(p_est, shares={src: v.get(src, 0.0) / total for src in BUDGET_SOURCES})
+            p_est = dataclasses.replace(p_est, shares=_shares({src: max(float(c[i_p, i_p]), 0.0)
+                                                               for src, c in parts.items()}, sd_p**2))
         if p_source == "fitted" and ("log_P" in weak or sd_p > MAX_RELATIVE_SIGMA):
             p_est = Estimate(None, reason=f"the pupil magnification is poorly constrained (relative 1 sigma "
                              f"{100 * sd_p:.0f}%): focus the settings farther apart")

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import (BLUR_SCALE_SIGMA, BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX,
-                                   PIXEL_PITCH_RANGE_MM, _NODES_T)
+from lensfit.fit.constants import (BLUR_SCALE_SIGMA, BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX,
+                                   MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, _NODES_T)
 
 
 @dataclass

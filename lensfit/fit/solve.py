@@ -127,7 +127,8 @@ def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, 
         return jnp.asarray(np.concatenate([a, np.full((pad, *np.shape(a)[1:]), fill)]))
 
     return (jnp.asarray(theta), jnp.asarray(free_idx), padded(data.setting.astype(np.int32), 0),
-            padded(data.w_nodes, 1e-3), padded(data.pose.astype(np.float64), 0.0), padded(data.coc_px, 1.0), padded(sqrt_w_over_sigma, 0.0),
+            padded(data.w_nodes, 1e-3), padded(data.pose.astype(np.float64), 0.0), padded(data.coc_px, 1.0),
+            padded(sqrt_w_over_sigma, 0.0),
             data.pixel_pitch_mm, jnp.asarray(fpx), jnp.asarray(fpx_w), jnp.asarray(floor_w),
             jnp.asarray(p_prior, dtype=jnp.float64))
 

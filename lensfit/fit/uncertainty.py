@@ -51,6 +51,15 @@ def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int, scale2: f
     return {name: scale2 * h_inv @ jac[sl].T @ jac[sl] @ h_inv for name, sl in groups.items()}
 
 
+def _shares(model: dict[str, float], reported_var: float) -> dict[str, float] | None:
+    """Shares of a reported variance: ``model`` the parts the model covariance carries (and the
+    estimator's scale term), the rest of ``reported_var`` the jackknife's excess ("images")."""
+    v = dict(model)
+    v["images"] = max(reported_var - sum(v.values()), 0.0)
+    total = sum(v.values())
+    return {src: v.get(src, 0.0) / total for src in BUDGET_SOURCES} if total > 0 else None
+
+
 def _null_direction(jac: np.ndarray) -> np.ndarray:
     norms = np.linalg.norm(jac, axis=0)
     norms = np.where(norms > 0, norms, 1.0)
@@ -144,9 +153,7 @@ class _Variance:
         g = self._grad(name, k)
         v = {src: max(float(g @ c @ g), 0.0) for src, c in self.parts.items()}
         v["estimator_scale"] = self._scale_term(name, k)
-        v["images"] = max(self.var(name, k) - sum(v.values()), 0.0)  # the jackknife's excess
-        total = sum(v.values())
-        return {src: v.get(src, 0.0) / total for src in BUDGET_SOURCES} if total > 0 else None
+        return _shares(v, self.var(name, k))
 
 
 def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
@@ -180,6 +187,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
     elif all(k in blocked for k in range(m) if has_fpx[k]):
         f_reason = "the focal length needs the focus distance of a calibrated setting, which is not determined"
     f_est = Estimate(None, reason=f_reason) if f_reason else _positive(f_val, sd("log_f"), z)
+    f_est = _with_shares(f_est, variance.shares("log_f"))
     if f_reason:
         reasons.append(f"focal_length_mm: {f_reason}")
 
@@ -252,9 +260,9 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                 out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), z)
                 out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k), z)
         out["focal_length_mm"] = f_est
-        settings[label] = {qn: _with_shares(out[qn], variance.shares(_CARRIER[qn], None if qn == "focal_length_mm"
-                                                                      else k)) for qn in QUANTITIES}
-    return settings[data.labels[0]]["focal_length_mm"] if data.labels else f_est
+        settings[label] = {qn: out[qn] if qn == "focal_length_mm" else _with_shares(out[qn], variance.shares(
+            _CARRIER[qn], k)) for qn in QUANTITIES}
+    return f_est
 
 
 def _with_shares(est: Estimate, shares: dict[str, float] | None) -> Estimate:
