@@ -17,12 +17,14 @@ import hashlib
 import importlib.util
 import os
 import re
+import threading
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
 _DIR: list[Path | None] = [None]
 _LOADED: dict[str, Callable] = {}
+_LOCK = threading.Lock()
 _HASHES: dict[tuple[str, ...], str] = {}  # the source of a running process does not change
 
 
@@ -91,8 +93,11 @@ def call(name: str, fn: Callable, args: tuple, static: dict[str, Any] | None = N
     key = _key(name, args, static, modules)
     runner = _LOADED.get(key)
     if runner is None:
-        runner = _load_or_export(store / f"{key}.jaxexport", fn, args, static)
-        _LOADED[key] = runner
+        with _LOCK:  # one thread loads (lensfit.measure loads in the background), the others wait
+            runner = _LOADED.get(key)
+            if runner is None:
+                runner = _load_or_export(store / f"{key}.jaxexport", fn, args, static)
+                _LOADED[key] = runner
     return runner(*args)
 
 

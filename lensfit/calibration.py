@@ -91,7 +91,7 @@ def _usable(dets: list[Detection]) -> list[Detection]:
 
 
 def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, int], *,
-              fix_principal_point: bool = True) -> dict[str, Intrinsics]:
+              fix_principal_point: bool = True, jackknife: bool = True) -> dict[str, Intrinsics]:
     """Per-setting focal length in pixels, shared principal point and distortion (deterministic:
     see :func:`_one_thread`).
 
@@ -101,6 +101,9 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
     image_shape : (height, width)
     fix_principal_point : hold the principal point at the image centre (recommended unless many
         strongly tilted views constrain it)
+    jackknife : the focal length's sigma from leave-one-view-out calibrations (one per view),
+        else OpenCV's own (for a calibration that is only a first step, e.g. before the
+        corners are refined)
 
     Raises
     ------
@@ -108,11 +111,11 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
         A setting with fewer than 3 usable views (argument ``setting``), naming the fix.
     """
     with _one_thread():
-        return _calibrate(detections, image_shape, fix_principal_point)
+        return _calibrate(detections, image_shape, fix_principal_point, jackknife)
 
 
 def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, int],
-               fix_principal_point: bool) -> dict[str, Intrinsics]:
+               fix_principal_point: bool, with_jackknife: bool) -> dict[str, Intrinsics]:
     import cv2
 
     h, w = image_shape
@@ -153,7 +156,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         """
         usable = _usable(dets)
         n = len(usable)
-        if n < JACKKNIFE_MIN_VIEWS:
+        if n < JACKKNIFE_MIN_VIEWS or not with_jackknife:
             return sigma_opencv
         fs = np.array([run(usable[:i] + usable[i + 1:], K, dist, extra)[1][0, 0] for i in range(n)])
         return float(np.sqrt((n - 1) / n * np.sum((fs - fs.mean()) ** 2)))

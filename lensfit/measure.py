@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
@@ -22,15 +23,19 @@ from typing import Any, Callable
 
 import numpy as np
 
-from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, project
+from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose
 from lensfit.errors import InputError, SpecError
 from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
-from lensfit.estimators import EdgeTask, get_estimator
+from lensfit.estimators import get_estimator
 from lensfit.stack import Stack, load_stack
-from lensfit.targets import Detection, Target
+from lensfit.edge_geometry import edge_tasks as _edge_tasks, refine_corners
+from lensfit.targets import Detection, Target, detection_copies
 
 SATURATION_LEVEL = 0.995
 SATURATED_FRACTION_LIMIT = 0.01
+#: A stack whose images take at most this many bytes (float64) is held in memory between the
+#: stages; a larger one (many RAW files) is read again where needed.
+HOLD_BYTES = 2 << 30
 
 
 @dataclass(frozen=True)
@@ -191,29 +196,6 @@ def _check_saturation(stack: Stack, index: int, image: np.ndarray, det: Detectio
                         "on clipped edges)")
 
 
-def _edge_tasks(target: Target, det: Detection, pose: TargetPose, intr: Intrinsics):
-    """Tasks for the target's edges whose both end corners were detected."""
-    seen = set(int(i) for i in det.ids)
-    out = []
-    for seg in target.edges():
-        if target.kind != "slanted-edge" and not (seg.corner_ids[0] in seen and seg.corner_ids[1] in seen):
-            continue
-        a, b = np.array(seg.start_mm), np.array(seg.end_mm)
-        ends_cam = pose.to_camera(np.array([a, (a + b) / 2, b]))
-        px = project(ends_cam, intr)
-        # Local scale (px per mm) at the middle, for the clean room across the edge.
-        t = (b - a) / np.linalg.norm(b - a)
-        nrm = np.array([-t[1], t[0]])
-        mid = (a + b) / 2
-        step = project(pose.to_camera(np.array([mid, mid + nrm])), intr)
-        scale = float(np.linalg.norm(step[1] - step[0]))
-        task = EdgeTask(px[0], px[2], seg.clear_left_mm * scale, seg.clear_right_mm * scale,
-                        context={"segment": seg, "target": target, "pose": pose, "intrinsics": intr,
-                                 "end_depths_mm": (float(ends_cam[0, 2]), float(ends_cam[2, 2]))})
-        out.append((seg, task, ends_cam[:, 2]))
-    return out
-
-
 def known_intrinsics(entry: dict, shape: tuple[int, int]) -> Intrinsics:
     """Intrinsics given in stack.toml ``[[intrinsics]]`` (principal point defaults to the centre)."""
     h, w = shape
@@ -221,46 +203,6 @@ def known_intrinsics(entry: dict, shape: tuple[int, int]) -> Intrinsics:
     return Intrinsics(float(entry["focal_length_px"]), (float(pp[0]), float(pp[1])),
                       tuple(float(v) for v in entry.get("distortion", [0.0] * 5)), 0.0, 0, "manifest",
                       float(entry.get("focal_length_sigma_px", 0.0)))
-
-
-def refine_corners(det: Detection, target: Target, lines: dict[str, tuple]) -> Detection:
-    """Corners as the least-squares intersections of the edge lines through them.
-
-    ``lines`` maps edge ids to ((point, point), CoC diameter in px) as the estimator found them.
-
-    OpenCV's saddle-point corners carry errors of about 0.1 px on sharp or blurred synthetic
-    boards (measured: a 0.4 % focal-length error on a clean stack); the edge lines located by
-    the blur estimator are an order of magnitude more precise. A corner keeps its detected
-    position unless two lines at least 20 degrees apart pass through it.
-    """
-    through: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-    reach: dict[int, float] = {}
-    for seg in target.edges():
-        if seg.id not in lines:
-            continue
-        (p0, p1), coc = lines[seg.id]
-        q0, q1 = np.asarray(p0, float), np.asarray(p1, float)
-        t = q1 - q0
-        t = t / np.linalg.norm(t)
-        for cid in seg.corner_ids:
-            through.setdefault(int(cid), []).append((q0, np.array([-t[1], t[0]])))
-            reach[int(cid)] = max(reach.get(int(cid), 0.0), coc or 0.0)
-    points = det.image_points_px.copy()
-    for k, cid in enumerate(det.ids):
-        ls = through.get(int(cid), [])
-        if len(ls) < 2:
-            continue
-        normals = np.array([n for _, n in ls])
-        if abs(np.linalg.det(normals.T @ normals)) < np.sin(np.radians(20)) ** 2:
-            continue
-        A = normals.T @ normals
-        b = sum(n * (n @ q) for q, n in ls)
-        x = np.linalg.solve(A, b)
-        # A refinement, never a jump: blur rounds a thresholded square's corners inward by up to
-        # about the blur diameter, saddle-point corners move far less.
-        if np.all(np.isfinite(x)) and np.linalg.norm(x - points[k]) < 3.0 + reach.get(int(cid), 0.0):
-            points[k] = x
-    return Detection(det.target_id, det.object_points_mm, points, det.ids)
 
 
 class _StageClock:
@@ -285,6 +227,27 @@ class _StageClock:
             yield
         finally:
             self.seconds[name] += (time.perf_counter() - t) - (self.seconds["read"] - r)
+
+
+def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
+    """Import JAX and load the edge estimator's compiled fits in a background thread while the
+    images are read and the targets detected and calibrated (OpenCV and numpy release the
+    interpreter, so the two overlap on two cores: about a second of a fresh process). A failure
+    there is left for the measuring itself to meet and report."""
+    if estimator not in ("edge", "edge-disk"):
+        return None
+
+    def work():
+        try:
+            from lensfit.estimators import edge
+
+            edge.prewarm(shaped=estimator == "edge", diffraction=diffraction)
+        except Exception:  # noqa: BLE001 - the same call in the measuring raises it properly
+            pass
+
+    thread = threading.Thread(target=work, name="lensfit-prewarm")
+    thread.start()
+    return thread
 
 
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
@@ -312,8 +275,6 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     lensfit.errors.SpecError, lensfit.errors.InputError
         Unreadable or inconsistent input, saturated targets, a setting that cannot be calibrated.
     """
-    from lensfit.estimators import edge as edge_estimator
-
     fn = get_estimator(estimator)
     if airy_px is not None and estimator not in ("edge", "edge-disk"):
         raise InputError("estimator", estimator, "edge or edge-disk where diffraction is modelled",
@@ -325,16 +286,41 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         if missing:
             raise InputError("airy_px", missing[0], "an Airy scale for every setting of the stack")
 
+    if not stack.targets:
+        raise SpecError(stack.manifest_path, "target", "no [[target]] tables; describe the calibration targets "
+                        "(kind, squares, square_mm, ...) so that they can be found")
+    warming = _prewarm(estimator, airy_px is not None)
+    try:
+        return _measure(stack, estimator, fn, refine, progress, airy_px, warming)
+    finally:
+        if warming is not None:
+            warming.join()
+
+
+def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
+             progress: Callable[[str, int, int], None] | None, airy_px: dict[str, float] | None,
+             warming: threading.Thread | None) -> SampleTable:
+    """:func:`measure` once its arguments are checked; ``warming``: the thread loading the edge
+    estimator's compiled fits, joined before the first of them is called."""
     def airy(i):
         return None if airy_px is None else float(airy_px[stack.images[i].setting])
     targets = [Target(spec) for spec in stack.targets]
-    if not targets:
-        raise SpecError(stack.manifest_path, "target", "no [[target]] tables; describe the calibration targets "
-                        "(kind, squares, square_mm, ...) so that they can be found")
     by_id = {t.id: t for t in targets}
     n = len(stack.images)
     clock = _StageClock()
-    read = clock.reader(stack.read)
+    # Images are held between the stages while the stack fits in HOLD_BYTES, else read again where
+    # needed (a stack of RAW files may not fit in memory).
+    held: dict[int, np.ndarray] = {}
+    hold = n * stack.shape[0] * stack.shape[1] * 8 <= HOLD_BYTES
+
+    def load(i: int) -> np.ndarray:
+        img = held.get(i)
+        if img is None:
+            img = stack.read(i)
+            if hold:
+                held[i] = img
+        return img
+    read = clock.reader(load)
     total = 3 * n if refine else 2 * n
     step = [0]
 
@@ -343,7 +329,6 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         if progress:
             progress(stage, step[0], total)
 
-    # Images are read again where needed rather than held: a stack of RAW files would not fit.
     detections: dict[int, list[Detection]] = {}
     for i in range(n):
         entry = stack.images[i]
@@ -356,7 +341,8 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                             "list the one it shows (targets = [\"ID\"]); one slanted-edge square per image")
         img = read(i)
         with clock.stage("detect"):
-            found = [d for d in (t.detect(img) for t in candidates) if d is not None]
+            copies = detection_copies(img) if candidates else []
+            found = [d for d in (t.detect(img, copies) for t in candidates) if d is not None]
         for d in found:
             _check_saturation(stack, i, img, d)
         detections[i] = found
@@ -366,13 +352,13 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     if missing:
         table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
 
-    def calibrate_all():
+    def calibrate_all(final: bool = True):
         by_setting: dict[str, list[Detection]] = {}
         for i in range(n):
             by_setting.setdefault(stack.images[i].setting, []).extend(detections[i])
         known = {k: known_intrinsics(v, stack.shape) for k, v in stack.intrinsics.items()}
         todo = {k: v for k, v in by_setting.items() if k not in known}
-        return {**(calibrate(todo, stack.shape) if todo else {}), **known}
+        return {**(calibrate(todo, stack.shape, jackknife=final) if todo else {}), **known}
 
     def tasks_for(i, intrinsics):
         intr = intrinsics[stack.images[i].setting]
@@ -387,7 +373,13 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         return tasks, meta
 
     with clock.stage("calibrate"):
-        table.intrinsics = calibrate_all()
+        # (the uncertainty of a calibration that the refined corners replace is not needed)
+        table.intrinsics = calibrate_all(final=not refine)
+    if warming is not None:
+        with clock.stage("measure"):  # what the loading in the background has not hidden
+            warming.join()
+    from lensfit.estimators import edge as edge_estimator
+
     first: dict[int, tuple[list, list, list]] = {}
     if refine or estimator == "edge":
         # Every edge of the stack in one batched solve per pass; images read when needed.

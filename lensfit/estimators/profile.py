@@ -79,7 +79,8 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: flo
     pooled = np.bincount(band, weights=sq_dev) / np.maximum(dof, 1.0)
     overall = sq_dev.sum() / max((count - 1.0).sum(), 1.0)
     spread = np.where(dof[band] >= 3, pooled[band], overall)
-    floor = (MODEL_FLOOR_INTENSITY * (np.percentile(v, 95) - np.percentile(v, 5))) ** 2 + QUANTISATION_VARIANCE
+    p5, p95 = np.percentile(v, [5.0, 95.0])
+    floor = (MODEL_FLOOR_INTENSITY * (p95 - p5)) ** 2 + QUANTISATION_VARIANCE
     se = np.sqrt((spread + floor) / count)
     # The edge line found in the image, before the fitted offset d0: d_pred = a + b s.
     line = (p0 + line_a * n, p0 + L * t + (line_a + line_b * L) * n)
@@ -93,6 +94,10 @@ def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, floa
     derivative; a straight line through those centroids corrects small errors of the pose
     (position and angle) before the profile is built.
     """
+    if STRIPS < 3:
+        # A line through two centroids would not be checked by a third: the fit's own offset and
+        # turn (lensfit.estimators.edge) place the line.
+        return 0.0, 0.0
     edges = np.linspace(s.min(), s.max() + 1e-9, STRIPS + 1)
     centres, positions = [], []
     for k in range(STRIPS):
