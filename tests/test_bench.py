@@ -187,3 +187,32 @@ def test_bench_stages_refuses_what_it_cannot_compare(tmp_path, capsys):
     assert main(["bench-stages", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "slanted-edge" in err and "ChArUco" in err and len(err.strip().splitlines()) == 1
+
+
+def test_render_time_leaves_out_compilation_only():
+    """A fresh jitted function with a long trace and a trivial run: nearly all of its first call
+    is compilation (JAX's own events), none of its second; nested jit spans count once."""
+    import jax
+    import jax.numpy as jnp
+
+    from lensfit.bench.runs import without_compilation
+
+    @jax.jit
+    def inner(x):
+        for k in range(60):
+            x = jnp.sin(x) * (1.0 + k * 1e-3)
+        return x
+
+    @jax.jit
+    def outer(x):
+        for _ in range(20):
+            x = inner(x) + 1.0
+        return x
+
+    x = jnp.ones(3)
+    out, seconds, compiling = without_compilation(lambda: outer(x).block_until_ready())
+    assert out.shape == (3,)
+    assert compiling > 0.05
+    assert seconds < 0.5 * compiling  # the run itself is microseconds
+    _, seconds2, compiling2 = without_compilation(lambda: outer(x).block_until_ready())
+    assert compiling2 == 0.0
