@@ -159,6 +159,25 @@ def test_measure_pipeline_intrinsics_distances_and_blur(calibration_stack, calib
     assert np.median(coc_err) < 0.02
 
 
+def test_images_read_again_and_no_background_loading_give_the_same_samples(calibration_stack, calibration_samples,
+                                                                           monkeypatch):
+    """Holding the images between the stages and loading the compiled fits in a background thread
+    are only speed: a stack too large to hold (read again per stage), measured without the
+    background thread, gives the same samples, bit for bit."""
+    import lensfit.measure as measure_module
+
+    reads = []
+    original_read = measure_module.Stack.read
+    monkeypatch.setattr(measure_module, "HOLD_BYTES", 0)
+    monkeypatch.setattr(measure_module, "_prewarm", lambda *a: None)
+    monkeypatch.setattr(measure_module.Stack, "read", lambda self, i: reads.append(i) or original_read(self, i))
+    table = measure_module.measure(calibration_stack)
+    n = len(load_stack(calibration_stack).images)
+    assert len(reads) > n  # read again, not held
+    assert [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in table.samples] == \
+        [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in calibration_samples.samples]
+
+
 def test_measure_cli_writes_samples_and_refuses_overwrite(calibration_stack, tmp_path, capsys):
     from lensfit.cli import main
 
