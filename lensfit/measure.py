@@ -232,8 +232,9 @@ class _StageClock:
 def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
     """Import JAX and load the edge estimator's compiled fits in a background thread while the
     images are read and the targets detected and calibrated (OpenCV and numpy release the
-    interpreter, so the two overlap on two cores: about a second of a fresh process). A failure
-    there is left for the measuring itself to meet and report."""
+    interpreter, so the two overlap on two cores: of about 1.2 s of CPU, 0.4 s of a fresh
+    process's wall time on the demo). A failure there is left for the measuring itself to meet
+    and report."""
     if estimator not in ("edge", "edge-disk"):
         return None
 
