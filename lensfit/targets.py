@@ -218,7 +218,16 @@ class Target:
                 found = self._detect_square(grey)
             if found is not None and (best is None or len(found.ids) > len(best.ids)):
                 best = found
+            if best is not None and len(best.ids) >= self.corner_count():
+                break  # every corner found: no other copy can find more (half the detector's time)
         return best
+
+    def corner_count(self) -> int:
+        """How many corners a detection can find at most (a whole board; a square's four)."""
+        if self.kind == "slanted-edge":
+            return 4
+        nx, ny = self.spec["squares"]
+        return (nx - 1) * (ny - 1)
 
     def _detect_charuco(self, grey):
 
