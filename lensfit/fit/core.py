@@ -121,7 +121,10 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     t_start = time.perf_counter()
     warnings: list[str] = []
     if data.dropped:
-        warnings.append(f"{data.dropped} sample(s) without a measured blur were left out")
+        why = (f" ({data.dropped_truncated} of them: the blur outgrew the clean room around the edge, flag "
+               "window_truncated; stop down, or use a target with larger squares, to measure them)"
+               if data.dropped_truncated else "")
+        warnings.append(f"{data.dropped} sample(s) without a measured blur were left out{why}")
 
     # ---- what cannot be determined before fitting (per setting)
     blocked = _capture_problems(data)

@@ -41,6 +41,9 @@ class FitData:
     #: the estimator's shared scale error that applies to each sample (relative 1 sigma;
     #: BLUR_SCALE_SIGMA, or BLUR_SCALE_SIGMA_SHAPED for a ``shaped_spot`` reading)
     scale_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: of ``dropped``, the edges whose blur outgrew the clean room around them (flag
+    #: ``window_truncated``)
+    dropped_truncated: int = 0
 
     def blur_scale_sigma(self, weights: np.ndarray | None = None) -> float:
         """The estimator's shared relative scale error for this fit: each sample's weighted by
@@ -106,7 +109,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     if not PIXEL_PITCH_RANGE_MM[0] <= pitch <= PIXEL_PITCH_RANGE_MM[1]:
         raise InputError("pixel_pitch_mm", pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
                          "mm (0.1 micrometre to 1 mm)", "pixel pitches are given in mm, e.g. 0.0059 for 5.9 um")
-    used, used_rows, dropped = [], [], 0
+    used, used_rows, dropped, truncated = [], [], 0, 0
     for i, r in enumerate(rows):
         c, sg = r.get("coc_diameter_px"), r.get("sigma_px")
         d = r.get("distance_mm")
@@ -120,6 +123,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                              f"{DISTANCE_RANGE_MM[1]:g} mm", "distances are in mm from the lens")
         if c is None or sg is None or not (math.isfinite(c) and math.isfinite(sg) and sg > 0 and c >= 0):
             dropped += 1  # the estimator could not measure this edge
+            truncated += "window_truncated" in _flags(r)
             continue
         if c > MAX_BLUR_PX:
             raise InputError(f"samples[{i}].coc_diameter_px", c, f"at most {MAX_BLUR_PX:g} px",
@@ -159,7 +163,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
                    np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r) else BLUR_SCALE_SIGMA
-                             for r in used]))
+                             for r in used]), truncated)
 
 
 def _flags(row: dict[str, Any]) -> set[str]:
