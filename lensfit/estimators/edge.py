@@ -309,9 +309,10 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
         NX[i], NY[i] = nrm
     with jax.enable_x64(True):
         # numpy in, numpy out: no eager JAX operation between the compiled calls
-        parts = jax.device_get([aot.call("edge-fit", _fit_batch, tuple(x[k:k + CHUNK] for x in (D, S, V, W, NX, NY, T, A)),
-                                         {"shaped": shaped, "diffraction": airy is not None}, AOT_MODULES)
-                                for k in range(0, n, CHUNK)])
+        static = {"shaped": shaped, "diffraction": airy is not None}
+        arrays = (D, S, V, W, NX, NY, T, A)
+        parts = jax.device_get([aot.call("edge-fit", _fit_batch, tuple(x[k:k + CHUNK] for x in arrays), static,
+                                         AOT_MODULES) for k in range(0, n, CHUNK)])
     theta, cov, rms, ok, probe = (np.concatenate([p[j] for p in parts]) for j in range(5))
     return [(theta[i], cov[i], float(rms[i]), bool(ok[i]), float(probe[i])) for i in range(len(samples))]
 
