@@ -28,7 +28,7 @@ from lensfit.errors import InputError, SpecError
 from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
 from lensfit.estimators import get_estimator
 from lensfit.stack import Stack, load_stack
-from lensfit.edge_geometry import edge_tasks as _edge_tasks, refine_corners
+from lensfit.edge_geometry import edge_tasks, refine_corners
 from lensfit.targets import Detection, Target, detection_copies
 
 SATURATION_LEVEL = 0.995
@@ -368,7 +368,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             pose = estimate_pose(det, intr)
             if pose is None:
                 continue
-            for seg, task, z in _edge_tasks(by_id[det.target_id], det, pose, intr):
+            for seg, task, z in edge_tasks(by_id[det.target_id], det, pose, intr):
                 tasks.append(task)
                 meta.append((det.target_id, seg, z, pose))
         return tasks, meta

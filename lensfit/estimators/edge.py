@@ -66,7 +66,7 @@ Valid range
     sub-pixel reading a blur of 1 px fitting less than 4 in chi-square worse (the other
     parameters held: a lenient test, which keeps a reading rather than refuses it).
 Cost
-    About 2.4 ms per edge warm on 2 cores, two passes, the shaped refits and the profiles
+    About 2.5 ms per edge warm on 2 cores, two passes, the shaped refits and the profiles
     included (``lensfit bench-stages``; the README's stage table).
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
