@@ -175,8 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(p):
         p.add_argument("scene", help="scene spec (TOML; schema: data_specs/schemas/scene.schema.json)")
-        p.add_argument("--method", choices=["auto", "raytrace", "convolve"],
-                       help="render method (default: the scene's render.method, else auto)")
+        p.add_argument("--method", choices=["auto", "raytrace", "convolve", "mitsuba"],
+                       help="render method (default: the scene's render.method, else auto); mitsuba: the "
+                            "thin-lens scenes through Mitsuba 3 (pip install mitsuba), an independent renderer")
         p.add_argument("--spp", type=int, metavar="N", help="ray-tracing samples per pixel (default: the scene's)")
 
     r = sub.add_parser("render", help="render a scene into a stack folder",

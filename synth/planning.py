@@ -16,11 +16,12 @@ from synth.effects.stages import wanted_stages, working_f_number
 from synth.scene import Scene, Shot
 
 
-METHODS = ("auto", "raytrace", "convolve")
+METHODS = ("auto", "raytrace", "convolve", "mitsuba")
 
 #: Rough throughputs on a 2-core machine, used only for the cost estimates of ``synth plan``.
 RAYTRACE_SAMPLES_PER_S = 150e6  # synth bench: ~165 M/s once compiled
 CONVOLVE_SUBPIXELS_PER_S = 25e6
+MITSUBA_SAMPLES_PER_S = 4.5e6  # Mitsuba 3 scalar_rgb, thinlens, direct (synth.mitsuba; README)
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,9 @@ def convolve_is_exact(shot: Shot) -> tuple[bool, str]:
 
 def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[float, str]:
     cam = shot.camera
+    if method == "mitsuba":
+        samples = cam.width_px * cam.height_px * spp
+        return samples / MITSUBA_SAMPLES_PER_S, f"{samples / 1e6:.0f} M lens samples (Mitsuba 3)"
     if method == "raytrace":
         samples = cam.width_px * cam.height_px * spp
         return samples / RAYTRACE_SAMPLES_PER_S * max(1, len(shot.objects)) ** 0.5, f"{samples / 1e6:.0f} M lens samples"
@@ -96,6 +100,13 @@ def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *,
 
 
 def _choose(shot: Shot, requested: str, effects: Effects | None, supersampling: int) -> tuple[str, bool, str]:
+    if requested == "mitsuba":
+        from synth.mitsuba import unsupported
+
+        why = unsupported(shot, effects)
+        if why is not None:
+            raise InputError("method", requested, "raytrace or auto for this scene", f"Mitsuba cannot render {why}")
+        return "mitsuba", True, "requested; Mitsuba 3's thinlens camera, an independent renderer (synth/mitsuba.py)"
     only_raytrace = effects.needs_raytrace if effects is not None else None
     if getattr(shot.camera, "prescription", None) is not None:
         only_raytrace = f"the compound lens {shot.camera.prescription.name}"
@@ -140,6 +151,8 @@ def _check_memory(shot: Shot, method: str, spp: int, supersampling: int, effects
                              "an Airy pattern a few hundred pixels wide or less",
                              f"its kernel and FFT would need {format_bytes(need)} (budget {budget}); use a larger "
                              "pixel pitch or a smaller f-number")
+    if method == "mitsuba":
+        return  # a band of rows at a time; its film and a target's raster are small
     if method == "raytrace":
         need = raytrace_bytes(shot.camera.width_px, spp)
         if need > RENDER_MEMORY_BYTES:

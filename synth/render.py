@@ -119,7 +119,12 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
             continue
         rows = (lambda n, _d=distinct: tick(n / _d)) if distinct > 1 else tick
         cam_kw = {} if ccam is cam else {"camera": ccam}
-        if sp.method == "raytrace":
+        if sp.method == "mitsuba":
+            from synth.mitsuba import render_mitsuba
+
+            img = render_mitsuba(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
+                                 effects=fx)
+        elif sp.method == "raytrace":
             img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
                                   **cam_kw, **kwargs_rt)
         else:
@@ -136,6 +141,12 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
     lap("defocus")
     state = run_stages(ShotState(image, scene, shot, sp.method, k), lap)
     return state.image, state.raw, state.extra, seconds
+
+
+def _mitsuba_version() -> str:
+    from synth.mitsuba import version
+
+    return version()
 
 
 def check_overrides(*, samples_per_pixel: int | None = None, supersampling: int | None = None,
@@ -224,9 +235,9 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         images_truth.append({
             "file": name, "shot": shot.name, "setting": shot.setting,
             "method": sp.method, "method_exact": sp.exact, "method_reason": sp.reason,
-            "samples_per_pixel": r.samples_per_pixel if sp.method == "raytrace" else None,
+            "samples_per_pixel": r.samples_per_pixel if sp.method in ("raytrace", "mitsuba") else None,
             "supersampling": r.supersampling if sp.method == "convolve" else None,
-            "seed": raytrace_seed(r.seed, k) if sp.method == "raytrace" else None,
+            "seed": raytrace_seed(r.seed, k) if sp.method in ("raytrace", "mitsuba") else None,
             "stages": list(sp.stages),
             **extra,
             "maps": map_file,
@@ -246,7 +257,8 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         "images": images_truth,
         "effects": list(r.effects),
         "effect_parameters": scene.effects.truth(),
-        "method": methods_used.pop() if len(methods_used) == 1 else "mixed",
+        "method": next(iter(methods_used)) if len(methods_used) == 1 else "mixed",
+        **({"renderer": _mitsuba_version()} if "mitsuba" in methods_used else {}),
         "method_requested": r.method,
         "samples_per_pixel": r.samples_per_pixel,
         "supersampling": r.supersampling,

@@ -171,8 +171,9 @@ def test_edge_estimator_measures_the_second_moment_of_aberrated_spots(name, N, k
     """A slanted edge blurred by the real-ray spot of a compound lens (traced here, no renderer),
     at distances k X where the spot is far from a uniform disk (a rim; a core in a halo): the
     edge estimator (two concentric disks) reports the spot's second-moment diameter 4 sigma
-    within 1.5 % on both sides of focus (noise-free; measured: within 1 %), where a uniform-disk
-    fit (``edge-disk``) misses it by 3-10 %."""
+    within 1.5 % on both sides of focus (noise-free; measured: within 1 %). A uniform-disk fit
+    (``edge-disk``) misses the core in a halo by 20 % (it follows the core); the rims it now reads
+    within 0.3 % (it missed them by 3-10 % with the earlier per-band weights of the profile)."""
     from lensfit.estimators import EdgeTask
     from lensfit.estimators.edge import measure
 
@@ -195,4 +196,7 @@ def test_edge_estimator_measures_the_second_moment_of_aberrated_spots(name, N, k
     disk = measure(img, [task], second_moment=False)[0]
     assert moment.coc_diameter_px == pytest.approx(c_eq, rel=0.015), (moment, c_eq)
     assert "shaped_spot" in moment.flags and abs(moment.coc_diameter_px - c_eq) <= 2.0 * moment.sigma_px
-    assert abs(disk.coc_diameter_px / c_eq - 1) > 0.03
+    if (name, k) == ("retrofocus-24", 1.15):  # a core in a halo: the uniform disk sees the core
+        assert disk.coc_diameter_px / c_eq - 1 < -0.1
+    else:
+        assert disk.coc_diameter_px == pytest.approx(c_eq, rel=0.015)

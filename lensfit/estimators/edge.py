@@ -47,27 +47,26 @@ Diffraction
     shape; a lens stopped down that far has little aberration left), and the first pass, which
     only sizes the window, reads a uniform disk.
 Uncertainty
-    1 sigma from the Gauss-Newton covariance ``(J^T W J)^-1`` with each profile bin weighted by
-    its own standard error (from the spread of its pixels, never below a model-error floor of
-    3e-4 of the edge contrast per pixel), inflated by the reduced chi-square when the model
-    misfits, combined in
-    quadrature with 0.3 % of c + 0.02 px (perspective across a segment), so that noise-free
-    images do not claim impossible precision. Edges within 2 degrees of a pixel axis are
-    barely super-sampled and flagged ``axis_aligned``; their sigma is larger, as it should be.
+    1 sigma from the Gauss-Newton covariance ``(J^T W J)^-1``, each profile bin weighted by its
+    standard error (the noise variance where it lies, never its own spread, which read noisy
+    blurs low: ``lensfit.estimators.profile``; at least a model-error floor of 3e-4 of the edge
+    contrast per pixel; the two-disk fit keeps per-band spreads), inflated by the reduced
+    chi-square when the model misfits, combined in quadrature with 0.3 % of c + 0.02 px
+    (perspective across a segment), so that noise-free images do not claim impossible
+    precision. Edges within 2 degrees of a pixel axis are barely super-sampled and flagged
+    ``axis_aligned``; their sigma is larger, as it should be.
 Valid range
     c from about 0.5 px (below that the pixel footprint dominates: a sub-pixel reading is
     stated with 0.2 px, flag ``sub_pixel_blur``) up to the clean room across the edge; beyond
     it (a window narrower than the spot's radius + 1.5 px on either side) there is no value,
     flag ``window_truncated``: on a retrofocus lens at f/5.6, whose halo reaches past such
     windows, those readings came out 19 % low (median) at -6.7 of their sigmas, and N 4-6 %
-    high with them. A profile that does not determine c gives
-    no value (flag ``blur_undetermined``): 1 sigma above 3 c (the covariance is inverted with a
-    ridge, so an undetermined direction shows as a huge variance, not as none), or for a
-    sub-pixel reading a blur of 1 px fitting less than 4 in chi-square worse (the other
-    parameters held: a lenient test, which keeps a reading rather than refuses it).
+    high with them. A profile that does not determine c gives no value (flag
+    ``blur_undetermined``): 1 sigma above 3 c (the covariance is inverted with a ridge, so an
+    undetermined direction shows as a huge variance, not as none), or for a sub-pixel reading
+    a blur of 1 px fitting less than 4 in chi-square worse (the rest held: a lenient test).
 Cost
-    About 2.5 ms per edge warm on 2 cores, two passes, the shaped refits and the profiles
-    included (``lensfit bench-stages``; the README's stage table).
+    About 2.5 ms per edge warm on 2 cores, all passes and profiles (README's stage table).
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
     W. J. Smith, *Modern Optical Engineering*.
@@ -385,6 +384,8 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
     flags: list[list[str]] = [[] for _ in tasks]
     npixels = [0] * len(tasks)
     lines: list = [None] * len(tasks)
+    expected: list = [None] * len(tasks)  # the first pass's (offset, radius), for the second's weights
+    banded: list = [None] * len(tasks)  # the profile with the two-disk fit's weights
     for attempt in range(2):
         batch, index = [], []
         images: dict[int, np.ndarray] = {}
@@ -396,12 +397,13 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 source = items[owner[i]][0]
                 images[owner[i]] = np.asarray(source() if callable(source) else source, np.float64)
             half, margin, truncated = _windows(task, radius[i] if attempt else None)
-            sel = _select(images[owner[i]], task, half, margin)
+            sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
             if sel is None or len(sel[0]) < 8:
                 results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
                 radius[i] = None
                 continue
-            d, s_along, v, se, n, L, short, pixels, line = sel
+            d, s_along, v, se, n, L, short, pixels, line, se_banded = sel
+            banded[i] = (d, s_along, v, se_banded, n)
             lines[i] = (line, n)
             if attempt == 1:
                 flags[i] = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
@@ -426,7 +428,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             shaped = [j for j, (theta, _, rms, _, _) in enumerate(fits)
                       if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])
                       and 2.0 * math.sqrt(_squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
-            for j, refit in zip(shaped, _fit([batch[j] for j in shaped], True, [fits[j][0] for j in shaped],
+            for j, refit in zip(shaped, _fit([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
                                              None if airy is None else [airy[j] for j in shaped])):
                 fits[j] = refit
         is_shaped = set(shaped)
@@ -443,6 +445,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 radius[i] = None
                 continue
             radius[i] = r  # the outer disk: the spot's reach, for the window
+            expected[i] = (float(theta[0]), r)  # where the second pass's noise model puts the edge
             # The second-moment diameter c = 2 R sqrt(1 - a (1 - t^2)): 16 x the spot's variance
             # across the edge; the uniform disk's diameter where a = 0.
             k = math.sqrt(m)

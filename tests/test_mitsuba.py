@@ -1,0 +1,140 @@
+"""Stacks from another renderer: Mitsuba 3's thinlens camera (``method = "mitsuba"``,
+synth/mitsuba.py) against the CoC formula and synth's own ray tracer, and the fit on its
+images against the truth they were rendered from."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from lensfit.errors import InputError
+from synth.raytrace import render_raytrace
+from synth.render import render
+from synth.scene import scene_from_dict
+from synth.stack import write_stack
+
+pytest.importorskip("mitsuba")
+
+from synth.mitsuba import render_mitsuba  # noqa: E402
+
+
+def make_scene(objects, *, f=50.0, N=2.8, D=2000.0, w=96, h=96, pitch=0.006, background=0.0, spp=64, render=None,
+               lens=None):
+    return scene_from_dict({
+        "camera": {"pixel_pitch_mm": pitch, "width_px": w, "height_px": h},
+        "lens": {"focal_length_mm": f, "f_number": N, "focus_distance_mm": D, **(lens or {})},
+        "render": {"samples_per_pixel": spp, "seed": 0, **(render or {})},
+        "background": {"value": background},
+        "object": objects,
+    })
+
+
+def disk_esf(t, radius):
+    """Edge-spread function of a uniform disk (the share of the disk with x < t), written out."""
+    x = np.clip(t / radius, -1.0, 1.0)
+    return 0.5 + (x * np.sqrt(1 - x * x) + np.arcsin(x)) / np.pi
+
+
+@pytest.mark.parametrize("N, d", [(2.0, 1400.0), (4.0, 3000.0)])
+def test_mitsuba_edge_profile_is_the_cocs_disk(N, d):
+    # Mitsuba's defocus through synth's mapping (field of view from the sensor distance, aperture
+    # radius A/2, focus distance) against the CoC formula A s |1/D - 1/d| / p: the disk diameter
+    # and edge position fitted to its edge profile (disk ESF with pixel integration) match.
+    from scipy.optimize import least_squares
+
+    f, D, pitch = 50.0, 2000.0, 0.006
+    s = 1.0 / (1.0 / f - 1.0 / D)
+    c = (f / N) * s * abs(1.0 / D - 1.0 / d) / pitch
+    mm_per_px = pitch * d / s
+    edge_px, width = 10.3, 1000 * mm_per_px
+    obj = {"target": "uniform", "value": 1.0, "distance_mm": d, "size_mm": [width, 400 * mm_per_px],
+           "offset_mm": [edge_px * mm_per_px + width / 2, 0.0]}
+    W, H = 160, 64
+    shot = make_scene([obj], f=f, N=N, D=D, w=W, h=H, pitch=pitch).shots[0]
+    profile = render_mitsuba(shot, 0.0, 1024, 5)[4:-4].mean(axis=0).astype(np.float64)
+    u = np.arange(W) - (W - 1) / 2
+    fine = (np.arange(64) + 0.5) / 64 - 0.5
+
+    def model(p):  # p = (diameter px, edge px)
+        return disk_esf(u[:, None] + fine[None, :] - p[1], p[0] / 2).mean(axis=1)
+
+    fitted = least_squares(lambda p: model(p) - profile, x0=[1.1 * c, edge_px + 0.3]).x
+    assert c > 10  # a blur the profile resolves
+    assert fitted[0] == pytest.approx(c, rel=0.005)  # seen: within 0.1 %
+    assert fitted[1] == pytest.approx(edge_px, abs=0.02)
+    assert np.max(np.abs(model(fitted) - profile)) < 6e-3  # the shape is the disk's (noise 2e-3)
+
+
+def test_mitsuba_and_synth_draw_the_same_tilted_board():
+    # Two renderers, one scene (a tilted ChArUco board, 13-19 px of blur across it): no shift
+    # (a 0.1 px offset of the board reads 0.09 px here), no mirror, and no difference beyond
+    # their Monte-Carlo noise (which two Mitsuba renders with other seeds show).
+    board = {"target": "charuco", "squares": [5, 4], "square_mm": 6.0, "marker_mm": 4.5, "dictionary": "DICT_4X4_50",
+             "size_mm": [34.0, 28.0], "distance_mm": 1100.0, "offset_mm": [1.0, -0.7], "tilt_deg": [20.0, -25.0]}
+    shot = make_scene([board], N=5.6, D=1500.0, w=112, h=96, background=0.3).shots[0]
+    ours = render_raytrace(shot, 0.3, 256, 1).astype(np.float64)
+    theirs, again = (render_mitsuba(shot, 0.3, 256, k).astype(np.float64) for k in (1, 2))
+    diff = theirs - ours
+    gy, gx = np.gradient(ours)
+    shift = np.linalg.lstsq(np.stack([gx.ravel(), gy.ravel()], axis=1), diff.ravel(), rcond=None)[0]
+    assert np.all(np.abs(shift) < 0.02), shift  # px; seen 0.001
+
+    def local(d):  # largest 5 x 5 px mean difference
+        return np.abs(ndimage.uniform_filter(d, 5)[4:-4, 4:-4]).max()
+
+    assert local(diff) < 1.2 * local(theirs - again)  # seen 0.023 against 0.029
+    assert abs(diff.mean()) < 1e-3
+    assert np.std(theirs[30:66, 30:82]) > 0.1  # the board is there, with contrast
+
+
+def test_mitsuba_refuses_what_it_cannot_render():
+    board = {"target": "checkerboard", "squares": [4, 4], "square_mm": 5.0, "distance_mm": 1000.0}
+    polygon = make_scene([board], render={"method": "mitsuba", "effects": ["defocus", "aperture"]},
+                         lens={"aperture": {"shape": "polygon", "blades": 6}})
+    with pytest.raises(InputError, match="mitsuba.*polygon aperture"):
+        render(polygon)
+    edge = make_scene([{"target": "slanted-edge", "distance_mm": 1000.0, "size_mm": [20.0, 20.0]}],
+                      render={"method": "mitsuba"})
+    with pytest.raises(InputError, match="slanted-edge"):
+        render(edge)
+
+
+@pytest.fixture(scope="module")
+def mitsuba_stack(tmp_path_factory):
+    """The conftest's calibration stack (8 ChArUco views, 640 x 480, f/8), drawn by Mitsuba."""
+    shots = [{"pose": [{"id": "board", "distance_mm": float(dist), "tilt_deg": tilt}]}
+             for dist, tilt in [(450, [0, 0]), (550, [25, 0]), (650, [0, -30]), (800, [-20, 15]),
+                                (950, [0, 25]), (1100, [20, -20]), (1300, [0, 0]), (1500, [-25, 10])]]
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": 0.006, "width_px": 640, "height_px": 480},
+        "lens": {"focal_length_mm": 16.0, "f_number": 8.0, "focus_distance_mm": 800.0},
+        "render": {"samples_per_pixel": 32, "method": "mitsuba"},
+        "background": {"value": 0.3},
+        "object": [{"id": "board", "target": "charuco", "squares": [6, 4], "square_mm": 30.0, "marker_mm": 22.0,
+                    "dictionary": "DICT_4X4_50", "size_mm": [190.0, 130.0], "distance_mm": 800.0}],
+        "shot": shots,
+    })
+    out = tmp_path_factory.mktemp("mitsuba") / "calib"
+    write_stack(render(scene), out)
+    return out
+
+
+def test_a_mitsuba_stack_fits_to_its_truth(mitsuba_stack):
+    import lensfit
+    from lensfit.measure import measure
+
+    truth = json.loads((mitsuba_stack / "truth.json").read_text())
+    assert truth["method"] == "mitsuba" and truth["renderer"].startswith("Mitsuba 3")
+    result = lensfit.fit(measure(mitsuba_stack))
+    assert result.code == "ok", result.reasons
+    setting = truth["settings"]["a"]
+    expected = {"focal_length_mm": truth["focal_length_mm"], "f_number": setting["f_number"],
+                "focus_distance_mm": setting["focus_distance_mm"]}
+    for name, true in expected.items():
+        est = result.settings["a"][name] if name != "focal_length_mm" else result.focal_length_mm
+        assert est.value == pytest.approx(true, rel=0.015), name
+        lo, hi = est.ci95
+        assert lo <= true <= hi, (name, est.value, est.ci95, true)
