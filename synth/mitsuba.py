@@ -83,7 +83,8 @@ def unsupported(shot, effects) -> str | None:
     for o in shot.objects:
         kind = textures.texture(o.target).static[0]
         if kind not in SUPPORTED_TEXTURES:
-            return f"target {o.target.id!r} of kind {o.target.target!r} (analytic edges a texel raster would only approximate)"
+            return (f"target {o.target.id!r} of kind {o.target.target!r} (analytic edges a texel raster would "
+                    "only approximate)")
     return None
 
 

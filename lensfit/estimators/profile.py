@@ -27,9 +27,8 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: flo
     with the line re-fitted to the image and the profile binned.
 
     Returns (d, s, v, se, normal, length, shortened, pixels, line, se_banded) or None: ``d`` the
-    mean normal distance
-    and ``v`` the mean value of the pixels in each bin (1/8 px, or 1/128 of a wider window; per
-    strip along the edge), ``se`` the standard error of that mean: its pixel count and the noise
+    mean normal distance and ``v`` the mean value of the pixels in each bin (1/8 px, or 1/128
+    of a wider window; per strip along the edge), ``se`` the standard error of that mean: its pixel count and the noise
     variance where the bin lies, floored by the model error and quantisation. That variance is
     never the bin's own spread (see :func:`_noise_variance`): with ``expected`` = (offset px,
     disk radius px) of a previous fit to this edge, a smooth function of the profile's expected
