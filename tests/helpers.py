@@ -16,3 +16,20 @@ def assert_recovered_or_refused(result, truth: dict[str, float], rel: float, k_s
         assert abs(e.value / t - 1) < rel, (q, e.value, t)
         if k_sigma is not None:
             assert abs(e.value - t) < k_sigma * e.sigma + 1e-6 * t, (q, e.value, t, e.sigma)
+
+
+def calibration_scene(**render) -> dict:
+    """The conftest's calibration stack as a scene dict (8 ChArUco views, some tilted, 640 x 480,
+    16 mm f/8 focused at 800 mm); ``render`` overrides [render] (e.g. method, samples_per_pixel)."""
+    shots = [{"pose": [{"id": "board", "distance_mm": float(dist), "tilt_deg": tilt}]}
+             for dist, tilt in [(450, [0, 0]), (550, [25, 0]), (650, [0, -30]), (800, [-20, 15]),
+                                (950, [0, 25]), (1100, [20, -20]), (1300, [0, 0]), (1500, [-25, 10])]]
+    return {
+        "camera": {"pixel_pitch_mm": 0.006, "width_px": 640, "height_px": 480},
+        "lens": {"focal_length_mm": 16.0, "f_number": 8.0, "focus_distance_mm": 800.0},
+        "render": {"samples_per_pixel": 64, **render},
+        "background": {"value": 0.3},
+        "object": [{"id": "board", "target": "charuco", "squares": [6, 4], "square_mm": 30.0, "marker_mm": 22.0,
+                    "dictionary": "DICT_4X4_50", "size_mm": [190.0, 130.0], "distance_mm": 800.0}],
+        "shot": shots,
+    }

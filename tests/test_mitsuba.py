@@ -105,18 +105,9 @@ def test_mitsuba_refuses_what_it_cannot_render():
 @pytest.fixture(scope="module")
 def mitsuba_stack(tmp_path_factory):
     """The conftest's calibration stack (8 ChArUco views, 640 x 480, f/8), drawn by Mitsuba."""
-    shots = [{"pose": [{"id": "board", "distance_mm": float(dist), "tilt_deg": tilt}]}
-             for dist, tilt in [(450, [0, 0]), (550, [25, 0]), (650, [0, -30]), (800, [-20, 15]),
-                                (950, [0, 25]), (1100, [20, -20]), (1300, [0, 0]), (1500, [-25, 10])]]
-    scene = scene_from_dict({
-        "camera": {"pixel_pitch_mm": 0.006, "width_px": 640, "height_px": 480},
-        "lens": {"focal_length_mm": 16.0, "f_number": 8.0, "focus_distance_mm": 800.0},
-        "render": {"samples_per_pixel": 32, "method": "mitsuba"},
-        "background": {"value": 0.3},
-        "object": [{"id": "board", "target": "charuco", "squares": [6, 4], "square_mm": 30.0, "marker_mm": 22.0,
-                    "dictionary": "DICT_4X4_50", "size_mm": [190.0, 130.0], "distance_mm": 800.0}],
-        "shot": shots,
-    })
+    from helpers import calibration_scene
+
+    scene = scene_from_dict(calibration_scene(samples_per_pixel=32, method="mitsuba"))
     out = tmp_path_factory.mktemp("mitsuba") / "calib"
     write_stack(render(scene), out)
     return out
