@@ -88,6 +88,13 @@ def unsupported(shot, effects) -> str | None:
     return None
 
 
+def check(shot, effects) -> None:
+    """Refuse (InputError naming the method and the reason) a shot Mitsuba cannot render."""
+    why = unsupported(shot, effects)
+    if why is not None:
+        raise InputError("method", "mitsuba", "raytrace or auto for this scene", f"Mitsuba cannot render {why}")
+
+
 def _bitmap_radiance(mi, target) -> dict:
     """The target's reflectance as a Mitsuba bitmap texture over the rectangle's (u, v)."""
     tex = textures.texture(target)
@@ -117,8 +124,27 @@ def _bitmap_radiance(mi, target) -> dict:
             "filter_type": "bilinear" if kind == "raster-bilinear" else "nearest"}
 
 
-def scene_dict(shot, background: float, spp: int, seed: int, rows: tuple[int, int] | None = None) -> dict:
-    """The Mitsuba scene of one shot (optionally only image rows ``rows = (first, count)``)."""
+def _targets(mi, shot) -> dict:
+    """The shot's targets as loaded Mitsuba shapes (built once; every band of rows shares them)."""
+    out = {}
+    for k, o in enumerate(shot.objects):
+        w, h = o.target.size_mm
+        R, t = o.pose.R_cam_target, o.pose.t_cam_target
+        M = np.eye(4)
+        # Mitsuba's rectangle is [-1, 1]^2 in its x-y plane, emitting towards +z: scaled to the
+        # target and turned so that its front faces the camera (target -z)
+        M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = R[:, 0] * (0.5 * w), R[:, 1] * (0.5 * h), -R[:, 2], t
+        out[f"target_{k}"] = mi.load_dict({
+            "type": "rectangle", "to_world": mi.ScalarTransform4f(M),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
+            "emitter": {"type": "area", "radiance": _bitmap_radiance(mi, o.target)}})
+    return out
+
+
+def scene_dict(shot, background: float, spp: int, seed: int, rows: tuple[int, int] | None = None,
+               targets: dict | None = None) -> dict:
+    """The Mitsuba scene of one shot (optionally only image rows ``rows = (first, count)``;
+    ``targets``: the shapes of :func:`_targets`, when already built)."""
     mi = _mitsuba()
     cam = shot.camera
     W, H = cam.width_px, cam.height_px
@@ -135,16 +161,7 @@ def scene_dict(shot, background: float, spp: int, seed: int, rows: tuple[int, in
                       "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, -1, 0]),
                       "film": film,
                       "sampler": {"type": "independent", "sample_count": int(spp), "seed": int(seed)}}}
-    for k, o in enumerate(shot.objects):
-        w, h = o.target.size_mm
-        R, t = o.pose.R_cam_target, o.pose.t_cam_target
-        M = np.eye(4)
-        # Mitsuba's rectangle is [-1, 1]^2 in its x-y plane, emitting towards +z: scaled to the
-        # target and turned so that its front faces the camera (target -z)
-        M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = R[:, 0] * (0.5 * w), R[:, 1] * (0.5 * h), -R[:, 2], t
-        out[f"target_{k}"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(M),
-                              "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
-                              "emitter": {"type": "area", "radiance": _bitmap_radiance(mi, o.target)}}
+    out.update(targets if targets is not None else _targets(mi, shot))
     return out
 
 
@@ -155,15 +172,15 @@ def render_mitsuba(shot, background: float, spp: int, seed: int, progress: Calla
     Rendered in bands of ``BAND_ROWS`` rows (``progress(n)`` after each), each band with its own
     sampler seed derived from ``seed``: deterministic for a seed.
     """
-    why = unsupported(shot, effects)
-    if why is not None:
-        raise InputError("method", "mitsuba", "raytrace or auto for this scene", f"Mitsuba cannot render {why}")
+    check(shot, effects)
     mi = _mitsuba()
     H = shot.camera.height_px
     out = np.empty((H, shot.camera.width_px), np.float32)
+    targets = _targets(mi, shot)
     for band, r0 in enumerate(range(0, H, BAND_ROWS)):
         n = min(BAND_ROWS, H - r0)
-        scene = mi.load_dict(scene_dict(shot, background, spp, (seed * 7919 + band) % 2**31, rows=(r0, n)))
+        scene = mi.load_dict(scene_dict(shot, background, spp, (seed * 7919 + band) % 2**31, rows=(r0, n),
+                                        targets=targets))
         out[r0:r0 + n] = np.asarray(mi.render(scene), np.float32)[..., 0]
         if progress is not None:
             progress(n)

@@ -101,11 +101,9 @@ def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *,
 
 def _choose(shot: Shot, requested: str, effects: Effects | None, supersampling: int) -> tuple[str, bool, str]:
     if requested == "mitsuba":
-        from synth.mitsuba import unsupported
+        from synth.mitsuba import check
 
-        why = unsupported(shot, effects)
-        if why is not None:
-            raise InputError("method", requested, "raytrace or auto for this scene", f"Mitsuba cannot render {why}")
+        check(shot, effects)
         return "mitsuba", True, "requested; Mitsuba 3's thinlens camera, an independent renderer (synth/mitsuba.py)"
     only_raytrace = effects.needs_raytrace if effects is not None else None
     if getattr(shot.camera, "prescription", None) is not None:

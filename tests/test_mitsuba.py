@@ -15,6 +15,7 @@ from synth.raytrace import render_raytrace
 from synth.render import render
 from synth.scene import scene_from_dict
 from synth.stack import write_stack
+from test_synth_render import disk_esf  # the disk's edge-spread function, written out there
 
 pytest.importorskip("mitsuba")
 
@@ -30,12 +31,6 @@ def make_scene(objects, *, f=50.0, N=2.8, D=2000.0, w=96, h=96, pitch=0.006, bac
         "background": {"value": background},
         "object": objects,
     })
-
-
-def disk_esf(t, radius):
-    """Edge-spread function of a uniform disk (the share of the disk with x < t), written out."""
-    x = np.clip(t / radius, -1.0, 1.0)
-    return 0.5 + (x * np.sqrt(1 - x * x) + np.arcsin(x)) / np.pi
 
 
 @pytest.mark.parametrize("N, d", [(2.0, 1400.0), (4.0, 3000.0)])

@@ -107,29 +107,25 @@ def _noise_variance(d: np.ndarray, sq_dev: np.ndarray, count: np.ndarray,
     24 Mitsuba stacks at 32 spp (README): N's bias +0.14..0.20 % -> +0.04..0.08 %.
     """
     dof = count - 1.0
-    overall = sq_dev.sum() / max(dof.sum(), 1.0)
-    model = np.array([np.nan])
-    if expected is not None and np.all(np.isfinite(expected)) and int(np.sum(dof > 0)) >= 12:
-        d0, radius = expected
-        # the disk's edge-spread function, widened by the pixel's footprint (variance 1/12 px^2
-        # against R^2 / 4 for the disk): the level the profile is expected to have at each bin
-        r_eff = math.sqrt(radius * radius + 1.0 / 3.0)
-        x = np.clip((d - d0) / r_eff, -1.0, 1.0)
-        m = 0.5 + (x * np.sqrt(1.0 - x * x) + np.arcsin(x)) / np.pi
-        basis = np.stack([np.ones_like(m), m, m * m], axis=1)
-        wts = np.sqrt(np.maximum(dof, 0.0))
-        per_bin = sq_dev / np.maximum(dof, 1.0)
-        coef, *_ = np.linalg.lstsq(basis * wts[:, None], per_bin * wts, rcond=None)
-        model = basis @ coef
-    side = (d >= 0.0).astype(int)
-    dof_side = np.bincount(side, weights=dof, minlength=2)
-    pooled = np.bincount(side, weights=sq_dev, minlength=2) / np.maximum(dof_side, 1.0)
-    by_side = np.where(dof_side[side] >= 3, pooled[side], overall)
-    if expected is not None and np.all(np.isfinite(model)):
-        # never below the side's mean: a quadratic that dips towards 0 at the flat ends would
-        # give bins there weights far beyond what their few pixels justify
-        return np.maximum(model, by_side)
-    return by_side
+    by_side = _pooled((d >= 0.0).astype(int), sq_dev, dof)
+    if expected is None or not np.all(np.isfinite(expected)) or int(np.sum(dof > 0)) < 12:
+        return by_side
+    d0, radius = expected
+    # the disk's edge-spread function, widened by the pixel's footprint (variance 1/12 px^2
+    # against R^2 / 4 for the disk): the level the profile is expected to have at each bin
+    r_eff = math.sqrt(radius * radius + 1.0 / 3.0)
+    x = np.clip((d - d0) / r_eff, -1.0, 1.0)
+    m = 0.5 + (x * np.sqrt(1.0 - x * x) + np.arcsin(x)) / np.pi
+    basis = np.stack([np.ones_like(m), m, m * m], axis=1)
+    wts = np.sqrt(np.maximum(dof, 0.0))
+    per_bin = sq_dev / np.maximum(dof, 1.0)
+    coef, *_ = np.linalg.lstsq(basis * wts[:, None], per_bin * wts, rcond=None)
+    model = basis @ coef
+    if not np.all(np.isfinite(model)):
+        return by_side
+    # never below the side's mean: a quadratic that dips towards 0 at the flat ends would give
+    # bins there weights far beyond what their few pixels justify
+    return np.maximum(model, by_side)
 
 
 def _band_variance(d: np.ndarray, sq_dev: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -140,13 +136,17 @@ def _band_variance(d: np.ndarray, sq_dev: np.ndarray, count: np.ndarray) -> np.n
     retrofocus lens's core-and-halo spot came out 2.6 % low (``tests/test_compound_render.py``).
     The bias these weights bring to small, Monte-Carlo-noisy blurs does not arise there: a spot
     is shaped only where it is large and its misfit beyond the noise."""
-    dof = count - 1.0
     band = np.floor(d).astype(int)
-    band -= band.min()
-    dof_band = np.bincount(band, weights=dof)
-    pooled = np.bincount(band, weights=sq_dev) / np.maximum(dof_band, 1.0)
+    return _pooled(band - band.min(), sq_dev, count - 1.0)
+
+
+def _pooled(group: np.ndarray, sq_dev: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """Each bin's variance pooled over its group (a non-negative integer per bin), or over all
+    bins where the group has fewer than 3 degrees of freedom."""
+    dof_group = np.bincount(group, weights=dof)
+    pooled = np.bincount(group, weights=sq_dev) / np.maximum(dof_group, 1.0)
     overall = sq_dev.sum() / max(dof.sum(), 1.0)
-    return np.where(dof_band[band] >= 3, pooled[band], overall)
+    return np.where(dof_group[group] >= 3, pooled[group], overall)
 
 
 def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, float]:
