@@ -375,3 +375,28 @@ def test_slanted_edge_squares_of_different_sizes_are_told_apart_by_the_image_ent
     manifest.write_text(text.replace('targets = [\n    "s10",\n]', 'targets = [\n    "s45",\n]', 1))
     with pytest.raises(SpecError, match=r"image\[0\]\.targets\[0\].*s45"):
         load_stack(out)
+
+
+def test_exact_edges_bias_stays_within_the_fits_scale_budget():
+    """The fit carries the edge estimator's shared scale error as ``BLUR_SCALE_SIGMA +
+    BLUR_SCALE_BIAS_PX2 / c^2`` (lensfit.fit.constants); on exact edges (a half-plane blurred by
+    the CoC formula's uniform disk, pixel-integrated: no renderer) the noise-free reading stays
+    inside that at every blur and slant. Also the generator against the brute-force profile."""
+    from lensfit.bench.measure import exact_edge
+    from lensfit.fit.constants import BLUR_SCALE_BIAS_PX2, BLUR_SCALE_SIGMA
+
+    image, task = exact_edge(3.0, 17.0, 0.37)
+    row = image.shape[0] // 2
+    n = np.array([math.cos(math.radians(17.0)), math.sin(math.radians(17.0))])
+    cols = np.arange(image.shape[1])
+    d = (cols - (image.shape[1] - 1) / 2 - 0.37) * n[0] + (row - (image.shape[0] - 1) / 2) * n[1]
+    near = np.abs(d) < 4
+    expected = 0.2 + 0.6 * brute_force_profile(d[near], 1.5, n[0], n[1], n=60)
+    assert np.max(np.abs(image[row, near] - expected)) < 2e-3
+    fn = get_estimator("edge")
+    for c in (1.0, 1.5, 2.0, 3.0, 6.0, 16.0):
+        for slant in (3.0, 17.0, 33.0):
+            for offset in (0.0, 0.37):
+                image, task = exact_edge(c, slant, offset)
+                rel = fn(image, [task])[0].coc_diameter_px / c - 1.0
+                assert abs(rel) <= BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c**2, (c, slant, offset, rel)

@@ -219,7 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     bm = sub.add_parser("bench-measure", help="accuracy and time per edge of the blur estimators",
                         description="Benchmark: slanted edges rendered by synth at several CoC diameters and "
-                                    "noise levels; optionally both estimators on a rendered STACK with truth.")
+                                    "noise levels; the edge estimator's relative bias on exact (analytic) edges "
+                                    "against the fit's error budget; optionally both estimators on a rendered "
+                                    "STACK with truth.")
     bm.add_argument("--stack", metavar="DIR", help="also run every estimator on this rendered stack")
     bm.add_argument("--draws", type=int, default=3, help="noise draws per case (default 3)")
     bm.add_argument("--json", action="store_true", help="print JSON")

@@ -41,11 +41,12 @@ def _bench_measure_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from lensfit.bench.measure import run, run_stack
+    from lensfit.bench.measure import run, run_exact, run_stack
 
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
         result = run(draws=args.draws, progress=lambda m: status.update(f"benchmarking: {m}"))
+        result["exact"] = run_exact(progress=lambda m: status.update(f"benchmarking: {m}"))
         if args.stack:
             result["stack"] = run_stack(args.stack, progress=lambda m: status.update(f"benchmarking: {m}"))
     if args.json:
@@ -58,6 +59,17 @@ def _bench_measure_command(args: argparse.Namespace) -> int:
         table.add_row(f"{r['coc_diameter_px']:g}", f"{r['noise']:g}", str(r["edges"]), f"{r['rms_error_px']:.3f}",
                       f"{r['bias_px']:+.3f}", f"{r['median_sigma_px']:.3f}", f"{r['within_1_sigma']:.2f}",
                       f"{1000 * r['seconds_per_edge']:.1f}")
+    Console().print(table)
+    exact = result["exact"]
+    table = Table(title=f"edge estimator's relative bias on exact edges (disk x pixel, slants "
+                        f"{', '.join(f'{a:g}' for a in exact['slants_deg'])} deg) against the fit's budget")
+    for col in ("CoC px", "noise-free min", "noise-free max", f"noise {exact['noise']:g} ({exact['draws']} draws)",
+                "budget (1 sigma)"):
+        table.add_column(col, justify="right")
+    for r in exact["rows"]:
+        noisy = "-" if r["noisy_bias"] is None else f"{100 * r['noisy_bias']:+.3f} +- {100 * r['noisy_bias_se']:.3f} %"
+        table.add_row(f"{r['coc_diameter_px']:g}", f"{100 * r['bias_min']:+.3f} %", f"{100 * r['bias_max']:+.3f} %",
+                      noisy, f"{100 * r['budget']:.3f} %")
     Console().print(table)
     for r in result.get("stack", []):
         print(f"{r['estimator']}: {r['compared']} edges (CoC >= 1.5 px) of {r['edges']}: RMS error "

@@ -21,13 +21,22 @@ MAX_CLUSTERS = 400  # one LM solve each
 #: The blur estimator's scale error shared by every sample of a fit (relative, 1 sigma): a
 #: bias of the estimator's model that does not average out over edges (the per-sample model
 #: floor of lensfit.estimators.base does). It multiplies every blur alike, so it moves the
-#: aperture and f-number (and the slope and floor) and nothing else. Measured for the edge
-#: estimator: noise-free biases of +0.03 % to +0.7 % of c at 4-16 px, -0.1 % of the
-#: aperture on the demo stack (README, "What accuracy costs"); readings through the shaped
-#: (two-disk) spot model are within 1 % of the true second moment on real-ray spots
-#: (tests/test_compound_render.py). Each sample's share is weighted by the information it
-#: carries about the scale, (c / sigma)^2.
-BLUR_SCALE_SIGMA = 0.0025
+#: aperture and f-number (and the slope and floor) and nothing else. A sample's share is
+#: ``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2`` (c its blur diameter, at least
+#: ``BLUR_SCALE_MIN_PX``), weighted over the fit by the information it carries about a scale,
+#: ``(c / sigma)^2``. Measured for the edge estimator on exact edges (a half-plane blurred by a
+#: uniform disk, integrated over each pixel; slants 3-33 degrees; ``lensfit bench-measure``):
+#: noise-free +1.2 % at 0.7 px, +0.6 % at 1 px, +0.2 % at 1.5 px, +0.12 % at 2 px, +0.05 % at
+#: 3 px, at most 0.01 % from 6 px (the 1/c^2 term bounds these); under noise no bias beyond
+#: its 0.1-0.2 % standard error. On independent renders (Mitsuba 3, 32 spp) the f-number
+#: scatters 0.1 % beyond the readings' own scatter and the calibration's (bias +0.04 to
+#: +0.08 %): the constant term. (Until 2026-11-24 one constant 0.25 %, from synth renders at
+#: 256 spp: the f-number's 95 % intervals were 4.5x its error on independent renders, 9-14x
+#: on synth's.) Readings through the shaped (two-disk) spot model are within 1 % of the true
+#: second moment on real-ray spots (tests/test_compound_render.py).
+BLUR_SCALE_SIGMA = 0.001
+BLUR_SCALE_BIAS_PX2 = 0.006
+BLUR_SCALE_MIN_PX = 0.5
 BLUR_SCALE_SIGMA_SHAPED = 0.01
 #: Condition number (column-equilibrated Jacobian) above which the fit is degenerate.
 MAX_CONDITION = 1e8

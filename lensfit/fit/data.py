@@ -10,8 +10,9 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import (BLUR_SCALE_SIGMA, BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX,
-                                   MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, _NODES_T)
+from lensfit.fit.constants import (BLUR_SCALE_BIAS_PX2, BLUR_SCALE_MIN_PX, BLUR_SCALE_SIGMA, BLUR_SCALE_SIGMA_SHAPED,
+                                   DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX,
+                                   PIXEL_PITCH_RANGE_MM, _NODES_T)
 
 
 @dataclass
@@ -39,7 +40,8 @@ class FitData:
     #: error, which the fit carries (lensfit.fit.model._distance_scale)
     pose: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     #: the estimator's shared scale error that applies to each sample (relative 1 sigma;
-    #: BLUR_SCALE_SIGMA, or BLUR_SCALE_SIGMA_SHAPED for a ``shaped_spot`` reading)
+    #: BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2, or BLUR_SCALE_SIGMA_SHAPED for a
+    #: ``shaped_spot`` reading)
     scale_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: of ``dropped``, the edges whose blur outgrew the clean room around them (flag
     #: ``window_truncated``)
@@ -162,8 +164,14 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
-                   np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r) else BLUR_SCALE_SIGMA
+                   np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r) else _scale_sigma(r)
                              for r in used]), truncated)
+
+
+def _scale_sigma(row: dict[str, Any]) -> float:
+    """The estimator's shared relative scale error for a uniform-disk reading of this blur."""
+    c = max(float(row["coc_diameter_px"]), BLUR_SCALE_MIN_PX)
+    return BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c**2
 
 
 def _flags(row: dict[str, Any]) -> set[str]:
