@@ -136,7 +136,13 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
             obj, img, (w, h), K.copy(), dist.copy(), flags=flags | extra,
             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
         # With a fixed aspect ratio OpenCV reports the spread on fy (index 1) and 0 on fx.
-        return rms, K, dist, float(max(np.ravel(std)[0], np.ravel(std)[1]))
+        sigma = float(max(np.ravel(std)[0], np.ravel(std)[1]))
+        # The focal length's entry of the inverse information (OpenCV's sigma^2 over its noise
+        # variance, the sum of squares over points less free parameters), for the leverage.
+        points = sum(len(o) for o in obj)
+        free = 6 * len(obj) + int(np.count_nonzero(np.ravel(std)))
+        unit = sigma**2 / max(rms**2 * points / max(points - free, 1), 1e-300)
+        return rms, K, dist, sigma, unit
 
     # Radial distortion only when the data ask for it: it must cut the reprojection error by
     # a tenth; otherwise (narrow views, little distortion) k1, k2 merely trade off against the
@@ -147,31 +153,44 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
     if rms_radial > DISTORTION_GAIN * rms_plain:
         flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
 
-    def jackknife(dets, K, dist, extra, sigma_opencv):
-        """Leave-one-view-out spread of the focal length (px), where there are enough views.
+    def jackknife(dets, K, dist, extra, sigma_opencv, unit, f_all):
+        """Leave-one-view-out spread of the focal length (px), where there are enough views,
+        each view's shift weighted by its leverage.
 
         OpenCV's sigma assumes independent corner errors; corners on blurred views err per view
         (the views disagree by more than noise explains), which the jackknife sees directly. On
-        the demo stack: OpenCV 2.4 px, jackknife 1.7 px, actual error 0.7 px.
+        the demo stack: OpenCV 2.4 px, jackknife 1.7 px, actual error 0.7 px. The plain
+        jackknife overstates the spread where a few views carry most of what is known of the
+        focal length (the tilted ones): dropping a view of share ``h`` of that information moves
+        the estimate by its error over ``1 - h``, while that error is ``sqrt(1 - h)`` of the
+        noise. Each squared shift is therefore weighted by ``1 - h`` (the CR2 cluster-robust
+        variance of Bell and McCaffrey, unbiased for a linear model), ``1 - h`` read from the
+        focal length's inverse information with and without the view. Simulated calibrations
+        with independent corner noise, 4 of 12 views tilted: the plain jackknife's sigma was
+        1.17-1.27x the spread of 80 draws, the weighted one 0.97-1.08x
+        (tests/test_calibration_sigma.py).
         """
         usable = _usable(dets)
         n = len(usable)
         if n < JACKKNIFE_MIN_VIEWS or not with_jackknife:
             return sigma_opencv
-        fs = np.array([run(usable[:i] + usable[i + 1:], K, dist, extra)[1][0, 0] for i in range(n)])
-        return float(np.sqrt((n - 1) / n * np.sum((fs - fs.mean()) ** 2)))
+        weighted = 0.0
+        for i in range(n):
+            _, K_i, _, _, unit_i = run(usable[:i] + usable[i + 1:], K, dist, extra)
+            weighted += (K_i[0, 0] - f_all) ** 2 * (min(unit / unit_i, 1.0) if unit_i > 0 else 1.0)
+        return float(np.sqrt(weighted))
 
     def setting(dets, K_start, dist_start, extra):
-        rms, K, dist, sigma = run(dets, K_start, dist_start, extra)
+        rms, K, dist, sigma, unit = run(dets, K_start, dist_start, extra)
         return Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
                           float(rms), len(_usable(dets)), "calibrated",
-                          jackknife(dets, K_start, dist_start, extra, sigma))
+                          jackknife(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0])))
 
     if len(detections) == 1:
         (label, dets), = detections.items()
         return {label: setting(dets, K0, np.zeros(5), 0)}
     # Shared principal point and distortion from all views, then each setting's focal length.
-    _, K_all, dist_all, _ = run(everything, K0, np.zeros(5), 0)
+    _, K_all, dist_all, _, _ = run(everything, K0, np.zeros(5), 0)
     fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
     return {label: setting(dets, K_all, dist_all, fixed) for label, dets in detections.items()}
 

@@ -1,0 +1,48 @@
+"""The calibrated focal length's sigma against the spread of simulated calibrations: points
+projected by OpenCV's own pinhole model with independent corner noise, many draws."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lensfit.calibration import calibrate
+from lensfit.targets import Detection
+
+W, H, F_PX = 1200, 800, 4000.0
+
+
+def views(rng, n=12, tilted_every=3):
+    """Board poses: every third view tilted (these carry most of what is known of f_px)."""
+    return [(rng.normal(0, 0.5 if i % tilted_every == 0 else 0.08, 3),
+             np.array([rng.normal(0, 20), rng.normal(0, 20), 1000 + rng.normal(0, 100)])) for i in range(n)]
+
+
+def draw(rng, poses, noise_px):
+    import cv2
+
+    gx, gy = np.meshgrid(np.arange(10) * 20.0, np.arange(7) * 20.0)
+    obj = np.stack([gx.ravel() - 90, gy.ravel() - 60, 0 * gx.ravel()], 1)
+    K = np.array([[F_PX, 0, (W - 1) / 2], [0, F_PX, (H - 1) / 2], [0, 0, 1]])
+    dets = []
+    for r, t in poses:
+        p, _ = cv2.projectPoints(obj, r, t, K, np.zeros(5))
+        dets.append(Detection("board", obj, p.reshape(-1, 2) + rng.normal(0, noise_px, (len(obj), 2)),
+                              np.arange(len(obj))))
+    return dets
+
+
+def test_jackknife_sigma_matches_the_spread_of_repeated_calibrations():
+    # The leave-one-view-out jackknife alone overstates this spread by about 1.3x: the tilted
+    # views carry a large share of the information and move the estimate by their error over
+    # 1 - h when dropped. 80 draws: the spread reads within about 8 %; weighted by leverage the
+    # ratio read 0.97-1.08 on seeds 5-7.
+    rng = np.random.default_rng(5)
+    poses = views(rng)
+    f, s = [], []
+    for _ in range(80):
+        intr = calibrate({"a": draw(rng, poses, 0.05)}, (H, W))["a"]
+        f.append(intr.focal_length_px)
+        s.append(intr.focal_length_sigma_px)
+    ratio = np.sqrt(np.mean(np.square(s))) / np.std(f, ddof=1)
+    assert 0.85 <= ratio <= 1.12, ratio  # the plain jackknife: 1.17-1.27 on seeds 5-7
+    assert abs(np.mean(f) - F_PX) < 3 * np.std(f) / np.sqrt(len(f))  # and unbiased
