@@ -74,6 +74,11 @@ class SampleTable:
     #: seconds spent per stage (read, detect, calibrate, measure) by :func:`measure`; kept in
     #: memory for ``lensfit bench-stages``, never written (files stay reproducible)
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    #: per sample, the blur estimator's RMS residual in units of the noise (None where it gives
+    #: none); kept in memory for the diffraction test of ``lensfit.pipeline``, never written
+    fit_rms: list[float | None] = field(default_factory=list)
+    #: what ``lensfit.pipeline``'s diffraction test found (None where it did not run)
+    diffraction: dict[str, Any] | None = None
 
     COLUMNS = SAMPLES_CSV_COLUMNS
 
@@ -444,6 +449,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
                 coc_diameter_px=est.coc_diameter_px, sigma_px=est.sigma_px, estimator=estimator,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source))
+            table.fit_rms.append(est.rms_residual)
         tick("measure")
     table.stage_seconds = dict(clock.seconds)
     return table

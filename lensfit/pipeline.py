@@ -1,6 +1,15 @@
-"""From a stack to a fit, with diffraction modelled where asked: measure, fit, and where the
-lens is stopped down far enough to be diffraction-limited, measure again with each setting's
-Airy pattern in the edge model and fit again, until the f-number settles.
+"""From a stack to a fit, with diffraction modelled where asked or where the images show it:
+measure, fit, and where the lens is stopped down far enough to be diffraction-limited, measure
+again with each setting's Airy pattern in the edge model and fit again, until the f-number
+settles.
+
+Whether the images show diffraction (``auto_diffraction``) is the edges' own verdict: where the
+first fit puts the Airy pattern at ``AUTO_MIN_AIRY_PX`` or more (at 550 nm), the edges are read
+again with it, and it is kept only if it fits the edges with small blur better than the disk
+alone, on most of them and in total. A lens's photographs always carry it; a geometric renderer's
+images (Mitsuba, pbrt, synth without the effect) never do, and read with it the f-number comes
+out 6-9 % high. On a focus bracket at f/11 (Airy scale 1 px, 64 spp) the per-edge chi-square of
+the right model was 0.3-8 against 18-230 for the wrong one, on every edge.
 
 The Airy pattern's scale depends on the working f-number ``N_w = S / A`` (``S = f_px p`` the
 calibration's pinhole distance, ``A`` the fitted entrance-pupil diameter), which the first fit
@@ -14,12 +23,49 @@ import math
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 from lensfit.diffraction import DEFAULT_WAVELENGTH_NM, airy_scale_px, working_f_number
 from lensfit.errors import InputError
 
 #: Re-measurements at most, and the change of every f-number below which they stop.
 MAX_ROUNDS = 4
 SETTLED_REL = 1e-3
+#: The diffraction test: the Airy scale (px, at the default wavelength) from which it runs (below
+#: it the pattern moves the f-number by well under its sigma); the edges it looks at (a plain
+#: reading below this many px or Airy scales, where the pattern shapes the profile); how many it
+#: needs, and the share of them the Airy model must fit better.
+AUTO_MIN_AIRY_PX = 0.5
+TEST_MAX_BLUR_PX = 4.0
+TEST_MAX_BLUR_AIRY = 4.0
+TEST_MIN_EDGES = 8
+TEST_BETTER_SHARE = 2.0 / 3.0
+
+
+def diffraction_test(plain: Any, modelled: Any, airy: dict[str, float]) -> dict[str, Any]:
+    """Does the Airy pattern belong in the blur model? Compares each edge's fit (RMS residual in
+    units of the noise) in ``plain`` (read without the pattern) and ``modelled`` (read with it,
+    ``airy`` px per setting) over the edges whose plain reading is small enough for the pattern
+    to shape their profile. Returns the evidence and ``modelled``: True where the pattern fits
+    better on at least ``TEST_BETTER_SHARE`` of at least ``TEST_MIN_EDGES`` edges and in total."""
+    def key(smp):
+        return smp.image, smp.target, smp.edge
+
+    other = {key(smp): rms for smp, rms in zip(modelled.samples, modelled.fit_rms)}
+    pairs = []
+    for smp, rms in zip(plain.samples, plain.fit_rms):
+        a = airy.get(smp.setting, 0.0)
+        with_airy = other.get(key(smp))
+        if (rms is not None and with_airy is not None and smp.coc_diameter_px is not None
+                and smp.coc_diameter_px < max(TEST_MAX_BLUR_PX, TEST_MAX_BLUR_AIRY * a)):
+            pairs.append((rms**2, with_airy**2))
+    chi2 = np.array(pairs, float).reshape(-1, 2)
+    better = float(np.mean(chi2[:, 1] < chi2[:, 0])) if len(chi2) else 0.0
+    decided = bool(len(chi2) >= TEST_MIN_EDGES and better >= TEST_BETTER_SHARE and chi2[:, 1].sum() < chi2[:, 0].sum())
+    return {"edges": int(len(chi2)), "better_with_airy": better,
+            "mean_chi2_without": float(chi2[:, 0].mean()) if len(chi2) else None,
+            "mean_chi2_with": float(chi2[:, 1].mean()) if len(chi2) else None,
+            "airy_scale_px": dict(airy), "modelled": decided}
 
 
 def airy_per_setting(table: Any, result: Any, wavelength_nm: float) -> dict[str, float]:
@@ -47,9 +93,12 @@ def airy_per_setting(table: Any, result: Any, wavelength_nm: float) -> dict[str,
 
 def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float | None = None,
                     fit_options: dict[str, Any] | None = None,
-                    progress: Callable[[str, int, int], None] | None = None) -> tuple[Any, Any, list[dict[str, float]]]:
+                    progress: Callable[[str, int, int], None] | None = None,
+                    auto_diffraction: bool = False) -> tuple[Any, Any, list[dict[str, float]]]:
     """Measure ``stack`` and fit it; with ``wavelength_nm`` (the light's effective wavelength, e.g.
-    550 for a grey or green-weighted image) model diffraction in the blur readings.
+    550 for a grey or green-weighted image) model diffraction in the blur readings; without it
+    but with ``auto_diffraction``, model it (at 550 nm) where the edges show it
+    (:func:`diffraction_test`; its evidence is left in the samples' ``diffraction``).
 
     Returns (samples, fit result, rounds): ``rounds`` lists the Airy scales (px per setting) each
     diffraction round measured with (empty without diffraction).
@@ -74,6 +123,22 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     table = measure(stack, estimator, progress=progress)
     result = fit(table, **options)
     rounds: list[dict[str, float]] = []
+    trial = None
+    if wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk"):
+        airy = airy_per_setting(table, result, DEFAULT_WAVELENGTH_NM)
+        if max(airy.values(), default=0.0) >= AUTO_MIN_AIRY_PX:
+            trial = measure(stack, estimator, progress=progress, airy_px=airy)
+            evidence = diffraction_test(table, trial, airy)
+            if evidence["modelled"]:
+                wavelength_nm = DEFAULT_WAVELENGTH_NM
+                trial.diffraction = evidence
+            else:
+                table.diffraction = evidence
+                scales = ", ".join(f"{k} {v:.2f} px" for k, v in airy.items())
+                result.warnings.append(
+                    f"diffraction not modelled: its Airy pattern (at 550 nm {scales}) fits "
+                    f"{100 * evidence['better_with_airy']:.0f} % of {evidence['edges']} small-blur edges better, "
+                    "too few (a geometric render?); --diffraction forces it")
     if wavelength_nm is None:
         return table, result, rounds
     for _ in range(MAX_ROUNDS):
@@ -82,7 +147,11 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
             result.warnings.append("diffraction not modelled: no setting's aperture was determined")
             break
         rounds.append(airy)
-        new_table = measure(stack, estimator, progress=progress, airy_px=airy)
+        if trial is not None:  # the test read the first round, with these scales
+            new_table, trial = trial, None
+        else:
+            new_table = measure(stack, estimator, progress=progress, airy_px=airy)
+            new_table.diffraction = table.diffraction
         new = fit(new_table, **options)
         change = max((abs(new.settings[k]["f_number"].value / result.settings[k]["f_number"].value - 1.0)
                       for k in new.settings if new.settings[k]["f_number"].value

@@ -133,7 +133,8 @@ def render_label(render: dict[str, Any]) -> str:
 
 def solver_label(solver: dict[str, Any]) -> str:
     return (solver["loss"] + (f" floor {solver['blur_floor_px']:g}px" if "blur_floor_px" in solver else "")
-            + (f" diffraction {solver['diffraction_nm']:g}nm" if solver.get("diffraction_nm") else ""))
+            + (f" diffraction {solver['diffraction_nm']:g}nm" if solver.get("diffraction_nm") else "")
+            + (" diffraction off" if solver.get("diffraction") == "off" else ""))
 
 
 def _key(*parts: Any) -> str:

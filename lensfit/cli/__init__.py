@@ -17,7 +17,7 @@ from lensfit.cli.bench import (_bench_command, _bench_fit_command, _bench_lenses
                                _bench_stages_command)
 from lensfit.cli.capture import _init_command, _plan_command, _target_command
 from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
-                                _input_options, _number, _pupil)
+                                _diffraction, _input_options, _number, _pupil)
 from lensfit.cli.dof import _dof_command
 from lensfit.cli.fit import _fit_command, _measure_command
 
@@ -161,11 +161,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
                          "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
                          "fitted from two or more focus settings, else 1 (thin lens) with a warning")
-    ft.add_argument("--diffraction", type=_number, nargs="?", const=550.0, metavar="NM",
-                    help="model diffraction in the blur readings (the Airy pattern of each setting's working "
-                         "f-number, at this effective wavelength; default 550 nm): for lenses stopped down to "
-                         "f/8 and beyond on small pixels, where the Airy pattern reaches a pixel or more. "
-                         "Measures again once or twice (about 3-5x the measuring time)")
+    ft.add_argument("--diffraction", type=_diffraction, nargs="?", const=550.0, default="auto",
+                    metavar="NM|auto|off",
+                    help="diffraction in the blur readings (the Airy pattern of each setting's working f-number): "
+                         "NM models it at this effective wavelength (bare: 550 nm); auto (default) models it at "
+                         "550 nm where the lens is stopped down far enough for the pattern to reach half a pixel "
+                         "and the small blurs' edges fit better with it (a photograph, not a geometric render); "
+                         "off never. Modelling measures again once to three times (about 3-5x the measuring "
+                         "time); the auto test measures once more where it runs")
     ft.add_argument("--pixel-pitch", type=_number, metavar="MM",
                     help="pixel pitch, mm (for samples without it, e.g. a CSV of your own)")
     ft.add_argument("--focal-length-px", type=_number, metavar="PX",

@@ -60,6 +60,16 @@ def _number(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
 
 
+def _diffraction(text: str) -> float | str:
+    """``--diffraction``: a wavelength in nm, ``auto`` or ``off``."""
+    if text in ("auto", "off"):
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a wavelength in nm (e.g. 550), auto or off, got {text!r}") from None
+
+
 def _pupil(text: str) -> float | tuple[float, float]:
     """``--pupil-magnification``: a number, or ``LO:HI``."""
     try:

@@ -31,8 +31,9 @@ def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | 
 
         if fit_options is None:
             return measure(stack, args.estimator, progress=progress)
-        return measure_and_fit(stack, args.estimator, wavelength_nm=getattr(args, "diffraction", None),
-                               fit_options=fit_options, progress=progress)
+        mode = getattr(args, "diffraction", "off")
+        return measure_and_fit(stack, args.estimator, wavelength_nm=mode if isinstance(mode, float) else None,
+                               fit_options=fit_options, progress=progress, auto_diffraction=mode == "auto")
 
 
 def _measure_command(args: argparse.Namespace) -> int:
@@ -167,7 +168,8 @@ def _fit_command(args: argparse.Namespace) -> int:
 
     if args.estimator not in ESTIMATORS:
         raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
-    if args.diffraction is not None and not (math.isfinite(args.diffraction) and 200.0 <= args.diffraction <= 2000.0):
+    forced = isinstance(args.diffraction, float)
+    if forced and not (math.isfinite(args.diffraction) and 200.0 <= args.diffraction <= 2000.0):
         raise CliError(f"--diffraction must be an effective wavelength between 200 and 2000 nm (e.g. 550), "
                        f"got {args.diffraction:g}")
     fpx = None
@@ -195,7 +197,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         from lensfit.jaxcache import enable_compilation_cache
         from lensfit.measure import SampleTable
 
-        if args.diffraction is not None:
+        if isinstance(args.diffraction, float):
             raise CliError("--diffraction measures the images again; give the stack folder, not a samples file")
         enable_compilation_cache()
         table = SampleTable.read(source)
@@ -203,7 +205,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         from lensfit.stack import load_stack
 
         stack = load_stack(source, max_pixels=_max_pixels(args), allow_outside=args.allow_outside_stack)
-        if args.diffraction is not None:
+        if isinstance(args.diffraction, float) or (args.diffraction == "auto" and args.estimator in ("edge", "edge-disk")):
             table, result, rounds = _measure_with_progress(stack, args, options)
         else:
             table = _measure_with_progress(stack, args)
@@ -217,9 +219,12 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         with console.status("fitting"):
             result = fit(table, **options)
     document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
+    wavelength = args.diffraction if isinstance(args.diffraction, float) else 550.0
     if rounds:
-        document["diffraction"] = {"wavelength_nm": args.diffraction, "airy_scale_px": rounds[-1],
-                                   "rounds": len(rounds)}
+        document["diffraction"] = {"wavelength_nm": wavelength, "airy_scale_px": rounds[-1], "rounds": len(rounds),
+                                   "mode": "forced" if isinstance(args.diffraction, float) else "auto"}
+    if table.diffraction is not None:  # the auto test's evidence, whichever way it went
+        document["diffraction_test"] = table.diffraction
 
     written = _write_fit_outputs(args, source, table, result, document, stack)
     if args.json:
@@ -228,7 +233,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         _print_fit(result, document)
         if rounds:
             scales = ", ".join(f"{k} {v:.2f} px" for k, v in rounds[-1].items())
-            print(f"diffraction modelled at {args.diffraction:g} nm: Airy scale lambda N_w / p {scales} "
+            print(f"diffraction modelled at {wavelength:g} nm: Airy scale lambda N_w / p {scales} "
                   f"({len(rounds)} round(s) of measuring)")
         if written:
             print(f"wrote {', '.join(str(p) for p in written)}")
