@@ -77,6 +77,9 @@ class SampleTable:
     #: per sample, the blur estimator's RMS residual in units of the noise (None where it gives
     #: none); kept in memory for the diffraction test of ``lensfit.pipeline``, never written
     fit_rms: list[float | None] = field(default_factory=list)
+    #: per sample, the edge geometry its blur was read with (an ``EdgeTask``), in memory for
+    #: :func:`remeasure`
+    edge_tasks: list[Any] = field(default_factory=list)
     #: what ``lensfit.pipeline``'s diffraction test found (None where it did not run)
     diffraction: dict[str, Any] | None = None
 
@@ -303,6 +306,24 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
             warming.join()
 
 
+def remeasure(stack: Stack, table: SampleTable, which: list[int], airy_px: dict[str, float]) -> list[Any]:
+    """The edge estimator again on samples ``which`` of ``table`` (a :func:`measure` of ``stack``
+    in this process) with each setting's Airy scale ``airy_px`` (px): their edges as they were
+    read, their images read again, all in one batched solve. A quick second reading of a few
+    edges (``lensfit.pipeline``'s diffraction test), not a new table: the estimates, in order."""
+    from lensfit.estimators import edge as edge_estimator
+
+    index = {entry.file.name: i for i, entry in enumerate(stack.images)}
+    by_image: dict[int, list[int]] = {}
+    for j in which:
+        by_image.setdefault(index[table.samples[j].image], []).append(j)
+    per_image = edge_estimator.measure_images(
+        [(partial(stack.read, i), [table.edge_tasks[j] for j in js]) for i, js in by_image.items()],
+        airy_px=[float(airy_px[stack.images[i].setting]) for i in by_image])
+    found = {j: est for js, ests in zip(by_image.values(), per_image) for j, est in zip(js, ests)}
+    return [found[j] for j in which]
+
+
 def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
              progress: Callable[[str, int, int], None] | None, airy_px: dict[str, float] | None,
              warming: threading.Thread | None) -> SampleTable:
@@ -418,12 +439,15 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             # Blur from the first pass (the edge lines are located in the image itself, so the
             # refined poses move nothing); distances from the refined poses.
             by_key = {(m[0], m[1].id): e for m, e in zip(first[i][1], first[i][2])}
+            read_with = {(m[0], m[1].id): t for m, t in zip(first[i][1], first[i][0])}
             estimates = [by_key.get((m[0], m[1].id)) for m in meta]
+            used = [read_with[(m[0], m[1].id)] if e is not None else t for m, t, e in zip(meta, tasks, estimates)]
             if any(e is None for e in estimates):
                 with clock.stage("measure"):
                     again = edge_estimator.measure(read(i), tasks, airy_px=airy(i))
                 estimates = [e if e is not None else a for e, a in zip(estimates, again)]
         else:
+            used = tasks
             with clock.stage("measure"):
                 if not tasks:
                     estimates = []
@@ -432,7 +456,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
                                                        airy_px=airy(i))
                 else:
                     estimates = fn(read(i), tasks)
-        for (tid, seg, z, pose), task, est in zip(meta, tasks, estimates):
+        for (tid, seg, z, pose), task, est, read_task in zip(meta, tasks, estimates, used):
             table.poses[(entry.file.name, tid)] = pose
             flags = list(est.flags)
             if pose.ambiguous:
@@ -450,6 +474,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source))
             table.fit_rms.append(est.rms_residual)
+            table.edge_tasks.append(read_task)
         tick("measure")
     table.stage_seconds = dict(clock.seconds)
     return table
