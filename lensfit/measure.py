@@ -26,11 +26,14 @@ import numpy as np
 from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose
 from lensfit.errors import InputError, SpecError
 from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
-from lensfit.estimators import get_estimator
+from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.stack import Stack, load_stack
 from lensfit.edge_geometry import edge_tasks, refine_corners
 from lensfit.targets import Detection, Target, detection_copies
 
+#: What of an edge task's context the edge estimator reads (the rest, the target's board and
+#: pose for the ``target`` estimator, is not kept with the samples).
+EDGE_CONTEXT = ("end_depths_mm",)
 SATURATION_LEVEL = 0.995
 SATURATED_FRACTION_LIMIT = 0.01
 #: A stack whose images take at most this many bytes (float64) is held in memory between the
@@ -77,8 +80,8 @@ class SampleTable:
     #: per sample, the blur estimator's RMS residual in units of the noise (None where it gives
     #: none); kept in memory for the diffraction test of ``lensfit.pipeline``, never written
     fit_rms: list[float | None] = field(default_factory=list)
-    #: per sample, the edge geometry its blur was read with (an ``EdgeTask``), in memory for
-    #: :func:`remeasure`
+    #: per sample, the edge geometry its blur was read with (an ``EdgeTask`` with only the edge
+    #: estimator's context, ``EDGE_CONTEXT``), in memory for :func:`remeasure`
     edge_tasks: list[Any] = field(default_factory=list)
     #: what ``lensfit.pipeline``'s diffraction test found (None where it did not run)
     diffraction: dict[str, Any] | None = None
@@ -474,7 +477,9 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source))
             table.fit_rms.append(est.rms_residual)
-            table.edge_tasks.append(read_task)
+            table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
+                                             read_task.clear_right_px, {k: v for k, v in read_task.context.items()
+                                                                        if k in EDGE_CONTEXT}))
         tick("measure")
     table.stage_seconds = dict(clock.seconds)
     return table
