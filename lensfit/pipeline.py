@@ -139,10 +139,12 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
                 wavelength_nm = DEFAULT_WAVELENGTH_NM
             else:
                 scales = ", ".join(f"{k} {v:.2f} px" for k, v in airy.items())
-                result.warnings.append(
-                    f"diffraction not modelled: its Airy pattern (at 550 nm {scales}) fits "
-                    f"{100 * evidence['better_with_airy']:.0f} % of {evidence['edges']} small-blur edges better, "
-                    "too few (a geometric render?); --diffraction forces it")
+                why = (f"only {evidence['edges']} edge(s) with small blur to test it on"
+                       if evidence["edges"] < TEST_MIN_EDGES else
+                       f"it fits {100 * evidence['better_with_airy']:.0f} % of {evidence['edges']} small-blur edges "
+                       "better, too few (a geometric render?)")
+                result.warnings.append(f"diffraction not modelled (Airy pattern at 550 nm: {scales}): {why}; "
+                                       "--diffraction forces it")
     if wavelength_nm is None:
         return table, result, rounds
     for _ in range(MAX_ROUNDS):
