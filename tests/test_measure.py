@@ -379,11 +379,11 @@ def test_slanted_edge_squares_of_different_sizes_are_told_apart_by_the_image_ent
 
 def test_exact_edges_bias_stays_within_the_fits_scale_budget():
     """The fit carries the edge estimator's shared scale error as ``BLUR_SCALE_SIGMA +
-    BLUR_SCALE_BIAS_PX2 / c^2`` (lensfit.fit.constants); on exact edges (a half-plane blurred by
+    BLUR_SCALE_BIAS_PX2 / c^2`` (lensfit.fit.constants.disk_scale_sigma); on exact edges (a half-plane blurred by
     the CoC formula's uniform disk, pixel-integrated: no renderer) the noise-free reading stays
     inside that at every blur and slant. Also the generator against the brute-force profile."""
     from lensfit.bench.measure import exact_edge
-    from lensfit.fit.constants import BLUR_SCALE_BIAS_PX2, BLUR_SCALE_SIGMA
+    from lensfit.fit.constants import disk_scale_sigma
 
     image, task = exact_edge(3.0, 17.0, 0.37)
     row = image.shape[0] // 2
@@ -399,4 +399,4 @@ def test_exact_edges_bias_stays_within_the_fits_scale_budget():
             for offset in (0.0, 0.37):
                 image, task = exact_edge(c, slant, offset)
                 rel = fn(image, [task])[0].coc_diameter_px / c - 1.0
-                assert abs(rel) <= BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c**2, (c, slant, offset, rel)
+                assert abs(rel) <= disk_scale_sigma(c), (c, slant, offset, rel)

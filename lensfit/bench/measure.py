@@ -162,8 +162,8 @@ def run_exact(noise: float = 0.005, draws: int = 40, seed: int = 0, progress=Non
     slant (two sub-pixel offsets each), and the mean over ``draws`` noise draws (standard
     deviation ``noise`` at mid grey, shot + read) with its standard error; beside each the
     bound the fit's error budget takes for the estimator's shared scale error
-    (lensfit.fit.constants: ``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2``)."""
-    from lensfit.fit.constants import BLUR_SCALE_BIAS_PX2, BLUR_SCALE_SIGMA
+    (lensfit.fit.constants.disk_scale_sigma: ``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2``)."""
+    from lensfit.fit.constants import disk_scale_sigma
 
     enable_compilation_cache()
     fn = get_estimator("edge")
@@ -186,7 +186,7 @@ def run_exact(noise: float = 0.005, draws: int = 40, seed: int = 0, progress=Non
         rows.append({"coc_diameter_px": c, "bias_min": float(min(clean)), "bias_max": float(max(clean)),
                      "noisy_bias": float(noisy.mean()) if noisy.size else None,
                      "noisy_bias_se": float(noisy.std() / np.sqrt(noisy.size)) if noisy.size > 1 else None,
-                     "budget": BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c**2})
+                     "budget": disk_scale_sigma(c)})
         if progress:
             progress(f"exact edges c={c:g}")
     return {"rows": rows, "noise": noise, "draws": draws, "slants_deg": list(EXACT_SLANTS_DEG),

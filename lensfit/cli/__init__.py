@@ -168,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "550 nm where the lens is stopped down far enough for the pattern to reach half a pixel "
                          "and the small blurs' edges fit better with it (a photograph, not a geometric render); "
                          "off never. Modelling measures again once to three times (about 3-5x the measuring "
-                         "time); the auto test measures once more where it runs")
+                         "time); where the auto test runs it reads up to 16 edges again through the Airy model")
     ft.add_argument("--pixel-pitch", type=_number, metavar="MM",
                     help="pixel pitch, mm (for samples without it, e.g. a CSV of your own)")
     ft.add_argument("--focal-length-px", type=_number, metavar="PX",

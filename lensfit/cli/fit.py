@@ -188,6 +188,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     console = Console(stderr=True)
     truth = stack = result = None
     rounds: list = []
+    forced = isinstance(args.diffraction, float)  # a wavelength; else "auto" or "off"
     options = dict(pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
                    blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification)
     if source.suffix.lower() in (".csv", ".json") and not source.exists():
@@ -197,7 +198,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         from lensfit.jaxcache import enable_compilation_cache
         from lensfit.measure import SampleTable
 
-        if isinstance(args.diffraction, float):
+        if forced:
             raise CliError("--diffraction measures the images again; give the stack folder, not a samples file")
         enable_compilation_cache()
         table = SampleTable.read(source)
@@ -205,7 +206,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         from lensfit.stack import load_stack
 
         stack = load_stack(source, max_pixels=_max_pixels(args), allow_outside=args.allow_outside_stack)
-        if isinstance(args.diffraction, float) or (args.diffraction == "auto" and args.estimator in ("edge", "edge-disk")):
+        if forced or (args.diffraction == "auto" and args.estimator in ("edge", "edge-disk")):
             table, result, rounds = _measure_with_progress(stack, args, options)
         else:
             table = _measure_with_progress(stack, args)
@@ -219,10 +220,10 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         with console.status("fitting"):
             result = fit(table, **options)
     document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
-    wavelength = args.diffraction if isinstance(args.diffraction, float) else 550.0
+    wavelength = args.diffraction if forced else 550.0
     if rounds:
         document["diffraction"] = {"wavelength_nm": wavelength, "airy_scale_px": rounds[-1], "rounds": len(rounds),
-                                   "mode": "forced" if isinstance(args.diffraction, float) else "auto"}
+                                   "mode": "forced" if forced else "auto"}
     if table.diffraction is not None:  # the auto test's evidence, whichever way it went
         document["diffraction_test"] = table.diffraction
 

@@ -37,6 +37,11 @@ MAX_CLUSTERS = 400  # one LM solve each
 BLUR_SCALE_SIGMA = 0.001
 BLUR_SCALE_BIAS_PX2 = 0.006
 BLUR_SCALE_MIN_PX = 0.5
+
+
+def disk_scale_sigma(c_px: float) -> float:
+    """The estimator's shared relative scale error for a uniform-disk reading of ``c_px``."""
+    return BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / max(c_px, BLUR_SCALE_MIN_PX) ** 2
 BLUR_SCALE_SIGMA_SHAPED = 0.01
 #: Condition number (column-equilibrated Jacobian) above which the fit is degenerate.
 MAX_CONDITION = 1e8

@@ -10,9 +10,8 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import (BLUR_SCALE_BIAS_PX2, BLUR_SCALE_MIN_PX, BLUR_SCALE_SIGMA, BLUR_SCALE_SIGMA_SHAPED,
-                                   DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX, MIN_SIGMA_PX,
-                                   PIXEL_PITCH_RANGE_MM, _NODES_T)
+from lensfit.fit.constants import (BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX,
+                                   MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, _NODES_T, disk_scale_sigma)
 
 
 @dataclass
@@ -164,14 +163,8 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
-                   np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r) else _scale_sigma(r)
-                             for r in used]), truncated)
-
-
-def _scale_sigma(row: dict[str, Any]) -> float:
-    """The estimator's shared relative scale error for a uniform-disk reading of this blur."""
-    c = max(float(row["coc_diameter_px"]), BLUR_SCALE_MIN_PX)
-    return BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c**2
+                   np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r)
+                             else disk_scale_sigma(float(r["coc_diameter_px"])) for r in used]), truncated)
 
 
 def _flags(row: dict[str, Any]) -> set[str]:
