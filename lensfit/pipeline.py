@@ -36,8 +36,7 @@ SETTLED_REL = 1e-3
 #: The diffraction test: the Airy scale (px, at the default wavelength) from which it runs (below
 #: it the pattern moves the f-number by well under its sigma); the edges it looks at (a plain
 #: reading below this many px or Airy scales, where the pattern shapes the profile); how many it
-#: needs and reads at most (the Airy model costs 52 times the disk's), and the share of them the
-#: Airy model must fit better.
+#: needs and reads at most, and the share of them the Airy model must fit better.
 AUTO_MIN_AIRY_PX = 0.5
 TEST_MAX_BLUR_PX = 4.0
 TEST_MAX_BLUR_AIRY = 4.0
@@ -58,7 +57,7 @@ def diffraction_test(stack: Any, table: Any, airy: dict[str, float]) -> dict[str
     which = [j for j, (smp, rms) in enumerate(zip(table.samples, table.fit_rms))
              if rms is not None and smp.coc_diameter_px is not None
              and smp.coc_diameter_px < max(TEST_MAX_BLUR_PX, TEST_MAX_BLUR_AIRY * airy.get(smp.setting, 0.0))]
-    if len(which) > TEST_MAX_EDGES:  # evenly over the blurs they show (the Airy model costs 52x)
+    if len(which) > TEST_MAX_EDGES:  # evenly over the blurs they show
         by_blur = sorted(which, key=lambda j: table.samples[j].coc_diameter_px)
         which = sorted(by_blur[k] for k in np.linspace(0, len(by_blur) - 1, TEST_MAX_EDGES).round().astype(int))
     again = remeasure(stack, table, which, airy) if len(which) >= TEST_MIN_EDGES else []

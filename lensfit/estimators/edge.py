@@ -37,15 +37,17 @@ Method
     neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
     128 across a wider window. Every edge of a stack is fitted in one batched solve per pass
     (``measure_images``; ``jax.vmap`` over chunks of ``CHUNK`` edges of ``NPIX`` bins): one
-    compiled shape per kind of fit, whatever the stack.
+    compiled shape per kind of fit, whatever the stack. The profile model, the residuals and the
+    start grids are in ``lensfit.estimators.edge_model``.
 Diffraction
     Where the caller gives the Airy scale ``a = lambda N_w / p`` (``airy_px``; the pipeline of
     ``lensfit fit --diffraction``), the model profile is the one above convolved with the Airy
-    line-spread function (``lensfit.diffraction``: 52 nodes), plus a ramp across the window
-    (weak prior) for the Airy tails of the target's neighbouring edges; the reading is then the
+    line-spread function and the pixel (``lensfit.diffraction.edge_kernel``: a piecewise-linear
+    kernel of 97 knots per edge, exact against the disk), plus a ramp across the window (weak
+    prior) for the Airy tails of the target's neighbouring edges; the reading is then the
     defocus blur alone. The spot's shape is not read there (the Airy core and rings are the
     shape; a lens stopped down that far has little aberration left), and the first pass, which
-    only sizes the window, reads a uniform disk.
+    only sizes the window, reads a uniform disk, whose radius bounds the start of the second.
 Uncertainty
     1 sigma from the Gauss-Newton covariance ``(J^T W J)^-1``, each profile bin weighted by its
     standard error (the noise variance where it lies, never its own spread, which read noisy
@@ -84,28 +86,25 @@ import numpy as np
 
 from lensfit import aot
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
+from lensfit.diffraction import KERNEL_KNOTS, edge_kernel
+from lensfit.estimators.edge_model import (AIRY_START_SHARES, grid_start, residuals, shape_start, squared_radius,
+                                           squared_radius_slope)
 from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, select as _select
-from lensfit.psf import pixel_edge_profile
 
-RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
 #: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the
 #: solver's step limit: fixed, so that one compilation serves every stack.
 CHUNK = 16
 MAX_STEPS = 40
 #: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.aot).
-AOT_MODULES = ("lensfit.estimators.edge", "lensfit.psf", "lensfit.lm", "lensfit.diffraction")  # (the profile is data)
+AOT_MODULES = ("lensfit.estimators.edge", "lensfit.estimators.edge_model", "lensfit.psf", "lensfit.lm",
+               "lensfit.diffraction")  # (the profile is data)
 #: The solver stops when a step gains less than this in chi-square (parameters within 1e-3
 #: standard errors of the minimum).
 FTOL = 1e-6
 SUB_PIXEL_PX = 0.5
-#: Prior 1 sigma of the diffraction fit's ramp, per px as a share of the edge's contrast: the
-#: Airy tails of a neighbouring edge 8-16 px away slope the window by about 1e-3 of the
-#: contrast per px; held near that, the ramp does not trade with a small blur.
-RAMP_PRIOR = 2e-3
 #: Largest Airy scale (px) the diffraction model takes: beyond it the pattern spans more than
 #: the windows the profile has (f/64 at 550 nm on 1 um pixels is 35 px).
 MAX_AIRY_PX = 64.0
-RHO_SMOOTH_PX2 = 1e-6  # smoothing of R^2 >= 0 at 0 (px^2); see _squared_radius
 SUB_PIXEL_SIGMA_PX = 0.2
 #: A reading (c >= SUB_PIXEL_PX) whose 1 sigma exceeds this multiple of c is no reading (flag
 #: ``blur_undetermined``, no value); a sub-pixel one is none unless a blur of PROBE_C_PX fits
@@ -114,15 +113,6 @@ UNDETERMINED_SIGMA = 3.0
 PROBE_C_PX = 1.0
 PROBE_DCHI2 = 4.0
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
-#: Prior 1 sigma of the inner disk's share of the light, a (about 0), and of logit t, the inner
-#: radius over the outer one (about 0: t = 1/2); weak, they hold the shape where the blur is too
-#: small to show one.
-SHARE_PRIOR = 1.0
-RATIO_PRIOR = 2.0
-#: Candidate starts of the two-disk fit (a, logit t): cores in a halo (a > 0) and bright rims
-#: (a < 0, within the centre's intensity >= 0, a >= -t^2 / (1 - t^2)).
-SHAPE_GRID = ((0.3, -0.5), (0.6, -0.5), (0.3, 0.5), (0.6, -1.5), (0.8, 0.0),
-              (-0.5, 1.5), (-0.3, 0.5), (-1.0, 1.5), (-0.2, 0.0))
 #: RMS residual (in standard errors of the profile bins) of the uniform-disk fit above which the
 #: profile's shape is fitted too.
 SHAPE_RMS = 1.5
@@ -139,120 +129,27 @@ SHAPE_MODEL_REL = 0.03
 NPIX = STRIPS * NBINS_ACROSS
 
 
-def _squared_radius(xp, rho):
-    """R^2 from the solver's parameter: a smooth max(rho, 0) (within 1e-12 px^2 of rho for a blur
-    over 0.01 px). A sharp edge has its least-squares minimum at R = 0; ``|rho|`` (tried) puts a
-    kink there, on which the solver bounces instead of settling."""
-    return 0.5 * (rho + xp.sqrt(rho * rho + RHO_SMOOTH_PX2**2))
-
-
-def _squared_radius_slope(rho: float) -> float:
-    """d R^2 / d rho of :func:`_squared_radius`."""
-    return 0.5 * (1.0 + rho / math.hypot(rho, RHO_SMOOTH_PX2))
-
-
-def _profile(x, radius, nx, ny, airy):
-    """The pixel-integrated disk ESF, convolved with the Airy LSF of scale ``airy`` px where that
-    is given (an array; None: no diffraction): quadrature over ``lensfit.diffraction``'s nodes."""
-    if airy is None:
-        return pixel_edge_profile(x, radius, nx, ny)
-    from lensfit.diffraction import airy_lsf_nodes
-
-    xi, w = airy_lsf_nodes()
-    return pixel_edge_profile(x[..., None] - airy * jnp.asarray(xi), radius, nx, ny) @ jnp.asarray(w)
-
-
-def _model(theta, d, s, nx, ny, shaped: bool, airy=None):
-    # theta = (d0, rho = R^2, lo, hi, turn[, a, u]): the squared radius keeps the model smooth and
-    # well-conditioned as the blur vanishes (the profile depends on R only to second order
-    # there); `turn` rotates the edge line (radians) about the window's middle, so that the
-    # line's own uncertainty is part of the covariance; when shaped, `a` is the inner disk's
-    # share of the light and t = sigmoid(u) its radius over R (a = 0: the uniform disk).
-    d0, rho, lo, hi, turn = (theta[i] for i in range(5))
-    R = jnp.sqrt(_squared_radius(jnp, rho) + 1e-12)
-    x = d - d0 - turn * s
-    outer = _profile(x, R, nx, ny, airy)
-    if not shaped:
-        if airy is not None:
-            # A ramp across the window: the Airy tails (1/x^2) of the target's neighbouring edges
-            # reach into it, a slope the levels alone cannot follow (unmodelled, an edge 8-16 px
-            # away biased a 2-6 px reading 1-10 % low).
-            return lo + (hi - lo) * outer + theta[5] * x
-        return lo + (hi - lo) * outer
-    a, u = theta[5], theta[6]
-    inner = _profile(x, R * jax.nn.sigmoid(u), nx, ny, airy)
-    return lo + (hi - lo) * (outer + a * (inner - outer))
-
-
-def _residuals(theta, args, shaped: bool):
-    # w = 1 / standard error of the bin mean (0 for padding); an Airy scale last where diffraction
-    # is modelled
-    d, s, v, w, nx, ny = args[:6]
-    airy = args[6] if len(args) > 6 else None
-    r = w * (v - _model(theta, d, s, nx, ny, shaped, airy))
-    if not shaped:
-        if airy is not None:  # the ramp, held near 0 where the profile does not ask for one
-            return jnp.concatenate([r, (theta[5] / (RAMP_PRIOR * jnp.abs(theta[3] - theta[2]) + 1e-12))[None]])
-        return r
-    # The shape has weak priors that hold it where the blur is too small to show one.
-    return jnp.concatenate([r, jnp.stack([theta[5] / SHARE_PRIOR, theta[6] / RATIO_PRIOR])])
-
-
-def _grid_start(d, s, v, w, nx, ny, airy=None):
-    """Best radius on a grid, with the two levels solved by weighted linear least squares (the
-    2 x 2 normal equations in closed form); the edge at d = 0, where the profile put the line it
-    found in the image (a grid over the offset as well, tried, moved the demo's f, N and focus
-    distance by under 0.002 % and the DNG round trip's not at all, for a third of the solve)."""
-    radii = jnp.asarray(RADIUS_GRID)
-    w2 = w * w
-
-    def rss(radius):
-        p = _profile(d, radius, nx, ny, airy)
-        q = 1.0 - p
-        # Normal equations of v = lo q + hi p with weights w^2.
-        a11, a12, a22 = jnp.sum(w2 * q * q), jnp.sum(w2 * q * p), jnp.sum(w2 * p * p)
-        b1, b2 = jnp.sum(w2 * q * v), jnp.sum(w2 * p * v)
-        det = a11 * a22 - a12 * a12
-        ok = det > 1e-12 * (a11 * a22 + 1e-300)
-        det = jnp.where(ok, det, 1.0)
-        lo = jnp.where(ok, (a22 * b1 - a12 * b2) / det, 0.0)
-        hi = jnp.where(ok, (a11 * b2 - a12 * b1) / det, 0.0)
-        r = w * (v - lo * q - hi * p)
-        return jnp.where(ok, jnp.sum(r * r), jnp.inf), jnp.stack([lo, hi])
-
-    costs, coefs = jax.vmap(rss)(radii)
-    k = jnp.argmin(costs)
-    return jnp.stack([0.0, radii[k] ** 2, coefs[k][0], coefs[k][1], 0.0])
-
-
-def _shape_start(theta_disk, args):
-    """The two-disk start: on a grid of shapes (a, logit t) around the uniform disk's solution,
-    each with the outer radius that keeps the disk's second moment, the one of least cost."""
-    fn = partial(_residuals, shaped=True)
-    rho_disk = _squared_radius(jnp, theta_disk[1])
-    starts = []
-    for a, u in SHAPE_GRID:
-        t = 1.0 / (1.0 + math.exp(-u))
-        m = 1.0 - a * (1.0 - t * t)
-        starts.append(jnp.concatenate([theta_disk[:1], jnp.stack([rho_disk / m]), theta_disk[2:5], jnp.array([a, u])]))
-    starts = jnp.stack(starts)
-    costs = jax.vmap(lambda th: jnp.sum(fn(th, args) ** 2))(starts)
-    return starts[jnp.argmin(costs)]
-
-
 def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: bool = False):
+    # airy: per problem the Airy kernel (knots, slope changes, tail); dummies without diffraction
     from lensfit import lm
 
     def one(d, s, v, w, nx, ny, theta_disk, airy):
         args = (d, s, v, w, nx, ny, airy) if diffraction else (d, s, v, w, nx, ny)
-        fn = partial(_residuals, shaped=shaped)
+        fn = partial(residuals, shaped=shaped)
         # The uniform disk starts from a grid over the radius; two disks (which have more than one
         # local minimum: a core in a halo, a bright rim) from the best of a grid of shapes at the
         # disk's solution.
-        start = (_shape_start(theta_disk, args) if shaped
-                 else _grid_start(d, s, v, w, nx, ny, airy if diffraction else None))
-        if diffraction and not shaped:
-            start = jnp.concatenate([start, jnp.zeros(1)])  # the ramp
+        # With the Airy pattern, whose blur the uniform disk read as its own (a disk reading is
+        # never smaller), the radius lies between 0 and the disk's: a grid over that interval
+        # (the pattern costs 10-17 times the disk per profile).
+        if shaped:
+            start = shape_start(theta_disk, args)
+        elif diffraction:
+            radius = jnp.sqrt(squared_radius(jnp, theta_disk[1]))
+            start = jnp.concatenate([grid_start(d, s, v, w, nx, ny, airy, radius * jnp.asarray(AIRY_START_SHARES)),
+                                     jnp.zeros(1)])  # the ramp
+        else:
+            start = grid_start(d, s, v, w, nx, ny)
         theta, cost, converged = lm.least_squares(fn, start, args, max_steps=MAX_STEPS, rtol=1e-8, atol=1e-10,
                                                   ftol=FTOL)
         # A uniform disk that has not converged is a failed reading; two disks (slow to settle in
@@ -282,14 +179,17 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
          disk: list[np.ndarray] | None = None, airy: list[float] | None = None):
     """Fit a list of (d, s, values, standard errors, normal); returns theta, cov, rms, ok and the
     chi-square cost of a 1 px blur (``probe``) per item.
-    The two-disk fit (``shaped``) starts from each item's uniform-disk solution, ``disk``;
-    ``airy``: each item's Airy scale in px (diffraction modelled; None: not).
+    The two-disk fit (``shaped``) and the fit with the Airy pattern start from each item's
+    uniform-disk solution, ``disk``; ``airy``: each item's Airy scale in px (diffraction
+    modelled; None: not).
 
     Every problem is padded to ``NPIX`` bins and the list to whole chunks of ``CHUNK``: one
     compiled shape per kind of fit for any stack; the chunks are dispatched back to back and
     their results moved to the host once."""
     if not samples:
         return []
+    if airy is not None and (disk is None or len(disk) != len(samples)):
+        raise ValueError("a fit with the Airy pattern starts from each item's uniform-disk solution: give disk")
     n = CHUNK * math.ceil(len(samples) / CHUNK)
     D = np.tile(np.linspace(-4.0, 4.0, NPIX), (n, 1))  # padding rows: a harmless dummy problem
     V = np.zeros((n, NPIX))
@@ -298,9 +198,12 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
     NX = np.ones(n)
     NY = np.zeros(n)
     T = np.tile([0.0, 1.0, 0.0, 1.0, 0.0], (n, 1))
-    A = np.zeros(n)
-    if airy is not None:
-        A[:len(airy)] = airy
+    knots, changes, tails = np.zeros((n, KERNEL_KNOTS)), np.zeros((n, KERNEL_KNOTS)), np.zeros(n)
+    if airy is None:  # dummies: the compiled fit without diffraction never reads them
+        knots, changes = knots[:, :1], changes[:, :1]
+    else:
+        for i, (scale, (*_, nrm)) in enumerate(zip(airy, samples)):
+            knots[i], changes[i], tails[i] = edge_kernel(scale, *nrm)
     for i, theta in enumerate(disk or []):
         T[i] = theta[:5]
     for i, (d, s_along, v, se, nrm) in enumerate(samples):
@@ -309,9 +212,9 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
     with jax.enable_x64(True):
         # numpy in, numpy out: no eager JAX operation between the compiled calls
         static = {"shaped": shaped, "diffraction": airy is not None}
-        arrays = (D, S, V, W, NX, NY, T, A)
-        parts = jax.device_get([aot.call("edge-fit", _fit_batch, tuple(x[k:k + CHUNK] for x in arrays), static,
-                                         AOT_MODULES) for k in range(0, n, CHUNK)])
+        arrays = (D, S, V, W, NX, NY, T, (knots, changes, tails))
+        chunks = [jax.tree_util.tree_map(lambda x: x[k:k + CHUNK], arrays) for k in range(0, n, CHUNK)]
+        parts = jax.device_get([aot.call("edge-fit", _fit_batch, chunk, static, AOT_MODULES) for chunk in chunks])
     theta, cov, rms, ok, probe = (np.concatenate([p[j] for p in parts]) for j in range(5))
     return [(theta[i], cov[i], float(rms[i]), bool(ok[i]), float(probe[i])) for i in range(len(samples))]
 
@@ -326,7 +229,7 @@ def prewarm(shaped: bool = True, diffraction: bool = False) -> None:
     airy = [1.0] if diffraction else None
     _fit(dummy, False)  # the first pass (never with the Airy model)
     if diffraction:
-        _fit(dummy, False, airy=airy)
+        _fit(dummy, False, [np.array([0.0, 1.0, 0.0, 1.0, 0.0])], airy=airy)
     if shaped and not diffraction:
         _fit(dummy, True, [np.array([0.0, 1.0, 0.0, 1.0, 0.0])])
 
@@ -418,23 +321,25 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             for k in range(len(items)):
                 progress(k)
         # The first pass only sizes the window: a uniform disk (which takes the Airy pattern for
-        # blur, so the window comes out wider, never narrower) at a 52nd of the cost.
+        # blur, so the window comes out wider, never narrower) at a tenth of the cost or less;
+        # its radius bounds the start of the fit with the pattern.
         airy = None if airy_px is None or attempt == 0 else [float(airy_px[owner[i]]) for i in index]
-        fits = _fit(batch, False, airy=airy)
+        fits = _fit(batch, False, None if airy is None else [np.array([0.0, radius[i] ** 2, 0.0, 1.0, 0.0])
+                                                              for i in index], airy=airy)
         shaped: list[int] = []
         if second_moment and attempt == 1 and airy is None:
             # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
             # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
             shaped = [j for j, (theta, _, rms, _, _) in enumerate(fits)
                       if rms > SHAPE_RMS and _at_one_depth(tasks[index[j]])
-                      and 2.0 * math.sqrt(_squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
+                      and 2.0 * math.sqrt(squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
             for j, refit in zip(shaped, _fit([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
                                              None if airy is None else [airy[j] for j in shaped])):
                 fits[j] = refit
         is_shaped = set(shaped)
         for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):
-            rho = float(_squared_radius(np, float(theta[1])))
-            slope = _squared_radius_slope(float(theta[1]))
+            rho = float(squared_radius(np, float(theta[1])))
+            slope = squared_radius_slope(float(theta[1]))
             r = math.sqrt(rho)
             a = float(theta[5]) if j in is_shaped else 0.0
             t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
