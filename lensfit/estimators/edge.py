@@ -36,8 +36,8 @@ Method
     each side, and the ends of the segment are skipped by the window plus the blur, so that
     neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
     128 across a wider window. Every edge of a stack is fitted in one batched solve per pass
-    (``measure_images``; ``jax.vmap`` over chunks of ``CHUNK`` edges of ``NPIX`` bins): one
-    compiled shape per kind of fit, whatever the stack. The profile model, the residuals and the
+    (``measure_images``; ``jax.vmap`` over chunks of ``CHUNK`` edges of 64 or ``NPIX`` bins): two
+    compiled shapes per kind of fit, whatever the stack. The profile model, the residuals and the
     start grids are in ``lensfit.estimators.edge_model``.
 Diffraction
     Where the caller gives the Airy scale ``a = lambda N_w / p`` (``airy_px``; the pipeline of
@@ -68,7 +68,9 @@ Valid range
     undetermined direction shows as a huge variance, not as none), or for a sub-pixel reading
     a blur of 1 px fitting less than 4 in chi-square worse (the rest held: a lenient test).
 Cost
-    About 2.5 ms per edge warm on 2 cores, all passes and profiles (README's stage table).
+    About 1.8-2.3 ms per edge warm on 2 cores, all passes and profiles (README's stage table;
+    2.5-2.9 ms with every profile padded to 256 bins); with diffraction modelled the second
+    pass costs 6-9 times the disk's.
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
     W. J. Smith, *Modern Optical Engineering*.
@@ -127,6 +129,11 @@ SHAPE_MODEL_REL = 0.03
 
 
 NPIX = STRIPS * NBINS_ACROSS
+#: Bins per profile the compiled fits take (a problem goes to the smallest that holds it): on the
+#: demo stack 70 % of the second pass's profiles have 64 bins or fewer. Two sizes took the warm
+#: measure stage from 0.75 to 0.48-0.61 s; a third (128) saved little more and cost its loading
+#: in every new process.
+NPIX_CLASSES = (64, NPIX)
 
 
 def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: bool = False):
@@ -183,20 +190,50 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
     uniform-disk solution, ``disk``; ``airy``: each item's Airy scale in px (diffraction
     modelled; None: not).
 
-    Every problem is padded to ``NPIX`` bins and the list to whole chunks of ``CHUNK``: one
-    compiled shape per kind of fit for any stack; the chunks are dispatched back to back and
-    their results moved to the host once."""
+    Every problem is padded to the smallest of ``NPIX_CLASSES`` that holds its bins and each
+    class to whole chunks of ``CHUNK``: a few compiled shapes per kind of fit for any stack; the
+    chunks are dispatched back to back and their results moved to the host once."""
     if not samples:
         return []
     if airy is not None and (disk is None or len(disk) != len(samples)):
         raise ValueError("a fit with the Airy pattern starts from each item's uniform-disk solution: give disk")
+    classes: dict[int, list[int]] = {c: [] for c in NPIX_CLASSES}
+    for i, smp in enumerate(samples):
+        classes[next((c for c in NPIX_CLASSES if len(smp[0]) <= c), NPIX)].append(i)
+    # A class's last, partial chunk costs as much as a full one (every lane of a chunk runs until
+    # its slowest problem stops): its problems move up a size where the next class's padding
+    # holds them at no extra chunk.
+    for small, large in zip(NPIX_CLASSES, NPIX_CLASSES[1:]):
+        rest = len(classes[small]) % CHUNK
+        extra = math.ceil((len(classes[large]) + rest) / CHUNK) - math.ceil(len(classes[large]) / CHUNK)
+        if rest and extra * large < small:
+            classes[large] += classes[small][len(classes[small]) - rest:]
+            del classes[small][len(classes[small]) - rest:]
+    classes = {c: members for c, members in classes.items() if members}
+    static = {"shaped": shaped, "diffraction": airy is not None}
+    with jax.enable_x64(True):
+        # numpy in, numpy out: no eager JAX operation between the compiled calls
+        calls = [(members, [aot.call("edge-fit", _fit_batch, chunk, static, AOT_MODULES)
+                            for chunk in _chunks(npix, [samples[i] for i in members],
+                                                 None if disk is None else [disk[i] for i in members],
+                                                 None if airy is None else [airy[i] for i in members])])
+                 for npix, members in classes.items()]
+        fetched = jax.device_get([parts for _, parts in calls])
+    out: list = [None] * len(samples)
+    for (members, _), parts in zip(calls, fetched):
+        theta, cov, rms, ok, probe = (np.concatenate([p[j] for p in parts]) for j in range(5))
+        for k, i in enumerate(members):
+            out[i] = (theta[k], cov[k], float(rms[k]), bool(ok[k]), float(probe[k]))
+    return out
+
+
+def _chunks(npix: int, samples: list, disk: list | None, airy: list[float] | None) -> list[tuple]:
+    """The arrays of :func:`_fit_batch` for ``samples`` padded to ``npix`` bins, in chunks of
+    ``CHUNK`` problems (padding rows: a harmless dummy problem with zero weights)."""
     n = CHUNK * math.ceil(len(samples) / CHUNK)
-    D = np.tile(np.linspace(-4.0, 4.0, NPIX), (n, 1))  # padding rows: a harmless dummy problem
-    V = np.zeros((n, NPIX))
-    S = np.zeros((n, NPIX))
-    W = np.zeros((n, NPIX))
-    NX = np.ones(n)
-    NY = np.zeros(n)
+    D = np.tile(np.linspace(-4.0, 4.0, npix), (n, 1))
+    V, S, W = np.zeros((n, npix)), np.zeros((n, npix)), np.zeros((n, npix))
+    NX, NY = np.ones(n), np.zeros(n)
     T = np.tile([0.0, 1.0, 0.0, 1.0, 0.0], (n, 1))
     knots, changes, tails = np.zeros((n, KERNEL_KNOTS)), np.zeros((n, KERNEL_KNOTS)), np.zeros(n)
     if airy is None:  # dummies: the compiled fit without diffraction never reads them
@@ -209,29 +246,26 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
     for i, (d, s_along, v, se, nrm) in enumerate(samples):
         D[i, :len(d)], S[i, :len(d)], V[i, :len(d)], W[i, :len(d)] = d, s_along, v, 1.0 / se
         NX[i], NY[i] = nrm
-    with jax.enable_x64(True):
-        # numpy in, numpy out: no eager JAX operation between the compiled calls
-        static = {"shaped": shaped, "diffraction": airy is not None}
-        arrays = (D, S, V, W, NX, NY, T, (knots, changes, tails))
-        chunks = [jax.tree_util.tree_map(lambda x: x[k:k + CHUNK], arrays) for k in range(0, n, CHUNK)]
-        parts = jax.device_get([aot.call("edge-fit", _fit_batch, chunk, static, AOT_MODULES) for chunk in chunks])
-    theta, cov, rms, ok, probe = (np.concatenate([p[j] for p in parts]) for j in range(5))
-    return [(theta[i], cov[i], float(rms[i]), bool(ok[i]), float(probe[i])) for i in range(len(samples))]
+    arrays = (D, S, V, W, NX, NY, T, (knots, changes, tails))
+    return [jax.tree_util.tree_map(lambda x: x[k:k + CHUNK], arrays) for k in range(0, n, CHUNK)]
 
 
 def prewarm(shaped: bool = True, diffraction: bool = False) -> None:
-    """Load (or trace and compile) the batched fits that :func:`measure_images` calls, on a chunk
-    with nothing to fit (zero weights: the solver stops at once), so that a caller can overlap
-    the loading (about 0.3 s per kind of fit from the stores, seconds without) with other work:
-    ``lensfit.measure`` runs it in a background thread while it reads and detects."""
-    d = np.linspace(-4.0, 4.0, 16)
-    dummy = [(d, np.zeros_like(d), np.zeros_like(d), np.full_like(d, np.inf), (1.0, 0.0))]
-    airy = [1.0] if diffraction else None
+    """Load (or trace and compile) the batched fits that :func:`measure_images` calls, for every
+    profile size (``NPIX_CLASSES``), on chunks with nothing to fit (zero weights: the solver
+    stops at once), so that a caller can overlap the loading (about 0.1 s per kind and size from
+    the stores, seconds without) with other work: ``lensfit.measure`` runs it in a background
+    thread while it reads and detects."""
+    dummy = []
+    for npix in NPIX_CLASSES:
+        d = np.linspace(-4.0, 4.0, npix)
+        dummy.append((d, np.zeros_like(d), np.zeros_like(d), np.full_like(d, np.inf), (1.0, 0.0)))
+    disk = [np.array([0.0, 1.0, 0.0, 1.0, 0.0])] * len(dummy)
     _fit(dummy, False)  # the first pass (never with the Airy model)
     if diffraction:
-        _fit(dummy, False, [np.array([0.0, 1.0, 0.0, 1.0, 0.0])], airy=airy)
+        _fit(dummy, False, disk, airy=[1.0] * len(dummy))
     if shaped and not diffraction:
-        _fit(dummy, True, [np.array([0.0, 1.0, 0.0, 1.0, 0.0])])
+        _fit(dummy, True, disk)
 
 
 def _at_one_depth(task: EdgeTask) -> bool:
