@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -115,33 +116,39 @@ def _airy_esf_fast(u: np.ndarray) -> np.ndarray:
     return np.where(np.asarray(u) >= 0, value, 1.0 - value)
 
 
-def edge_kernel(airy_px: float, nx: float, ny: float) -> tuple[np.ndarray, np.ndarray, float]:
+def edge_kernel(airy_px, nx, ny) -> tuple[np.ndarray, np.ndarray, Any]:
     """The Airy LSF of scale ``airy_px`` convolved with a unit square pixel seen along the edge
-    normal (``nx``, ``ny``), as a piecewise-linear kernel (see the module docstring).
+    normal (``nx``, ``ny``), as a piecewise-linear kernel (see the module docstring); scalars, or
+    arrays of one shape for many edges at once.
 
-    Returns ``(knots_px, slope_changes, tail)``: ``KERNEL_KNOTS`` knots (px, ascending), the
-    kernel's change of slope at each, and the kernel's mass left of the first knot; an edge
-    profile rising towards +x blurred by a uniform disk of radius R is then
-    ``tail + sum_j c_j R^2 H((x - xi_j) / R)`` (``lensfit.psf.disk_esf_integral2``)."""
-    alpha = max(float(airy_px), KERNEL_MIN_AIRY_PX)
-    a, b = max(abs(nx), abs(ny)), min(abs(nx), abs(ny))
+    Returns ``(knots_px, slope_changes, tail)``: ``KERNEL_KNOTS`` knots (px, ascending; a last
+    axis after the arguments' shape), the kernel's change of slope at each, and the kernel's mass
+    left of the first knot; an edge profile rising towards +x blurred by a uniform disk of radius
+    R is then ``tail + sum_j c_j R^2 H((x - xi_j) / R)`` (``lensfit.psf.disk_esf_integral2``)."""
+    alpha = np.maximum(np.asarray(airy_px, np.float64), KERNEL_MIN_AIRY_PX)[..., None]
+    a = np.maximum(np.abs(nx), np.abs(ny))[..., None]
+    b = np.minimum(np.abs(nx), np.abs(ny))[..., None]
     core = 0.5 * (a + b) + KERNEL_CORE_AIRY * alpha
-    reach = 0.5 * (a + b) + max(KERNEL_REACH_AIRY * alpha, KERNEL_REACH_PX)
+    reach = 0.5 * (a + b) + np.maximum(KERNEL_REACH_AIRY * alpha, KERNEL_REACH_PX)
     outer = core * (reach / core) ** (np.arange(1, KERNEL_OUTER_INTERVALS + 1) / KERNEL_OUTER_INTERVALS)
-    knots = np.concatenate([-outer[::-1], np.linspace(-core, core, KERNEL_CORE_INTERVALS + 1), outer])
+    inner = core * np.linspace(-1.0, 1.0, KERNEL_CORE_INTERVALS + 1)
+    knots = np.concatenate([-outer[..., ::-1], inner, outer], axis=-1)
     # The LSF averaged over the pixel's two boxes: the ESF's difference across the wider one,
     # averaged over the narrower one by Gauss-Legendre.
     t, w = np.polynomial.legendre.leggauss(_BOX_POINTS)
-    x = knots[:, None] - 0.5 * b * t[None, :]
-    k = ((_airy_esf_fast((x + 0.5 * a) / alpha) - _airy_esf_fast((x - 0.5 * a) / alpha)) / a) @ (0.5 * w)
+    x = knots[..., None] - 0.5 * b[..., None] * t
+    wide, scale = 0.5 * a[..., None], alpha[..., None]
+    k = ((_airy_esf_fast((x + wide) / scale) - _airy_esf_fast((x - wide) / scale)) / (2.0 * wide)) @ (0.5 * w)
     # Linear interpolation between knots loses h^2 K'' / 12 of the mass per unit length: put it back.
-    h = np.diff(knots)
-    second = 2.0 * ((k[2:] - k[1:-1]) / h[1:] - (k[1:-1] - k[:-2]) / h[:-1]) / (h[1:] + h[:-1])
-    k[1:-1] -= second * h[:-1] * h[1:] / 12.0
-    k[0] = k[-1] = 0.0
-    slope = np.diff(k) / h
-    changes = np.diff(np.concatenate([[0.0], slope, [0.0]]))
-    mass = float(np.sum(0.5 * (k[1:] + k[:-1]) * h))
+    h = np.diff(knots, axis=-1)
+    second = (2.0 * ((k[..., 2:] - k[..., 1:-1]) / h[..., 1:] - (k[..., 1:-1] - k[..., :-2]) / h[..., :-1])
+              / (h[..., 1:] + h[..., :-1]))
+    k[..., 1:-1] -= second * h[..., :-1] * h[..., 1:] / 12.0
+    k[..., 0] = k[..., -1] = 0.0
+    slope = np.diff(k, axis=-1) / h
+    zero = np.zeros(slope.shape[:-1] + (1,))
+    changes = np.diff(np.concatenate([zero, slope, zero], axis=-1), axis=-1)
+    mass = np.sum(0.5 * (k[..., 1:] + k[..., :-1]) * h, axis=-1)
     return knots, changes, 0.5 * (1.0 - mass)
 
 

@@ -238,9 +238,10 @@ def _chunks(npix: int, samples: list, disk: list | None, airy: list[float] | Non
     knots, changes, tails = np.zeros((n, KERNEL_KNOTS)), np.zeros((n, KERNEL_KNOTS)), np.zeros(n)
     if airy is None:  # dummies: the compiled fit without diffraction never reads them
         knots, changes = knots[:, :1], changes[:, :1]
-    else:
-        for i, (scale, (*_, nrm)) in enumerate(zip(airy, samples)):
-            knots[i], changes[i], tails[i] = edge_kernel(scale, *nrm)
+    else:  # every edge's kernel at once
+        normals = np.array([nrm for *_, nrm in samples], np.float64).reshape(-1, 2)
+        m = len(samples)
+        knots[:m], changes[:m], tails[:m] = edge_kernel(np.asarray(airy, np.float64), normals[:, 0], normals[:, 1])
     for i, theta in enumerate(disk or []):
         T[i] = theta[:5]
     for i, (d, s_along, v, se, nrm) in enumerate(samples):
