@@ -85,6 +85,9 @@ class SampleTable:
     edge_tasks: list[Any] = field(default_factory=list)
     #: what ``lensfit.pipeline``'s diffraction test found (None where it did not run)
     diffraction: dict[str, Any] | None = None
+    #: per image (index in the stack), the targets as detected, before refinement; in memory for
+    #: a later :func:`measure` of the same stack (``detected``), never written
+    detections: dict[int, list[Any]] = field(default_factory=dict)
 
     COLUMNS = SAMPLES_CSV_COLUMNS
 
@@ -264,7 +267,7 @@ def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
 
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
             progress: Callable[[str, int, int], None] | None = None,
-            airy_px: dict[str, float] | None = None) -> SampleTable:
+            airy_px: dict[str, float] | None = None, detected: SampleTable | None = None) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
 
     Parameters
@@ -277,6 +280,9 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     airy_px : per setting label, the Airy pattern's scale ``lambda N_w / p`` in px: the edge
         estimators then model diffraction and read the defocus blur alone (flag
         ``diffraction_modelled``; ``lensfit.diffraction``, ``lensfit.pipeline``)
+    detected : a table this process measured of the same stack: its targets as detected are
+        taken instead of detecting them again (the diffraction rounds of ``lensfit.pipeline``;
+        the corners are refined, the intrinsics calibrated and the blur read afresh)
 
     Returns
     -------
@@ -303,7 +309,9 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                         "(kind, squares, square_mm, ...) so that they can be found")
     warming = _prewarm(estimator, airy_px is not None)
     try:
-        return _measure(stack, estimator, fn, refine, progress, airy_px, warming)
+        return _measure(stack, estimator, fn, refine, progress, airy_px, warming,
+                        None if detected is None or len(detected.detections) != len(stack.images)
+                        else detected.detections)
     finally:
         if warming is not None:
             warming.join()
@@ -329,9 +337,10 @@ def remeasure(stack: Stack, table: SampleTable, which: list[int], airy_px: dict[
 
 def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
              progress: Callable[[str, int, int], None] | None, airy_px: dict[str, float] | None,
-             warming: threading.Thread | None) -> SampleTable:
+             warming: threading.Thread | None, detected: dict[int, list[Detection]] | None = None) -> SampleTable:
     """:func:`measure` once its arguments are checked; ``warming``: the thread loading the edge
-    estimator's compiled fits, joined before the first of them is called."""
+    estimator's compiled fits, joined before the first of them is called; ``detected``: the
+    targets of each image as an earlier measure of the stack detected them."""
     def airy(i):
         return None if airy_px is None else float(airy_px[stack.images[i].setting])
     targets = [Target(spec) for spec in stack.targets]
@@ -359,8 +368,11 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         if progress:
             progress(stage, step[0], total)
 
-    detections: dict[int, list[Detection]] = {}
+    detections: dict[int, list[Detection]] = {i: list(found) for i, found in (detected or {}).items()}
     for i in range(n):
+        if detected is not None:
+            tick("detect")
+            continue
         entry = stack.images[i]
         candidates = [t for t in targets if entry.targets is None or t.id in entry.targets]
         squares = [t.id for t in candidates if t.kind == "slanted-edge"]
@@ -377,7 +389,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             _check_saturation(stack, i, img, d)
         detections[i] = found
         tick("detect")
-    table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape)
+    table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape,
+                        detections={i: list(found) for i, found in detections.items()})
     missing = [stack.images[i].file.name for i in range(n) if not detections[i]]
     if missing:
         table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
