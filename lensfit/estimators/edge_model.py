@@ -83,10 +83,10 @@ def model(theta, d, s, nx, ny, shaped: bool, airy=None):
 
 
 def residuals(theta, args, shaped: bool):
-    # w = 1 / standard error of the bin mean (0 for padding); an Airy scale last where diffraction
-    # is modelled
+    # w = 1 / standard error of the bin mean (0 for padding); the edge's Airy kernel last where
+    # diffraction is modelled
     d, s, v, w, nx, ny = args[:6]
-    airy = args[6] if len(args) > 6 else None  # the edge's Airy kernel
+    airy = args[6] if len(args) > 6 else None
     r = w * (v - model(theta, d, s, nx, ny, shaped, airy))
     if not shaped:
         if airy is not None:  # the ramp, held near 0 where the profile does not ask for one

@@ -77,7 +77,7 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: flo
     sq_dev = np.maximum(sum_v2 - count * mean_v**2, 0.0)
     spread = _noise_variance(sum_d / count, sq_dev, count, expected)
     banded = _band_variance(sum_d / count, sq_dev, count)
-    p5, p95 = np.percentile(v, [5.0, 95.0])
+    p5, p95 = _percentiles(v, 5.0, 95.0)
     floor = (MODEL_FLOOR_INTENSITY * (p95 - p5)) ** 2 + QUANTISATION_VARIANCE
     se = np.sqrt((spread + floor) / count)
     se_banded = np.sqrt((banded + floor) / count)
@@ -85,6 +85,16 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: flo
     line = (p0 + line_a * n, p0 + L * t + (line_a + line_b * L) * n)
     return (sum_d / count, sum_s / count, mean_v, se, n, L, margin < end_margin, int(count.sum()), line,
             se_banded)
+
+
+def _percentiles(v: np.ndarray, *qs: float) -> list[float]:
+    """``np.percentile(v, qs)`` (linear interpolation between order statistics), by one partial
+    sort: numpy's own call costs about 0.15 ms of overhead, paid twice per edge."""
+    n = v.size
+    pos = [q / 100.0 * (n - 1) for q in qs]
+    lows = [min(int(np.floor(p)), n - 1) for p in pos]
+    part = np.partition(v, sorted({k for lo in lows for k in (lo, min(lo + 1, n - 1))}))
+    return [float(part[lo] + (p - lo) * (part[min(lo + 1, n - 1)] - part[lo])) for p, lo in zip(pos, lows)]
 
 
 def _noise_variance(d: np.ndarray, sq_dev: np.ndarray, count: np.ndarray,
