@@ -198,6 +198,25 @@ def test_images_read_again_and_no_background_loading_give_the_same_samples(calib
         [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in calibration_samples.samples]
 
 
+def test_measuring_again_from_the_first_detections_gives_the_same_samples(calibration_stack, calibration_samples,
+                                                                          monkeypatch):
+    """The diffraction rounds measure a stack again from the targets as first detected: no
+    target is detected again, and the corners refined from them, the calibration and every
+    sample come out as a fresh measure's, bit for bit (refined corners fed back in place of the
+    detected ones would move them)."""
+    import lensfit.measure as measure_module
+
+    def no_detection(*args, **kwargs):
+        raise AssertionError("detected again")
+
+    monkeypatch.setattr(measure_module.Target, "detect", no_detection)
+    table = measure_module.measure(calibration_stack, detected=calibration_samples)
+    assert [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in table.samples] == \
+        [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in calibration_samples.samples]
+    assert {k: v.focal_length_px for k, v in table.intrinsics.items()} == \
+        {k: v.focal_length_px for k, v in calibration_samples.intrinsics.items()}
+
+
 def test_measure_cli_writes_samples_and_refuses_overwrite(calibration_stack, tmp_path, capsys):
     from lensfit.cli import main
 
