@@ -1,4 +1,4 @@
-"""Diffraction in the blur reading: the Airy pattern's line-spread function, as quadrature.
+"""Diffraction in the blur reading: the Airy pattern's line-spread function, as a kernel per edge.
 
 A lens stopped down far enough is diffraction-limited: the defocus disk is convolved with the
 Airy pattern of the exit pupil, whose scale is ``a = lambda N_w / p`` pixels (``N_w`` the working,
@@ -13,17 +13,18 @@ The edge estimator therefore convolves its model profile with the Airy LSF where
 gives ``a``. Per edge, the kernel that does not change while the edge is fitted -- the Airy LSF
 convolved with the pixel's footprint across the edge (two boxes of widths ``|n_x|`` and
 ``|n_y|``) -- is tabulated on the host at fixed knots (:func:`edge_kernel`: 49 evenly over the
-core, ``3 a`` plus the footprint either side, 24 a side growing geometrically out to ``40 a``;
+core, ``3 a`` plus the footprint either side, 24 a side growing geometrically out to ``40 a`` or
+32 px, whichever is further;
 values corrected for the linear interpolant's curvature error, ``K_j - h^2 K''_j / 12``) and
 interpolated linearly between them. A piecewise-linear kernel convolved with the uniform disk's
 ESF is exact in closed form: ``sum_j c_j R^2 H((x - xi_j) / R)``, ``c_j`` the kernel's change of
 slope at knot ``xi_j`` and ``H`` the disk ESF's second antiderivative (``lensfit.psf``), plus
 the mass of the kernel's far tail beyond the first knot. One ``H`` per knot: 97 per profile
 point, where a quadrature of the pixel profile over 52 nodes of the LSF took 312 (four ``H`` and
-two ``G`` per node) and was off by up to 2e-3 of the edge's contrast at ``a = 2 px`` (its outer
-cells, 1.5-3 px wide, each lumped at a point); the knots are within 1.2e-4 for ``a`` of
-0.5-8 px (against a quadrature of 672 nodes; tests/test_diffraction.py checks them against the
-transfer functions below).
+two ``G`` per node) and was off by up to 4.4e-3 of the edge's contrast (its outer cells, 1.5-3 px
+wide at ``a = 2 px``, each lumped at a point); the knots are within 2.1e-4 for ``a`` of
+0.05-8 px, out to 30 px from the edge (tests/test_diffraction.py, against the product of the
+pupil's, the disk's and the pixel's transfer functions).
 
 The LSF comes from the circular pupil's transfer function,
 ``OTF(v) = (2/pi)(acos v - v sqrt(1 - v^2))`` for ``v = nu a <= 1`` (Goodman, *Introduction to
@@ -52,9 +53,10 @@ KERNEL_CORE_AIRY = 3.0
 KERNEL_REACH_AIRY = 40.0
 KERNEL_REACH_PX = 32.0
 KERNEL_KNOTS = KERNEL_CORE_INTERVALS + 1 + 2 * KERNEL_OUTER_INTERVALS
-#: Smallest Airy scale (px) the kernel is built for; below it the pattern is taken at this scale
-#: (a 0.1 px pattern moves no edge profile by more than rounding).
-KERNEL_MIN_AIRY_PX = 0.1
+#: Smallest Airy scale (px) the kernel is built for; below it the pattern is taken at this scale.
+#: The pattern's 1/x^2 tails make even a small one count: a 0.1 px pattern taken for a 0.02 px one
+#: moved an edge profile by 2.6e-2 of its contrast; at 0.01 px, within 4e-4.
+KERNEL_MIN_AIRY_PX = 0.01
 #: Gauss-Legendre points for the average over the narrower of the pixel's two boxes.
 _BOX_POINTS = 16
 
