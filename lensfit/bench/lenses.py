@@ -4,10 +4,14 @@ prescription (``data_specs/lenses``), fitted as a thin lens and as a thick lens.
 Each lens gets the demo's calibration stack (``data_specs/scenes/demo.toml``: two ChArUco
 boards at 0.5 to 3 times the focus distance, seven of twelve views tilted) with every length,
 the pixel pitch included, scaled by f / 25 mm, so that field of view and blur in pixels are the
-demo's at the same f-number (setting "far", focus X = 40 f), and the same stack at a third of
-every distance and board size (setting "near", focus X / 3): a focus bracket (unit focusing)
-whose two calibrations are far enough apart to determine P; 600 x 400 px, the lens focused at
-its best focus (``focus_plane = "best"``). Three fits per lens:
+demo's at the same f-number (setting "far", focus X = 40 f), and the same stack at a sixth of
+every distance and board size, two stops down (setting "near", focus X / 6 at twice the
+f-number: the same pictures in pinhole terms with three times the blur): a focus bracket (unit
+focusing) whose inverse focus distances differ by 1/(8 f). P rests on the two calibrations' focal
+lengths in pixels: its relative sigma is about sqrt(2) sigma_cal P / (f |1/X_near - 1/X_far|),
+2-3 % x P for this bracket with 0.2-0.4 % calibrations (a bracket at X and X / 3 gave 6-9 %).
+1200 x 800 px (the demo's size; ``scale`` < 1 renders smaller), the lens focused at its best
+focus (``focus_plane = "best"``). Three fits per lens:
 
 - ``thin (one setting)``: the near setting alone, the pupil magnification P assumed 1 (what a
   thin-lens tool reports);
@@ -28,6 +32,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from lensfit.errors import InputError
 from lensfit.fit import fit
 from lensfit.measure import measure
 from lensfit.specs import load_toml, specs_dir
@@ -50,23 +55,29 @@ def _scale_lengths(node: Any, k: float) -> Any:
 
 
 #: The near setting's distances (and board sizes) as a fraction of the far setting's: a bracket
-#: whose inverse focus distances differ by 2/X, enough for the calibrations to determine P.
-NEAR_FRACTION = 1.0 / 3.0
+#: whose inverse focus distances differ by 5/X = 1/(8 f), for P to 2-3 % x P.
+NEAR_FRACTION = 1.0 / 6.0
+#: The near setting's f-number over the far one's: two stops down, so that its blur (six times
+#: the far setting's at the same aperture) stays three times the far one's and its markers decode.
+NEAR_STOP_FACTOR = 2.0
 
 
 def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
-               wavelengths_nm: tuple[float, ...] = ()) -> dict[str, Any]:
-    """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f) and the
-    same scene at a third of the distances with boards a third the size (setting "near": focus
-    X / 3; the same pictures in pinhole terms, three times the blur), unit focusing; rendered
-    grey from ``wavelengths_nm`` through the glasses' dispersion where given."""
+               wavelengths_nm: tuple[float, ...] = (), scale: float = 1.0) -> dict[str, Any]:
+    """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f at
+    ``f_number``) and the same scene at a sixth of the distances with boards a sixth the size
+    (setting "near": focus X / 6 at ``NEAR_STOP_FACTOR`` x ``f_number``; the same pictures in
+    pinhole terms, three times the blur), unit focusing; ``scale`` x 1200 x 800 px; rendered grey
+    from ``wavelengths_nm`` through the glasses' dispersion where given."""
     from synth.lens import load_prescription, paraxial
 
     efl = paraxial(load_prescription(name)).efl_mm
     demo = load_toml(specs_dir() / "scenes" / "demo.toml")
     k = efl / demo["lens"]["focal_length_mm"]
     scene = _scale_lengths(copy.deepcopy(demo), k)
-    scene["camera"].update(width_px=600, height_px=400, pixel_pitch_mm=2 * demo["camera"]["pixel_pitch_mm"] * k)
+    w, h = round(scale * demo["camera"]["width_px"]), round(scale * demo["camera"]["height_px"])
+    scene["camera"].update(width_px=w, height_px=h, pixel_pitch_mm=demo["camera"]["pixel_pitch_mm"] * k
+                           * demo["camera"]["width_px"] / w)
     focus = scene["lens"]["focus_distance_mm"]
     scene["lens"] = {"prescription": name, "f_number": f_number, "focus_distance_mm": focus}
     if wavelengths_nm:
@@ -79,7 +90,8 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
         shot["objects"] = [f"{o}-near" for o in shot["objects"]]
         shot["pose"] = [{**p, "id": f"{p['id']}-near"} for p in shot.get("pose", [])]
     scene["object"] = scene["object"] + near["object"]
-    scene["shot"] = ([{**s, "setting": "near", "focus_distance_mm": NEAR_FRACTION * focus, "name": f"near_{i:03d}"}
+    scene["shot"] = ([{**s, "setting": "near", "focus_distance_mm": NEAR_FRACTION * focus,
+                       "f_number": NEAR_STOP_FACTOR * f_number, "name": f"near_{i:03d}"}
                       for i, s in enumerate(near["shot"])]
                      + [{**s, "setting": "far", "name": f"far_{i:03d}"} for i, s in enumerate(scene["shot"])])
     scene["name"] = f"{name}-bracket"
@@ -109,9 +121,12 @@ def spectral_designs() -> list[str]:
 
 
 def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
-        progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = ()) -> dict[str, Any]:
+        progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = (),
+        scale: float = 1.0, keep: Path | None = None) -> dict[str, Any]:
     """Render, measure and fit every lens (with ``wavelengths_nm``: every lens with dispersion,
-    rendered grey through those wavelengths); returns rows of errors and seconds."""
+    rendered grey through those wavelengths); returns rows of errors and seconds. With ``keep``
+    each stack is written to ``keep / NAME`` and left there (an existing stack is an error, never
+    replaced); otherwise to a temporary folder that is removed."""
     import json
 
     from synth.lens import list_prescriptions
@@ -119,15 +134,23 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
     from synth.scene import scene_from_dict
     from synth.stack import write_stack
 
+    names = names or (spectral_designs() if wavelengths_nm else list_prescriptions())
+    if keep is not None:
+        taken = [n for n in names if (Path(keep) / n).exists()]
+        if taken:
+            raise InputError("keep", str(keep), f"a folder without stacks named {', '.join(taken)}",
+                             "name a new folder; existing stacks are never replaced")
     say = progress or (lambda msg: None)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lensfit-bench-lenses-") as tmp:
-        for name in names or (spectral_designs() if wavelengths_nm else list_prescriptions()):
+        root = Path(tmp) if keep is None else Path(keep)
+        for name in names:
             say(f"{name}: rendering 24 shots")
             t0 = time.perf_counter()
-            scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp, wavelengths_nm=wavelengths_nm),
+            scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp, wavelengths_nm=wavelengths_nm,
+                                               scale=scale),
                                     f"<{name} bracket>")
-            folder = write_stack(render(scene), Path(tmp) / name)
+            folder = write_stack(render(scene), root / name)
             t_render = time.perf_counter() - t0
             truth = json.loads((folder / "truth.json").read_text())
             say(f"{name}: measuring")
@@ -152,4 +175,5 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
                                     "pupil_magnification": res.pupil_magnification.value,
                                     "pupil_magnification_sigma": res.pupil_magnification.sigma}
             rows.append(row)
-    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "wavelengths_nm": list(wavelengths_nm)}
+    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "near_f_number": NEAR_STOP_FACTOR * f_number,
+            "scale": scale, "wavelengths_nm": list(wavelengths_nm)}

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from lensfit.errors import InputError
-from lensfit.cli.common import EXIT_BENCH_FAILED, EXIT_OK, CliError, _progress_bar
+from lensfit.cli.common import EXIT_BENCH_FAILED, EXIT_OK, CliError, _fail_input, _progress_bar
 
 def _bench_stages_command(args: argparse.Namespace) -> int:
     from rich.console import Console
@@ -124,18 +124,25 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
 
     if not 1 <= args.spp <= 65536:
         raise CliError(f"--spp must be between 1 and 65536, got {args.spp}")
+    if not 0.1 <= args.scale <= 4:
+        raise CliError(f"--scale must be between 0.1 and 4, got {args.scale:g}")
     enable_compilation_cache()
     console = Console(stderr=True)
-    with console.status("benchmarking") as status:
-        result = run(args.lens or None, spp=args.spp, f_number=args.f_number,
-                     progress=lambda m: status.update(f"benchmarking: {m}"),
-                     wavelengths_nm=tuple(args.wavelengths or ()))
+    try:
+        with console.status("benchmarking") as status:
+            result = run(args.lens or None, spp=args.spp, f_number=args.f_number,
+                         progress=lambda m: status.update(f"benchmarking: {m}"),
+                         wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep)
+    except InputError as exc:
+        raise _fail_input(exc, {"keep": "--keep"}) from exc
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK
     colour = f", grey from {'/'.join(f'{w:g}' for w in args.wavelengths)} nm" if args.wavelengths else ""
-    table = Table(title=f"real lenses (demo stack scaled to each, f/{args.f_number:g}, {args.spp} spp{colour}): errors "
-                        "of the near setting (and the far one in the bracket)")
+    size = f"{round(1200 * args.scale)} x {round(800 * args.scale)} px"
+    table = Table(title=f"real lenses (demo stack scaled to each, {size}, far f/{args.f_number:g}, near "
+                        f"f/{result['near_f_number']:g}, {args.spp} spp{colour}): errors of the near setting (and the "
+                        "far one in the bracket)")
     for col in ("lens", "P", "fit", "f", "N", "N (real pupil)", "focus distance", "in 95 %", "P fitted"):
         table.add_column(col, justify="right" if col not in ("lens", "fit") else "left")
 
