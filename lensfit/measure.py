@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose
+from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, known_intrinsics, outlier_views
 from lensfit.errors import InputError, SpecError
 from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
 from lensfit.estimators import EdgeTask, get_estimator
@@ -210,15 +210,6 @@ def _check_saturation(stack: Stack, index: int, image: np.ndarray, det: Detectio
                         "on clipped edges)")
 
 
-def known_intrinsics(entry: dict, shape: tuple[int, int]) -> Intrinsics:
-    """Intrinsics given in stack.toml ``[[intrinsics]]`` (principal point defaults to the centre)."""
-    h, w = shape
-    pp = entry.get("principal_point_px", [(w - 1) / 2, (h - 1) / 2])
-    return Intrinsics(float(entry["focal_length_px"]), (float(pp[0]), float(pp[1])),
-                      tuple(float(v) for v in entry.get("distortion", [0.0] * 5)), 0.0, 0, "manifest",
-                      float(entry.get("focal_length_sigma_px", 0.0)))
-
-
 class _StageClock:
     """Seconds per stage; reading images (which happens inside other stages) counted apart."""
 
@@ -396,11 +387,19 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
 
     def calibrate_all(final: bool = True):
-        by_setting: dict[str, list[Detection]] = {}
+        views: dict[str, list[tuple[int, Detection]]] = {}
         for i in range(n):
-            by_setting.setdefault(stack.images[i].setting, []).extend(detections[i])
+            views.setdefault(stack.images[i].setting, []).extend((i, d) for d in detections[i])
         known = {k: known_intrinsics(v, stack.shape) for k, v in stack.intrinsics.items()}
-        todo = {k: v for k, v in by_setting.items() if k not in known}
+        todo = {k: v for k, v in views.items() if k not in known}
+        for label, bad in outlier_views({k: [d for _, d in v] for k, v in todo.items()}, stack.shape).items():
+            for j, rms, median in bad:  # misdetections: left out of the calibration and the samples
+                i, det = todo[label][j]
+                detections[i] = [d for d in detections[i] if d is not det]
+                table.warnings.append(f"{stack.images[i].file.name}: target {det.target_id!r} left out, its corners "
+                                      f"reproject {rms:.2g} px off the calibration of setting {label!r} (median view "
+                                      f"{median:.2g} px): a misdetection, or markers misread under heavy blur")
+        todo = {k: [d for i, d in v if any(d is x for x in detections[i])] for k, v in todo.items()}
         return {**(calibrate(todo, stack.shape, jackknife=final) if todo else {}), **known}
 
     def tasks_for(i, intrinsics):

@@ -217,6 +217,41 @@ def test_measuring_again_from_the_first_detections_gives_the_same_samples(calibr
         {k: v.focal_length_px for k, v in calibration_samples.intrinsics.items()}
 
 
+def test_a_misdetected_target_is_left_out_of_the_calibration_and_the_samples(calibration_stack,
+                                                                             calibration_samples):
+    """One image's target with a third of its corners given their neighbours' ids (misread
+    markers) is named in a warning, gives no samples, and the calibration stays the clean one's
+    (within its sigma), where keeping it would move the focal length by many sigmas."""
+    import copy
+
+    import lensfit.measure as measure_module
+    from lensfit.calibration import calibrate
+    from lensfit.stack import load_stack
+    from lensfit.targets import Detection
+
+    stack = load_stack(calibration_stack)
+    bad = 2
+    fake = copy.copy(calibration_samples)
+    fake.detections = dict(calibration_samples.detections)
+    d = fake.detections[bad][0]
+    points = d.image_points_px.copy()
+    k = len(points) // 3
+    points[:k] = np.roll(points[:k], 1, axis=0)
+    fake.detections[bad] = [Detection(d.target_id, d.object_points_mm, points, d.ids)]
+    table = measure_module.measure(calibration_stack, detected=fake)
+    name = stack.images[bad].file.name
+    assert any(w.startswith(f"{name}: target {d.target_id!r} left out") for w in table.warnings), table.warnings
+    assert not any(s.image == name for s in table.samples)
+    assert len({s.image for s in table.samples}) == len({s.image for s in calibration_samples.samples}) - 1
+    for label, clean in calibration_samples.intrinsics.items():
+        assert abs(table.intrinsics[label].focal_length_px - clean.focal_length_px) < 2 * clean.focal_length_sigma_px
+    spoilt = calibrate({label: [x for i, dets in fake.detections.items() for x in dets
+                                if stack.images[i].setting == label] for label in calibration_samples.intrinsics},
+                       stack.shape)
+    assert any(abs(spoilt[label].focal_length_px - clean.focal_length_px) > 5 * clean.focal_length_sigma_px
+               for label, clean in calibration_samples.intrinsics.items())
+
+
 def test_measure_cli_writes_samples_and_refuses_overwrite(calibration_stack, tmp_path, capsys):
     from lensfit.cli import main
 

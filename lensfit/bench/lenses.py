@@ -122,11 +122,13 @@ def spectral_designs() -> list[str]:
 
 def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
         progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = (),
-        scale: float = 1.0, keep: Path | None = None) -> dict[str, Any]:
+        scale: float = 1.0, keep: Path | None = None, reuse: Path | None = None) -> dict[str, Any]:
     """Render, measure and fit every lens (with ``wavelengths_nm``: every lens with dispersion,
     rendered grey through those wavelengths); returns rows of errors and seconds. With ``keep``
     each stack is written to ``keep / NAME`` and left there (an existing stack is an error, never
-    replaced); otherwise to a temporary folder that is removed."""
+    replaced); otherwise to a temporary folder that is removed. With ``reuse`` nothing is rendered:
+    the stacks a run with ``keep`` wrote there are measured and fitted again (the rendering
+    arguments are then theirs, not these)."""
     import json
 
     from synth.lens import list_prescriptions
@@ -140,18 +142,26 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
         if taken:
             raise InputError("keep", str(keep), f"a folder without stacks named {', '.join(taken)}",
                              "name a new folder; existing stacks are never replaced")
+    if reuse is not None:
+        absent = [n for n in names if not (Path(reuse) / n / "truth.json").is_file()]
+        if absent:
+            raise InputError("reuse", str(reuse), f"a folder holding the stacks {', '.join(absent)} (as --keep "
+                             "writes them)", "render them first with --keep")
     say = progress or (lambda msg: None)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lensfit-bench-lenses-") as tmp:
         root = Path(tmp) if keep is None else Path(keep)
         for name in names:
-            say(f"{name}: rendering 24 shots")
-            t0 = time.perf_counter()
-            scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp, wavelengths_nm=wavelengths_nm,
-                                               scale=scale),
-                                    f"<{name} bracket>")
-            folder = write_stack(render(scene), root / name)
-            t_render = time.perf_counter() - t0
+            if reuse is not None:
+                folder, t_render = Path(reuse) / name, None
+            else:
+                say(f"{name}: rendering 24 shots")
+                t0 = time.perf_counter()
+                scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp, wavelengths_nm=wavelengths_nm,
+                                                   scale=scale),
+                                        f"<{name} bracket>")
+                folder = write_stack(render(scene), root / name)
+                t_render = time.perf_counter() - t0
             truth = json.loads((folder / "truth.json").read_text())
             say(f"{name}: measuring")
             t0 = time.perf_counter()
@@ -176,4 +186,4 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
                                     "pupil_magnification_sigma": res.pupil_magnification.sigma}
             rows.append(row)
     return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "near_f_number": NEAR_STOP_FACTOR * f_number,
-            "scale": scale, "wavelengths_nm": list(wavelengths_nm)}
+            "scale": scale, "wavelengths_nm": list(wavelengths_nm), "reused": None if reuse is None else str(reuse)}

@@ -221,6 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="image size as a fraction of the demo's 1200 x 800 px (default 1; 0.5 renders 4x faster, "
                          "with calibrations and so P about half as precise)")
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
+    bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=_bench_lenses_command, prog="lensfit bench-lenses")
 

@@ -132,17 +132,18 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
         with console.status("benchmarking") as status:
             result = run(args.lens or None, spp=args.spp, f_number=args.f_number,
                          progress=lambda m: status.update(f"benchmarking: {m}"),
-                         wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep)
+                         wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep, reuse=args.reuse)
     except InputError as exc:
-        raise _fail_input(exc, {"keep": "--keep"}) from exc
+        raise _fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK
     colour = f", grey from {'/'.join(f'{w:g}' for w in args.wavelengths)} nm" if args.wavelengths else ""
     size = f"{round(1200 * args.scale)} x {round(800 * args.scale)} px"
-    table = Table(title=f"real lenses (demo stack scaled to each, {size}, far f/{args.f_number:g}, near "
-                        f"f/{result['near_f_number']:g}, {args.spp} spp{colour}): errors of the near setting (and the "
-                        "far one in the bracket)")
+    made = (f"stacks from {args.reuse}" if args.reuse else f"{size}, far f/{args.f_number:g}, near "
+            f"f/{result['near_f_number']:g}, {args.spp} spp{colour}")
+    table = Table(title=f"real lenses (demo stack scaled to each, {made}): errors of the near setting (and the far "
+                        "one in the bracket)")
     for col in ("lens", "P", "fit", "f", "N", "N (real pupil)", "focus distance", "in 95 %", "P fitted"):
         table.add_column(col, justify="right" if col not in ("lens", "fit") else "left")
 
@@ -170,8 +171,8 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
     for row in result["rows"]:
         cal = ", ".join(f"{label} {100 * c['relative_error']:+.3f}% (sigma {100 * c['sigma'] / c['focal_length_px']:.3f}%)"
                         for label, c in row["calibration"].items())
-        print(f"{row['lens']}: calibrated f_px error {cal}; render {row['seconds_render']:.0f} s, "
-              f"measure {row['seconds_measure']:.0f} s")
+        rendered = "reused" if row["seconds_render"] is None else f"render {row['seconds_render']:.0f} s"
+        print(f"{row['lens']}: calibrated f_px error {cal}; {rendered}, measure {row['seconds_measure']:.0f} s")
     return EXIT_OK
 
 
