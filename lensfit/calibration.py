@@ -4,7 +4,9 @@ For a thin lens, pinhole calibration measures ``focal_length_px = s / p`` (the s
 over the pixel pitch), because the centre of every blur disk lies on the chief ray through
 the lens centre. The image scale changes with focus (focus breathing), so each lens setting
 gets its own focal length in pixels; the principal point and distortion are shared between
-settings (estimated from all views together, then held fixed per setting).
+settings (estimated from all views together, each setting's image points scaled about the
+principal point by its own focal length, then held fixed per setting). A view whose corners
+reproject far worse than the others' is a misdetection and is left out (:func:`outlier_views`).
 
 Planar PnP has a two-fold ambiguity; both IPPE solutions are scored by reprojection error and
 the pose is flagged ``ambiguous`` when the runner-up is nearly as good.

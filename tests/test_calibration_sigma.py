@@ -74,3 +74,30 @@ def test_a_misdetected_view_is_found_and_leaving_it_out_recovers_the_focal_lengt
         assert abs(kept.focal_length_px - clean.focal_length_px) < 2 * clean.focal_length_sigma_px
         spoilt = calibrate({"a": dets}, (H, W))["a"]
         assert abs(spoilt.focal_length_px - clean.focal_length_px) > 3 * clean.focal_length_sigma_px
+
+
+def test_settings_with_focus_breathing_share_the_distortion_they_were_drawn_with():
+    """Two settings 10 % apart in focal length (focus breathing), both through barrel distortion
+    k1 = -0.25 (about 6 px at the corners), 0.05 px corner noise: the shared distortion comes out
+    as drawn (fitting all views at one focal length put the breathing into k1 and k2: k1 off by
+    0.007-0.017, k2 -1.0 to -1.7 for 0), and each focal length within 4 of its sigmas."""
+    import cv2
+
+    gx, gy = np.meshgrid(np.arange(10) * 20.0, np.arange(7) * 20.0)
+    obj = np.stack([gx.ravel() - 90, gy.ravel() - 60, 0 * gx.ravel()], 1)
+    distortion = np.array([-0.25, 0.0, 0.0, 0.0, 0.0])
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        dets = {}
+        for label, f_px in (("a", F_PX), ("b", 1.1 * F_PX)):
+            K = np.array([[f_px, 0, (W - 1) / 2], [0, f_px, (H - 1) / 2], [0, 0, 1]])
+            dets[label] = []
+            for r, t in views(rng):
+                p, _ = cv2.projectPoints(obj, r, t, K, distortion)
+                dets[label].append(Detection("board", obj, p.reshape(-1, 2) + rng.normal(0, 0.05, (len(obj), 2)),
+                                             np.arange(len(obj))))
+        got = calibrate(dets, (H, W))
+        k1, k2 = got["a"].distortion[:2]
+        assert abs(k1 + 0.25) < 0.005 and abs(k2) < 0.2, (seed, k1, k2)
+        for label, f_px in (("a", F_PX), ("b", 1.1 * F_PX)):
+            assert abs(got[label].focal_length_px - f_px) < 4 * got[label].focal_length_sigma_px, (seed, label)
