@@ -83,12 +83,15 @@ def _p_identifiable(data: FitData, verts: np.ndarray, usable: list[int], fpx_sig
     inv_s = 1.0 / (data.focal_length_px[usable] * data.pixel_pitch_mm)
     sd_inv_s = float(np.max(inv_s * fpx_sig[usable] / data.focal_length_px[usable]))
     if spread <= 0 or sd_inv_s / spread > _P_MAX_RELATIVE_SIGMA:
+        head = (f"the calibrated settings focus too close together (inverse focus distances within "
+                f"{1000 * np.ptp(x):.3g} /m) to determine it")
+        if sd_inv_s <= 0:  # intrinsics given as exact: only the spread is missing
+            return False, f"{head}; focus the settings at different distances"
         need = np.sqrt(2.0) * sd_inv_s / _P_MAX_RELATIVE_SIGMA  # two settings: spread = difference / sqrt 2
         rel = float(np.max(fpx_sig[usable] / data.focal_length_px[usable]))
-        return False, (f"the calibrated settings focus too close together (inverse focus distances within "
-                       f"{1000 * np.ptp(x):.3g} /m) to determine it: with calibrations to {100 * rel:.2g} % that needs "
-                       f"{1000 * need:.3g} /m, and P to 5 % (2 sigma) about {12 * 1000 * need:.3g} /m; focus one "
-                       "setting nearer (stopping it down keeps its markers readable)")
+        return False, (f"{head}: with calibrations to {100 * rel:.2g} % that needs {1000 * need:.3g} /m, and P to "
+                       f"5 % (2 sigma) about {12 * 1000 * need:.3g} /m; focus one setting nearer (stopping it down "
+                       "keeps its markers readable)")
     return True, ""
 
 
