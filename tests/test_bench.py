@@ -216,3 +216,19 @@ def test_render_time_leaves_out_compilation_only():
     assert seconds < 0.5 * compiling  # the run itself is microseconds
     _, seconds2, compiling2 = without_compilation(lambda: outer(x).block_until_ready())
     assert compiling2 == 0.0
+
+
+def test_bench_lenses_never_replaces_a_kept_stack_and_reuses_only_what_is_there(tmp_path, capsys):
+    """--keep refuses a folder already holding a stack of that name (before rendering anything,
+    leaving it as it was); --reuse refuses a folder without the stacks; both name the option and
+    the folder in one line with a non-zero exit."""
+    kept = tmp_path / "kept" / "cooke-triplet-50"
+    kept.mkdir(parents=True)
+    (kept / "mine.txt").write_text("a user's file")
+    assert main(["bench-lenses", "--lens", "cooke-triplet-50", "--keep", str(tmp_path / "kept")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--keep" in err and str(tmp_path / "kept") in err and "cooke-triplet-50" in err and "\n" not in err
+    assert [p.name for p in kept.iterdir()] == ["mine.txt"] and (kept / "mine.txt").read_text() == "a user's file"
+    assert main(["bench-lenses", "--lens", "cooke-triplet-50", "--reuse", str(tmp_path / "empty")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--reuse" in err and str(tmp_path / "empty") in err and "----" not in err and "\n" not in err

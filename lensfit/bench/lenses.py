@@ -145,8 +145,8 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
     if reuse is not None:
         absent = [n for n in names if not (Path(reuse) / n / "truth.json").is_file()]
         if absent:
-            raise InputError("reuse", str(reuse), f"a folder holding the stacks {', '.join(absent)} (as --keep "
-                             "writes them)", "render them first with --keep")
+            raise InputError("reuse", str(reuse), f"a folder holding the stacks {', '.join(absent)}, written there by "
+                             "an earlier run with keep", "render them there first")
     say = progress or (lambda msg: None)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lensfit-bench-lenses-") as tmp:
