@@ -222,8 +222,10 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
             f_plain[label] = K[0, 0]
             gains.append(run(dets, K0, np.zeros(5), 0)[0] / rms)
         everything = one_camera(f_plain, K0[:2, 2])
-    gains.append(run(everything, K0, np.zeros(5), 0)[0] / run(everything, K0, np.zeros(5), plain)[0])
-    if min(gains) > DISTORTION_GAIN:
+    fits = {"radial": run(everything, K0, np.zeros(5), 0), "plain": run(everything, K0, np.zeros(5), plain)}
+    gains.append(fits["radial"][0] / fits["plain"][0])
+    kept = "radial" if min(gains) <= DISTORTION_GAIN else "plain"
+    if kept == "plain":
         flags |= plain
 
     def jackknife(dets, K, dist, extra, sigma_opencv, unit, f_all):
@@ -265,7 +267,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
     # Shared principal point and distortion from all views on one scale, each setting's focal
     # length with them held, then once more on the scale those focal lengths give.
     fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
-    _, K_all, dist_all, _, _ = run(everything, K0, np.zeros(5), 0)
+    _, K_all, dist_all, _, _ = fits[kept]  # all views on one scale, with the distortion the data ask for
     f_px = {label: run(dets, K_all, dist_all, fixed)[1][0, 0] for label, dets in detections.items()}
     _, K_all, dist_all, _, _ = run(one_camera(f_px, K_all[:2, 2]), K0, np.zeros(5), 0)
     return {label: setting(dets, K_all, dist_all, fixed) for label, dets in detections.items()}

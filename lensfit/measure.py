@@ -399,7 +399,9 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
                 table.warnings.append(f"{stack.images[i].file.name}: target {det.target_id!r} left out, its corners "
                                       f"reproject {rms:.2g} px off the calibration of setting {label!r} (median view "
                                       f"{median:.2g} px): a misdetection, or markers misread under heavy blur")
-        todo = {k: [d for i, d in v if any(d is x for x in detections[i])] for k, v in todo.items()}
+            dropped = {j for j, _, _ in bad}
+            todo[label] = [view for j, view in enumerate(todo[label]) if j not in dropped]
+        todo = {k: [d for _, d in v] for k, v in todo.items()}
         return {**(calibrate(todo, stack.shape, jackknife=final) if todo else {}), **known}
 
     def tasks_for(i, intrinsics):
