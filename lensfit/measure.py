@@ -14,8 +14,6 @@ import csv
 import json
 import math
 import threading
-import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
@@ -23,6 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from lensfit.clock import StageClock
 from lensfit.calibration import Intrinsics, TargetPose, calibrate, estimate_pose, known_intrinsics, outlier_views
 from lensfit.errors import InputError, SpecError
 from lensfit.outputs import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
@@ -59,6 +58,8 @@ class Sample:
     start_px: tuple[float, float]
     end_px: tuple[float, float]
     distance_source: str  # "pose" or "manifest"
+    #: distance of the edge's middle from its setting's principal point (px; None: not known)
+    field_radius_px: float | None = None
 
 
 @dataclass
@@ -172,7 +173,8 @@ class SampleTable:
                     coc_diameter_px=None if r.get("coc_diameter_px") is None else float(r["coc_diameter_px"]),
                     sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
                     estimator=str(r.get("estimator", "")), flags=str(r.get("flags", "") or ""),
-                    start_px=tuple(start), end_px=tuple(end), distance_source=str(r.get("distance_source", ""))))
+                    start_px=tuple(start), end_px=tuple(end), distance_source=str(r.get("distance_source", "")),
+                    field_radius_px=None if r.get("field_radius_px") is None else float(r["field_radius_px"])))
             except (AttributeError, KeyError, TypeError, ValueError) as exc:
                 raise SpecError(path, f"samples[{i}]", f"unreadable sample ({exc!r}); expected the columns "
                                 "lensfit measure writes") from None
@@ -208,30 +210,6 @@ def _check_saturation(stack: Stack, index: int, image: np.ndarray, det: Detectio
         raise SpecError(stack.images[index].file, "", f"{100 * np.mean(region >= SATURATION_LEVEL):.1f}% of the "
                         f"pixels on target {det.target_id!r} are saturated; expose less (blur cannot be measured "
                         "on clipped edges)")
-
-
-class _StageClock:
-    """Seconds per stage; reading images (which happens inside other stages) counted apart."""
-
-    def __init__(self):
-        self.seconds = {"read": 0.0, "detect": 0.0, "calibrate": 0.0, "measure": 0.0}
-
-    def reader(self, read: Callable[[int], np.ndarray]) -> Callable[[int], np.ndarray]:
-        def timed(i: int) -> np.ndarray:
-            t = time.perf_counter()
-            try:
-                return read(i)
-            finally:
-                self.seconds["read"] += time.perf_counter() - t
-        return timed
-
-    @contextmanager
-    def stage(self, name: str):
-        t, r = time.perf_counter(), self.seconds["read"]
-        try:
-            yield
-        finally:
-            self.seconds[name] += (time.perf_counter() - t) - (self.seconds["read"] - r)
 
 
 def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
@@ -337,7 +315,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
     targets = [Target(spec) for spec in stack.targets]
     by_id = {t.id: t for t in targets}
     n = len(stack.images)
-    clock = _StageClock()
+    clock = StageClock()
     # Images are held between the stages while the stack fits in HOLD_BYTES, else read again where
     # needed (a stack of RAW files may not fit in memory).
     held: dict[int, np.ndarray] = {}
@@ -484,12 +462,14 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             if entry.distance_mm is not None:
                 z = np.full(3, float(entry.distance_mm))
                 source = "manifest"
+            middle = 0.5 * (np.asarray(task.start_px, float) + task.end_px)
             table.samples.append(Sample(
                 image=entry.file.name, setting=entry.setting, target=tid, edge=seg.id,
                 distance_mm=float(z[1]), distance_start_mm=float(z[0]), distance_end_mm=float(z[2]),
                 coc_diameter_px=est.coc_diameter_px, sigma_px=est.sigma_px, estimator=estimator,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
-                end_px=tuple(float(v) for v in task.end_px), distance_source=source))
+                end_px=tuple(float(v) for v in task.end_px), distance_source=source,
+                field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px)))))
             table.fit_rms.append(est.rms_residual)
             table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
                                              read_task.clear_right_px, {k: v for k, v in read_task.context.items()

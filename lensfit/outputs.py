@@ -52,7 +52,7 @@ PROGRAMS = ("lensfit", "synth")
 #: The header line ``lensfit measure`` writes to a samples CSV (lensfit.measure.SampleTable.COLUMNS).
 SAMPLES_CSV_COLUMNS = ("image", "setting", "target", "edge", "distance_mm", "coc_diameter_px", "sigma_px",
                        "estimator", "flags", "distance_start_mm", "distance_end_mm", "start_px", "end_px",
-                       "distance_source")
+                       "distance_source", "field_radius_px")
 #: The calibration columns after them (each row repeats its setting's calibration, so that a
 #: refit from the CSV alone equals the fit from the stack).
 SAMPLES_CSV_CALIBRATION = ("pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")

@@ -161,6 +161,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
                          "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
                          "fitted from two or more focus settings, else 1 (thin lens) with a warning")
+    ft.add_argument("--field-curvature", choices=("auto", "on", "off"), default="auto",
+                    help="a real lens focuses the edge of the field at another distance than the centre: per setting, "
+                         "the in-focus inverse distance 1/X + kappa tan^2(field angle), the reported X on the axis; "
+                         "auto (default) fits kappa and keeps it where it differs from 0 by 3 sigma, on keeps it "
+                         "always, off assumes 0 (a thin lens)")
     ft.add_argument("--diffraction", type=_diffraction, nargs="?", const=550.0, default="auto",
                     metavar="NM|auto|off",
                     help="diffraction in the blur readings (the Airy pattern of each setting's working f-number): "

@@ -16,7 +16,8 @@ EXIT_BENCH_FAILED = 4  # a benchmark ran, but some case missed its tolerance (le
 # Library argument names -> the options a user typed, so that errors name what they wrote.
 _MEASURE_OPTIONS = {"estimator": "--estimator", "setting": "setting"}
 _FIT_OPTIONS = {**_MEASURE_OPTIONS, "pixel_pitch_mm": "--pixel-pitch", "focal_length_px": "--focal-length-px",
-                "loss": "--loss", "blur_floor_px": "--blur-floor", "pupil_magnification": "--pupil-magnification"}
+                "loss": "--loss", "blur_floor_px": "--blur-floor", "pupil_magnification": "--pupil-magnification",
+                "field_curvature": "--field-curvature"}
 
 class CliError(Exception):
     """A one-line message for the user and an exit code."""

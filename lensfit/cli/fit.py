@@ -121,6 +121,10 @@ def _print_fit(result, document) -> None:
                   if (text := _budget_text(qs[qn].shares if qs[qn].value is not None else None))]
         if budget:
             print("variance from: " + "; ".join(budget))
+        fc = qs.get("field_curvature_per_m")
+        if fc is not None and fc.value is not None:
+            print(f"field curvature {fc.value:.3g} ± {fc.sigma:.2g} /m: the in-focus inverse distance at field angle "
+                  "a is 1/X + that x tan^2(a); X above is on the axis")
     d = document["diagnostics"]
 
     def num(x, spec):
@@ -190,7 +194,8 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     rounds: list = []
     forced = isinstance(args.diffraction, float)  # a wavelength; else "auto" or "off"
     options = dict(pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
-                   blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification)
+                   blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification,
+                   field_curvature=args.field_curvature)
     if source.suffix.lower() in (".csv", ".json") and not source.exists():
         raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
                        "or a stack folder")

@@ -72,3 +72,13 @@ MAX_FOCAL_LENGTH_PX = 1e7
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
               "sensor_distance_mm", "aperture_diameter_mm", "blur_slope_mm2", "blur_floor_px",
               "inverse_focus_distance_per_m")
+#: Field curvature (``lensfit.fit.fit``'s ``field_curvature``): the modes; the significance
+#: (|kappa| / sigma) at which "auto" keeps it; the fewest samples and the least spread of the
+#: squared field tangent (tan^2 of the field angle) over a setting's samples for it to be fitted.
+#: Measured on stacks ray traced through the shipped designs (README, "Real (thick) lenses"):
+#: kappa at 11-22 sigma on the retrofocus and the telephoto at f/11, 0.4 sigma on synth's
+#: thin-lens demo stack.
+FIELD_CURVATURE_MODES = ("auto", "on", "off")
+FIELD_CURVATURE_Z = 3.0
+FIELD_CURVATURE_MIN_SAMPLES = 12
+FIELD_CURVATURE_MIN_SPREAD = 1e-3

@@ -11,7 +11,9 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import FLOOR_PRIOR_SIGMA_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES, _Z95
+from lensfit.fit.constants import (FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD, FIELD_CURVATURE_MODES,
+                                   FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA,
+                                   QUANTITIES, _Z95)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _second_vertex)
@@ -29,7 +31,8 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         focal_length_sigma_px: float | dict[str, float] | None = None,
         loss: str = "huber", blur_floor_px: float | None = None,
         floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
-        pupil_magnification: float | tuple[float, float] | None = None) -> FitResult:
+        pupil_magnification: float | tuple[float, float] | None = None,
+        field_curvature: str = "auto") -> FitResult:
     """Fit focal length, and per setting f-number and focus distance, to blur samples.
 
     Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
@@ -58,6 +61,14 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         assumed at that value. A range ``(lo, hi)``: a prior on P (log-normal, the range its
         95 % interval), which the data may sharpen and which widens the intervals of f and N
         honestly where they cannot.
+    field_curvature : "auto" (default), "on" or "off". A real lens focuses the edge of the field
+        at another distance than the centre (field curvature): per setting the in-focus inverse
+        distance is ``1/X + kappa tan^2(field angle)``, the field angle from each sample's
+        ``field_radius_px`` over the setting's focal length in px, and the reported focus distance
+        X is the one on the axis. "on" fits kappa in every setting whose samples give their field
+        radius and spread over the field; "auto" keeps it only where it differs from 0 by
+        ``FIELD_CURVATURE_Z`` sigma (elsewhere the fit is the one "off" gives: kappa = 0, as for
+        a thin lens).
 
     Returns
     -------
@@ -75,11 +86,13 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
         raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
     pupil = _pupil_mode(pupil_magnification)
+    if field_curvature not in FIELD_CURVATURE_MODES:
+        raise InputError("field_curvature", field_curvature, "one of: " + ", ".join(FIELD_CURVATURE_MODES))
     data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
                    focal_length_sigma_px=focal_length_sigma_px)
     try:
         with np.errstate(all="ignore"):  # overflow on the way is caught below, not printed
-            result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls, pupil)
+            result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls, pupil, field_curvature)
     except InputError:
         raise
     except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
@@ -100,6 +113,43 @@ def _full_size(c: np.ndarray, free_idx: np.ndarray, m: int) -> np.ndarray:
     return out
 
 
+def _field_spread(data: FitData, k: int) -> bool:
+    """Whether setting ``k``'s samples can show field curvature: every one's field known, enough
+    of them, spread over the field."""
+    f2 = data.field2[data.setting == k]
+    return (f2.size >= FIELD_CURVATURE_MIN_SAMPLES and bool(np.all(np.isfinite(f2)))
+            and float(np.ptp(f2)) >= FIELD_CURVATURE_MIN_SPREAD)
+
+
+def _significant_curvature(theta, free_idx, data, weights, row_on, fpx, fpx_w, floor_w, p_prior, curved, npad):
+    """Of the settings ``curved`` (field curvature free in ``theta``, the solution), those whose
+    curvature differs from 0 by ``FIELD_CURVATURE_Z`` sigma (the model covariance, inflated by
+    the reduced chi-square as the fit's is)."""
+    import jax.numpy as jnp
+
+    m = len(data.labels)
+    args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
+                        p_prior)
+    res, jac = (np.asarray(a) for a in _solver(m)[1](jnp.asarray(theta[free_idx]), args))
+    dof = max(float(np.sum(weights[row_on > 0])) - len(free_idx), 1.0)
+    cov, _, _ = _covariance(jac, max(1.0, float(np.sum(res[:npad] ** 2) / dof)))
+    at, pos = Layout(m), {int(j): i for i, j in enumerate(free_idx)}
+    return [k for k in curved if abs(theta[at.curvature(k)]) >= FIELD_CURVATURE_Z * math.sqrt(
+        max(cov[pos[at.curvature(k)], pos[at.curvature(k)]], 1e-300))]
+
+
+def _curvature_estimate(theta, cov, i: int, fitted: bool, mode: str, possible: bool, z) -> Estimate:
+    """The field curvature (dioptres per unit tan^2 of the field angle) as fitted, or why not."""
+    if fitted:
+        v, sd = float(theta[i]), math.sqrt(max(float(cov[i, i]), 0.0))
+        return Estimate(v, sd, (v - z[0] * sd, v + z[0] * sd), (v - z[1] * sd, v + z[1] * sd))
+    why = ("not fitted (field_curvature off): 0 assumed" if mode == "off" else
+           "not determined: the samples do not give their field radius (field_radius_px), are too few or lie at one "
+           "field angle; 0 assumed" if not possible else
+           f"not significant (below {FIELD_CURVATURE_Z:g} sigma): 0 assumed, as for a thin lens")
+    return Estimate(None, reason=why)
+
+
 def _refused(data: FitData, loss: str, reason: str) -> FitResult:
     """A result that states ``reason`` for every quantity (value None; never NaN)."""
     n, m = len(data.coc_px), len(data.labels)
@@ -110,7 +160,7 @@ def _refused(data: FitData, loss: str, reason: str) -> FitResult:
 
 
 def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigma_px: float,
-         max_irls: int, pupil: tuple) -> FitResult:
+         max_irls: int, pupil: tuple, field_curvature: str = "off") -> FitResult:
     """The body of :func:`fit` on validated data (it may raise on data of absurd magnitude;
     :func:`fit` turns that into a refusal)."""
     import jax
@@ -188,6 +238,10 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         free[[at.inv_focus_per_m(k), at.log_n(k), at.floor(k)]] = False
     if fixed_floor:
         free[at.floor()] = False
+    free[at.curvature()] = False
+    curved = [] if field_curvature == "off" else [k for k in range(m) if k not in blocked and _field_spread(data, k)]
+    free_plain = free.copy()  # (without field curvature)
+    free[[at.curvature(k) for k in curved]] = True
     free_idx = np.flatnonzero(free)
 
     fpx = np.where(has_fpx, data.focal_length_px, 0.0)
@@ -228,7 +282,19 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         return theta, weights, converged
 
     with jax.enable_x64(True):
-        theta, weights, converged = irls(theta, row_on, np.ones(n))
+        theta0 = theta
+        theta, weights, converged = irls(theta0, row_on, np.ones(n))
+        if curved and field_curvature == "auto":
+            # Field curvature is kept where the data show it (|kappa| / sigma >= FIELD_CURVATURE_Z);
+            # without any, the fit is the one "off" gives, from the same start.
+            kept = _significant_curvature(theta, free_idx, data, weights, row_on, fpx, fpx_w, floor_w, p_prior,
+                                          curved, npad)
+            if kept != curved:
+                curved = kept
+                free = free_plain.copy()
+                free[[at.curvature(k) for k in curved]] = True
+                free_idx = np.flatnonzero(free)
+                theta, weights, converged = irls(theta0, row_on, np.ones(n))
         # Residuals and Jacobian with the final weights.
         args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
                             p_prior)
@@ -277,6 +343,9 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     scale_sigma = data.blur_scale_sigma(weights * row_on)
     f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons, z,
                     thin, parts, scale_sigma**2)
+    for k, label in enumerate(labels):
+        settings[label]["field_curvature_per_m"] = _curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
+                                                                       field_curvature, _field_spread(data, k), z)
     if p_source == "assumed":
         p_est = Estimate(P0, 0.0, (P0, P0), (P0, P0),
                          "assumed (a thin lens)" if thin else "assumed (given as pupil_magnification)")

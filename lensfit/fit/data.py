@@ -45,6 +45,10 @@ class FitData:
     #: of ``dropped``, the edges whose blur outgrew the clean room around them (flag
     #: ``window_truncated``)
     dropped_truncated: int = 0
+    #: each sample's squared field, ``(field_radius_px / f_px)^2`` (the tangent of its field angle,
+    #: squared), where its field radius and its setting's focal length in px are known; NaN where
+    #: not (lensfit.fit.model: field curvature)
+    field2: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def blur_scale_sigma(self, weights: np.ndarray | None = None) -> float:
         """The estimator's shared relative scale error for this fit: each sample's weighted by
@@ -164,7 +168,19 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
                    np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r)
-                             else disk_scale_sigma(float(r["coc_diameter_px"])) for r in used]), truncated)
+                             else disk_scale_sigma(float(r["coc_diameter_px"])) for r in used]), truncated,
+                   _field2(used, [fpx[idx[str(r["setting"])]] for r in used]))
+
+
+def _field2(rows: list[dict[str, Any]], fpx: list[float]) -> np.ndarray:
+    """``(field_radius_px / f_px)^2`` per row, NaN where either is unknown (or not a finite
+    radius >= 0)."""
+    out = np.full(len(rows), math.nan)
+    for i, (r, f) in enumerate(zip(rows, fpx)):
+        radius = r.get("field_radius_px")
+        if radius is not None and math.isfinite(float(radius)) and float(radius) >= 0 and math.isfinite(f):
+            out[i] = (float(radius) / f) ** 2
+    return out
 
 
 def _flags(row: dict[str, Any]) -> set[str]:

@@ -13,8 +13,9 @@ from lensfit.fit.constants import BLUR_POWER_MEAN, _EPS_PX, _NODES_W
 class Layout(NamedTuple):
     """Where each parameter sits in the solver's flat vector, for ``m`` settings: ``log f``;
     per setting ``k`` the inverse focus distance in dioptres (``inv_focus_per_m(k)``), ``log N``
-    (``log_n(k)``) and the blur floor in px (``floor(k)``); ``log P`` last. Without ``k``, the
-    slice of all settings."""
+    (``log_n(k)``) and the blur floor in px (``floor(k)``); ``log P``; then per setting the field
+    curvature in dioptres (``curvature(k)``: how far the in-focus inverse distance moves per unit
+    squared tangent of the field angle). Without ``k``, the slice of all settings."""
 
     m: int
 
@@ -22,7 +23,10 @@ class Layout(NamedTuple):
 
     @property
     def size(self) -> int:
-        return 2 + 3 * self.m
+        return 2 + 4 * self.m
+
+    def curvature(self, k: int | None = None):
+        return slice(2 + 3 * self.m, 2 + 4 * self.m) if k is None else 2 + 3 * self.m + k
 
     def inv_focus_per_m(self, k: int | None = None):
         return slice(1, 1 + self.m) if k is None else 1 + k
@@ -73,29 +77,35 @@ def _distance_scale(xp, s, pitch, fpx_cal):
     return xp.where(fpx_cal > 0, pitch * fpx_cal / s, 1.0)
 
 
-def _model(theta, m, setting, w_nodes, pitch, fpx_cal, pose):
+def _model(theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
     """Blur diameter in px of each sample (JAX); ``pose`` (0/1 per sample): its distances come
-    from a target pose solved with the setting's calibrated ``fpx_cal`` (and scale with it)."""
+    from a target pose solved with the setting's calibrated ``fpx_cal`` (and scale with it);
+    ``field2`` its squared field (0 where unknown): field curvature moves its in-focus inverse
+    distance to ``x + kappa field2``."""
     import jax.numpy as jnp
 
     log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(theta, m)
+    kappa = theta[Layout(m).curvature()] / 1000.0  # 1/mm
     f = jnp.exp(log_f)
     x = inv_focus_per_m / 1000.0  # 1/mm
     s = _pinhole_distance(jnp, f, x, jnp.exp(log_p))
     slope_px = f * s / jnp.exp(log_n) / pitch  # K/p = A S / p
     k = setting
     mu = 1.0 + pose * (_distance_scale(jnp, s, pitch, fpx_cal)[k] - 1.0)
-    return _edge_blur(jnp, slope_px[k], x[k], w_nodes * mu[:, None], floor[k]), s
+    w = w_nodes * mu[:, None] - (kappa[k] * field2)[:, None]
+    return _edge_blur(jnp, slope_px[k], x[k], w, floor[k]), s
 
 
-def _model_np(theta, m, k, w_nodes, pitch, fpx_cal=0.0, pose=0.0):
+def _model_np(theta, m, k, w_nodes, pitch, fpx_cal=0.0, pose=0.0, field2=0.0):
     """The same for the samples of setting ``k`` (NumPy); ``fpx_cal`` that setting's calibrated
-    focal length in px (0: none), ``pose`` 0/1 per sample or one for all."""
+    focal length in px (0: none), ``pose`` 0/1 and ``field2`` per sample or one for all."""
     log_f, inv_focus_per_m, log_n, floor, log_p = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
+    kappa = float(np.asarray(theta)[Layout(m).curvature(k)]) / 1000.0
     f = math.exp(log_f)
     x = inv_focus_per_m[k] / 1000.0
     s = float(_pinhole_distance(np, f, x, math.exp(log_p)))
     n = len(w_nodes)
     mu = 1.0 + np.asarray(pose, float) * (float(_distance_scale(np, s, pitch, np.float64(fpx_cal))) - 1.0)
+    shift = kappa * np.broadcast_to(np.nan_to_num(np.asarray(field2, float)), (n,))
     return _edge_blur(np, np.full(n, f * s / math.exp(log_n[k]) / pitch), np.full(n, x),
-                      w_nodes * np.broadcast_to(mu, (n,))[:, None], np.full(n, floor[k]))
+                      w_nodes * np.broadcast_to(mu, (n,))[:, None] - shift[:, None], np.full(n, floor[k]))

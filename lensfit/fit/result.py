@@ -131,7 +131,7 @@ class FitResult:
         return self.code == Outcome.OK
 
     def predict_px(self, setting: str, distance_mm: np.ndarray, pose: bool = False) -> np.ndarray:
-        """Model blur diameter (px) of a fronto-parallel edge at ``distance_mm`` from the lens;
+        """Model blur diameter (px) of a fronto-parallel edge on the axis at ``distance_mm`` from the lens;
         ``pose``: a distance as the setting's target poses measure it (scaled by its
         calibration's focal length, as the samples' are), not the true one."""
         k = self.samples.labels.index(setting)
@@ -174,7 +174,7 @@ def _finite(x: float) -> float | None:
 
 def _parameter_names(labels: list[str]) -> list[str]:
     return (["log_f"] + [f"inv_focus_per_m[{k}]" for k in labels] + [f"log_N[{k}]" for k in labels]
-            + [f"floor_px[{k}]" for k in labels] + ["log_P"])
+            + [f"floor_px[{k}]" for k in labels] + ["log_P"] + [f"field_curvature_per_m[{k}]" for k in labels])
 
 
 def results_document(result: FitResult, command: Iterable[str] | None = None,

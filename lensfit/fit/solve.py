@@ -15,10 +15,10 @@ def _residuals(theta_free, args):
     """Weighted residuals: blur rows, then the focal-length-in-px rows, then the floor priors."""
     import jax.numpy as jnp
 
-    (theta_fixed, free_idx, m, setting, w_nodes, pose, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w, floor_w,
+    (theta_fixed, free_idx, m, setting, w_nodes, pose, field2, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w, floor_w,
      p_prior) = args
     theta = theta_fixed.at[free_idx].set(theta_free)
-    c, s = _model(theta, m, setting, w_nodes, pitch, fpx, pose)
+    c, s = _model(theta, m, setting, w_nodes, pitch, fpx, pose, field2)
     r_blur = (c - coc) * sqrt_w_over_sigma
     r_fpx = (s / pitch - fpx) * fpx_w
     at = Layout(m)
@@ -127,7 +127,8 @@ def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, 
         return jnp.asarray(np.concatenate([a, np.full((pad, *np.shape(a)[1:]), fill)]))
 
     return (jnp.asarray(theta), jnp.asarray(free_idx), padded(data.setting.astype(np.int32), 0),
-            padded(data.w_nodes, 1e-3), padded(data.pose.astype(np.float64), 0.0), padded(data.coc_px, 1.0),
+            padded(data.w_nodes, 1e-3), padded(data.pose.astype(np.float64), 0.0),
+            padded(np.nan_to_num(data.field2), 0.0), padded(data.coc_px, 1.0),
             padded(sqrt_w_over_sigma, 0.0),
             data.pixel_pitch_mm, jnp.asarray(fpx), jnp.asarray(fpx_w), jnp.asarray(floor_w),
             jnp.asarray(p_prior, dtype=jnp.float64))
@@ -145,5 +146,6 @@ def _predict_all(theta: np.ndarray, m: int, data: FitData) -> np.ndarray:
     fpx = np.nan_to_num(data.focal_length_px, nan=0.0)
     for k in range(m):
         sel = data.setting == k
-        out[sel] = _model_np(theta, m, k, data.w_nodes[sel], data.pixel_pitch_mm, fpx[k], data.pose[sel])
+        out[sel] = _model_np(theta, m, k, data.w_nodes[sel], data.pixel_pitch_mm, fpx[k], data.pose[sel],
+                             data.field2[sel])
     return out
