@@ -221,17 +221,18 @@ def _edge_image(offsets, size, angle, scale_along=lambda s: 1.0):
 @pytest.mark.parametrize("spread", [0.02, 1.5])
 def test_the_spot_is_read_on_a_tilted_edge_whose_blur_is_even_along_it(spread):
     """A tilted board's edge spans depth (here 3 %), and far from focus its blur hardly changes
-    along it. The retrofocus's core-in-a-halo spot (traced here), scaled by 1 -+ spread/2 from
-    one end of the edge to the other: where it changes by 2 %, the estimator reads the spot's
-    shape and its second moment within 2.5 % (a uniform disk reads it 20 % small, as it did on
-    every edge across depth before); where it changes sevenfold, the mixture of spot sizes is
-    read as a uniform disk (the reading the fit's power mean describes), not as a shape."""
+    along it. The retrofocus's core-in-a-halo spot (traced here, 12.7 px), scaled by
+    1 -+ spread/2 from one end of the edge to the other: where it changes by 2 %, the estimator
+    reads the spot's shape and its second moment within 2.5 % (a uniform disk reads it 8 %
+    small, as it did on every edge across depth before); where it changes sevenfold, the mixture
+    of spot sizes is read as a uniform disk (the reading the fit's power mean describes), not as a
+    shape."""
     from lensfit.estimators import EdgeTask
     from lensfit.estimators.edge import measure
 
     f = paraxial(load_prescription("retrofocus-24")).efl_mm
     cam = _camera("retrofocus-24", 5.6, 40 * f, pitch=PITCH * f / 50)
-    o = np.sort(spot_offsets_px(cam, 1.15 * cam.focus_distance_mm, 0.0, n=400_000) * PITCH / cam.pixel_pitch_mm)
+    o = np.sort(spot_offsets_px(cam, 1.5 * cam.focus_distance_mm, 0.0, n=400_000) * PITCH / cam.pixel_pitch_mm)
     size, half = 160, 50.0
     img, n = _edge_image(o, size, math.radians(5.0), lambda s: 1.0 + spread * np.clip(s, -half, half) / (2 * half))
     t = np.array([-n[1], n[0]])

@@ -30,9 +30,10 @@ Method
     logit t ~ 0 +- 2), started from the best of a grid of cores and rims that keep the disk's
     second moment (two disks have more than one local minimum); flag ``shaped_spot``,
     its sigma a 3 % model error in quadrature with the fit's own. Only where the blur is the same
-    along the edge: at one depth (within 1 %), or with the disk diameters of its two halves within
-    ``SHAPE_MAX_STRIP_SPREAD`` of each other; elsewhere the profile mixes spots of several sizes,
-    which the fit's model describes as the power mean of a uniform-disk reading. (Shaped only on
+    along the edge: at one depth (within 1 %), or, from ``SHAPE_ACROSS_MIN_PX``, with the disk
+    diameters of its two halves within ``SHAPE_MAX_STRIP_SPREAD`` of each other; elsewhere the
+    profile mixes spots of several sizes, which the fit's model describes as the power mean of a
+    uniform-disk reading. (Shaped only on
     edges at one depth and beyond 1.5 standard errors, the tilted boards' core-and-halo spots of a
     retrofocus lens at f/5.6 read 7-18 % small, N 3 % high with them.) The window across the edge
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
@@ -135,6 +136,15 @@ SHAPE_MAX_DEPTH_SPAN = 0.01
 #: to end, and the two-disk reading of that mixture of spots, the RMS of their diameters, differs
 #: from the power mean the fit's model takes by under 0.2 %; see ``_even_along``).
 SHAPE_MAX_STRIP_SPREAD = 0.1
+#: ... and where its uniform-disk reading is at least this wide. Smaller spots of a thin lens
+#: stopped down (synth's camera-raw scene: f/11, Airy scale 1-1.5 px) look like a core in a halo
+#: too, and the two-disk reading counts the Airy tails into the second moment (3 px spots read
+#: 35-45 % large, 6-7 px ones 11-15 %, against 15-25 % and 6-8 % through the uniform disk): shaping
+#: every even edge took that stack's N 4.6 % low where it is fitted without the diffraction model
+#: (from 6 px: 0.2 %). On the retrofocus at f/5.6 (Airy scale 0.5 px) the tilted boards' 8-12 px
+#: core-in-a-halo spots are what needs it: far N +0.7 % of the real-ray f-number (from every even
+#: edge -0.5 %; none +3.1 %).
+SHAPE_ACROSS_MIN_PX = 6.0
 #: Model error (relative, 1 sigma) of the second moment read through the shaped profile.
 SHAPE_MODEL_REL = 0.03
 
@@ -404,11 +414,11 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         if second_moment and attempt == 1 and airy is None:
             # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
             # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
-            misfit = [j for j, (theta, _, rms, _, _) in enumerate(fits)
-                      if rms > SHAPE_RMS and 2.0 * math.sqrt(squared_radius(np, float(theta[1]))) >= SHAPE_MIN_PX]
+            diameter = [2.0 * math.sqrt(squared_radius(np, float(theta[1]))) for theta, *_ in fits]
+            misfit = [j for j, (_, _, rms, _, _) in enumerate(fits) if rms > SHAPE_RMS and diameter[j] >= SHAPE_MIN_PX]
             across = [j for j in misfit if not _at_one_depth(tasks[index[j]])]
-            even = _even_along([batch[j] for j in across])
-            keep = {j for j, ok in zip(across, even) if not ok}
+            wide = [j for j in across if diameter[j] >= SHAPE_ACROSS_MIN_PX]
+            keep = set(across) - {j for j, ok in zip(wide, _even_along([batch[j] for j in wide])) if ok}
             shaped = [j for j in misfit if j not in keep]
             for j, refit in zip(shaped, _fit([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
                                              None if airy is None else [airy[j] for j in shaped])):
