@@ -116,7 +116,9 @@ def _second_vertex(data, theta, full_cov, weights, blocked: dict, fixed_floor: b
                                            not fixed_floor, blur_floor_px or 0.0)
         x_fit = theta[at.inv_focus_per_m(k)] / 1000.0
         sd_x = math.sqrt(max(full_cov[at.inv_focus_per_m(k), at.inv_focus_per_m(k)], 0.0)) / 1000.0
-        far = np.abs(grid - x_fit) > max(5 * sd_x, 0.02 * np.ptp(data.w_mean[sel]))
+        # (the profile is the flat-field one: with field curvature its vertex is the field's mean)
+        x_flat = x_fit + theta[at.curvature(k)] / 1000.0 * float(np.mean(np.nan_to_num(data.field2[sel])))
+        far = np.abs(grid - x_flat) > max(5 * sd_x, 0.02 * np.ptp(data.w_mean[sel]))
         if far.any() and chi2[far].min() < chi2.min() + 9.0 * scale2:
             alt = grid[far][np.argmin(chi2[far])]
             alt_mm = f"{1 / alt:.0f} mm" if alt > 0 else "infinity"
