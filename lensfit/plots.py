@@ -16,8 +16,9 @@ def plot_fit(result: FitResult, path, *, title: str | None = None, image_format:
     """Write a PNG/SVG/PDF (by suffix, or ``image_format`` for a file object) of the samples,
     the fitted V per setting and residuals.
 
-    Top: measured blur diameter (px, with 1-sigma bars) against inverse distance (1/m); the
-    fitted model for a fronto-parallel edge; the focus distance marked. Bottom: residuals in
+    Top: measured blur diameter (px, with 1-sigma bars) against inverse distance (1/m; where field
+    curvature was fitted, each sample's moved to the axis); the fitted model for a fronto-parallel
+    edge on the axis; the focus distance marked. Bottom: residuals in
     units of each sample's sigma, outliers (robust weight below 0.5) hollow.
     """
     import matplotlib
@@ -35,9 +36,14 @@ def plot_fit(result: FitResult, path, *, title: str | None = None, image_format:
         col = colours[k % len(colours)]
         sel = data.setting == k
         w = 1000.0 * data.w_mean[sel]
+        fc = result.settings[label].get("field_curvature_per_m")
+        moved = fc is not None and fc.value is not None
+        if moved:  # each sample where its blur puts it on the axis: 1/d - kappa tan^2(field angle)
+            w = w - fc.value * np.nan_to_num(data.field2[sel])
         good = result.weights[sel] >= 0.5
         ax.errorbar(w[good], data.coc_px[sel][good], yerr=data.sigma_px[sel][good], fmt="o", ms=3, color=col,
-                    alpha=0.7, lw=0.8, label=f"setting {label}: {int(sel.sum())} edges")
+                    alpha=0.7, lw=0.8, label=f"setting {label}: {int(sel.sum())} edges"
+                    + (" (moved to the axis by the fitted field curvature)" if moved else ""))
         if (~good).any():
             ax.plot(w[~good], data.coc_px[sel][~good], "o", mfc="none", color=col, ms=5, label="down-weighted")
         est = result.settings[label]
