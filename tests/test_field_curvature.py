@@ -101,3 +101,11 @@ def test_without_field_radii_the_curvature_is_not_fitted_and_says_why():
 def test_a_bad_field_curvature_mode_is_refused():
     with pytest.raises(InputError, match="field_curvature"):
         run(simulate(-300.0, np.random.default_rng(2), n=20), "yes")
+
+
+def test_a_bad_field_radius_is_refused_by_name():
+    rows = simulate(-300.0, np.random.default_rng(2), n=20)
+    rows[3]["field_radius_px"] = -4.0
+    with pytest.raises(InputError, match=r"samples\[3\]\.field_radius_px"):
+        run(rows)
+

@@ -33,9 +33,9 @@ Method
     along the edge: at one depth (within 1 %), or, from ``SHAPE_ACROSS_MIN_PX``, with the disk
     diameters of its two halves within ``SHAPE_MAX_STRIP_SPREAD`` of each other; elsewhere the
     profile mixes spots of several sizes, which the fit's model describes as the power mean of a
-    uniform-disk reading. (Shaped only on
-    edges at one depth and beyond 1.5 standard errors, the tilted boards' core-and-halo spots of a
-    retrofocus lens at f/5.6 read 7-18 % small, N 3 % high with them.) The window across the edge
+    uniform-disk reading. (Shaped only on edges at one depth and beyond 1.5 standard errors, the
+    tilted boards' core-and-halo spots of a retrofocus lens at f/5.6 read 7-18 % small, N 3 %
+    high with them.) The window across the edge
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
     each side, and the ends of the segment are skipped by the window plus the blur, so that
     neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
@@ -418,8 +418,8 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             misfit = [j for j, (_, _, rms, _, _) in enumerate(fits) if rms > SHAPE_RMS and diameter[j] >= SHAPE_MIN_PX]
             across = [j for j in misfit if not _at_one_depth(tasks[index[j]])]
             wide = [j for j in across if diameter[j] >= SHAPE_ACROSS_MIN_PX]
-            keep = set(across) - {j for j, ok in zip(wide, _even_along([batch[j] for j in wide])) if ok}
-            shaped = [j for j in misfit if j not in keep]
+            uneven = set(across) - {j for j, ok in zip(wide, _even_along([batch[j] for j in wide])) if ok}
+            shaped = [j for j in misfit if j not in uneven]
             for j, refit in zip(shaped, _fit([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
                                              None if airy is None else [airy[j] for j in shaped])):
                 fits[j] = refit

@@ -169,17 +169,26 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
                    np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r)
                              else disk_scale_sigma(float(r["coc_diameter_px"])) for r in used]), truncated,
-                   _field2(used, [fpx[idx[str(r["setting"])]] for r in used]))
+                   _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows))
 
 
-def _field2(rows: list[dict[str, Any]], fpx: list[float]) -> np.ndarray:
-    """``(field_radius_px / f_px)^2`` per row, NaN where either is unknown (or not a finite
-    radius >= 0)."""
+def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> np.ndarray:
+    """``(field_radius_px / f_px)^2`` per row, NaN where either is unknown; ``where``: each row's
+    index in the input, for the error a bad radius gets."""
     out = np.full(len(rows), math.nan)
-    for i, (r, f) in enumerate(zip(rows, fpx)):
+    for i, (r, f, row) in enumerate(zip(rows, fpx, where)):
         radius = r.get("field_radius_px")
-        if radius is not None and math.isfinite(float(radius)) and float(radius) >= 0 and math.isfinite(f):
-            out[i] = (float(radius) / f) ** 2
+        if radius is None:
+            continue
+        try:
+            value = float(radius)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0):
+            raise InputError(f"samples[{row}].field_radius_px", radius, ">= 0 px and finite",
+                             "the distance of the edge's middle from the principal point in px, or leave it out")
+        if math.isfinite(f):
+            out[i] = (value / f) ** 2
     return out
 
 
