@@ -165,6 +165,22 @@ def test_defocus_blur_follows_the_real_ray_f_number(name, N):
         assert c_eq == pytest.approx(c_real, rel=0.012), (k, c_eq, c_real, float(cam.coc_diameter_px(d)))
 
 
+def _edge_image(offsets, size, angle, scale_along=lambda s: 1.0):
+    """A slanted edge (normal at ``angle``) blurred by the spot whose offsets across the edge are
+    ``offsets`` (px), each point's spot scaled by ``scale_along(s)`` (s: px along the edge from the
+    centre): the spot's cumulative distribution, averaged over 8 x 8 points of each pixel."""
+    n = np.array([math.cos(angle), math.sin(angle)])
+    yy, xx = np.mgrid[0:size, 0:size].astype(float)
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    img = np.zeros((size, size))
+    for du in sub:
+        for dv in sub:
+            x, y = xx + du - size / 2, yy + dv - size / 2
+            k = scale_along(-n[1] * x + n[0] * y)
+            img += np.searchsorted(offsets, (x * n[0] + y * n[1]) / k) / len(offsets)
+    return 0.1 + 0.8 * img / sub.size**2, n
+
+
 @pytest.mark.parametrize("name,N,k", [("cooke-triplet-50", 5.0, 0.75), ("telephoto-250", 5.6, 0.9),
                                       ("retrofocus-24", 5.6, 0.6), ("retrofocus-24", 5.6, 1.15)])
 def test_edge_estimator_measures_the_second_moment_of_aberrated_spots(name, N, k):
@@ -181,15 +197,8 @@ def test_edge_estimator_measures_the_second_moment_of_aberrated_spots(name, N, k
     cam = _camera(name, N, 40 * f, pitch=PITCH * f / 50)
     o = np.sort(spot_offsets_px(cam, k * cam.focus_distance_mm, 0.0, n=400_000) * PITCH / cam.pixel_pitch_mm)
     c_eq = 4.0 * np.std(o)
-    size, angle = 160, math.radians(5.0)
-    n = np.array([math.cos(angle), math.sin(angle)])
-    yy, xx = np.mgrid[0:size, 0:size].astype(float)
-    sub = (np.arange(8) + 0.5) / 8 - 0.5
-    img = np.zeros((size, size))
-    for du in sub:
-        for dv in sub:
-            img += np.searchsorted(o, (xx + du - size / 2) * n[0] + (yy + dv - size / 2) * n[1]) / len(o)
-    img = 0.1 + 0.8 * img / sub.size**2
+    size = 160
+    img, n = _edge_image(o, size, math.radians(5.0))
     t = np.array([-n[1], n[0]])
     task = EdgeTask(np.array([size / 2] * 2) - 50 * t, np.array([size / 2] * 2) + 50 * t, 75.0, 75.0)
     moment = measure(img, [task])[0]
@@ -200,22 +209,6 @@ def test_edge_estimator_measures_the_second_moment_of_aberrated_spots(name, N, k
         assert disk.coc_diameter_px / c_eq - 1 < -0.1
     else:
         assert disk.coc_diameter_px == pytest.approx(c_eq, rel=0.015)
-
-
-def _edge_image(offsets, size, angle, scale_along=lambda s: 1.0):
-    """A slanted edge (normal at ``angle``) blurred by the spot whose offsets across the edge are
-    ``offsets`` (px), each point's spot scaled by ``scale_along(s)`` (s: px along the edge from the
-    centre): the spot's cumulative distribution, averaged over 8 x 8 points of each pixel."""
-    n = np.array([math.cos(angle), math.sin(angle)])
-    yy, xx = np.mgrid[0:size, 0:size].astype(float)
-    sub = (np.arange(8) + 0.5) / 8 - 0.5
-    img = np.zeros((size, size))
-    for du in sub:
-        for dv in sub:
-            x, y = xx + du - size / 2, yy + dv - size / 2
-            k = scale_along(-n[1] * x + n[0] * y)
-            img += np.searchsorted(offsets, (x * n[0] + y * n[1]) / k) / len(offsets)
-    return 0.1 + 0.8 * img / sub.size**2, n
 
 
 @pytest.mark.parametrize("spread", [0.02, 1.5])
