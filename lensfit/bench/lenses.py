@@ -183,7 +183,11 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
                 row["fits"][how] = {"errors": _errors(res, truth, "near"), "result": res.code,
                                     "errors_far": _errors(res, truth, "far") if "far" in res.settings else None,
                                     "pupil_magnification": res.pupil_magnification.value,
-                                    "pupil_magnification_sigma": res.pupil_magnification.sigma}
+                                    "pupil_magnification_sigma": res.pupil_magnification.sigma,
+                                    "field_curvature_per_m": {
+                                        label: {"value": e.value, "sigma": e.sigma, "reason": e.reason}
+                                        for label, qs in res.settings.items()
+                                        if (e := qs.get("field_curvature_per_m")) is not None}}
             rows.append(row)
     return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "near_f_number": NEAR_STOP_FACTOR * f_number,
             "scale": scale, "wavelengths_nm": list(wavelengths_nm), "reused": None if reuse is None else str(reuse)}
