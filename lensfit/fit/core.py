@@ -121,18 +121,10 @@ def _field_spread(data: FitData, k: int) -> bool:
             and float(np.ptp(f2)) >= FIELD_CURVATURE_MIN_SPREAD)
 
 
-def _significant_curvature(theta, free_idx, data, weights, row_on, fpx, fpx_w, floor_w, p_prior, curved, npad):
-    """Of the settings ``curved`` (field curvature free in ``theta``, the solution), those whose
-    curvature differs from 0 by ``FIELD_CURVATURE_Z`` sigma (the model covariance, inflated by
-    the reduced chi-square as the fit's is)."""
-    import jax.numpy as jnp
-
-    m = len(data.labels)
-    args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
-                        p_prior)
-    res, jac = (np.asarray(a) for a in _solver(m)[1](jnp.asarray(theta[free_idx]), args))
-    dof = max(float(np.sum(weights[row_on > 0])) - len(free_idx), 1.0)
-    cov, _, _ = _covariance(jac, max(1.0, float(np.sum(res[:npad] ** 2) / dof)))
+def _significant_curvature(theta, free_idx, cov, m: int, curved: list[int]) -> list[int]:
+    """Of the settings ``curved`` (field curvature free in ``theta``, the solution; ``cov`` the
+    free parameters' model covariance, inflated by the reduced chi-square as the fit's is), those
+    whose curvature differs from 0 by ``FIELD_CURVATURE_Z`` sigma."""
     at, pos = Layout(m), {int(j): i for i, j in enumerate(free_idx)}
     return [k for k in curved if abs(theta[at.curvature(k)]) >= FIELD_CURVATURE_Z * math.sqrt(
         max(cov[pos[at.curvature(k)], pos[at.curvature(k)]], 1e-300))]
@@ -239,9 +231,16 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     if fixed_floor:
         free[at.floor()] = False
     free[at.curvature()] = False
-    curved = [] if field_curvature == "off" else [k for k in range(m) if k not in blocked and _field_spread(data, k)]
     free_plain = free.copy()  # (without field curvature)
-    free[[at.curvature(k) for k in curved]] = True
+
+    def free_with(curved: list[int]) -> np.ndarray:
+        """The free parameters with field curvature fitted in the settings ``curved``."""
+        out = free_plain.copy()
+        out[[at.curvature(k) for k in curved]] = True
+        return out
+
+    curved = [] if field_curvature == "off" else [k for k in range(m) if k not in blocked and _field_spread(data, k)]
+    free = free_with(curved)
     free_idx = np.flatnonzero(free)
 
     fpx = np.where(has_fpx, data.focal_length_px, 0.0)
@@ -281,21 +280,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
             weights = new
         return theta, weights, converged
 
-    with jax.enable_x64(True):
-        theta0 = theta
-        theta, weights, converged = irls(theta0, row_on, np.ones(n))
-        if curved and field_curvature == "auto":
-            # Field curvature is kept where the data show it (|kappa| / sigma >= FIELD_CURVATURE_Z);
-            # without any, the fit is the one "off" gives, from the same start.
-            kept = _significant_curvature(theta, free_idx, data, weights, row_on, fpx, fpx_w, floor_w, p_prior,
-                                          curved, npad)
-            if kept != curved:
-                curved = kept
-                free = free_plain.copy()
-                free[[at.curvature(k) for k in curved]] = True
-                free_idx = np.flatnonzero(free)
-                theta, weights, converged = irls(theta0, row_on, np.ones(n))
-        # Residuals and Jacobian with the final weights.
+    def evaluate(theta, weights):
+        """Residuals and Jacobian with ``weights``, and the reduced chi-square of the blur rows."""
         args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
                             p_prior)
         if free_idx.size:
@@ -303,6 +289,23 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         else:
             res = np.asarray(fn(jnp.asarray(theta[free_idx]), args))
             jac = np.zeros((len(res), 0))
+        dof = max(float(np.sum(weights[row_on > 0])) - len(free_idx), 1.0)
+        return res, jac, float(np.sum(res[:npad] ** 2) / dof) if row_on.any() else 1.0
+
+    with jax.enable_x64(True):
+        theta0 = theta
+        theta, weights, converged = irls(theta0, row_on, np.ones(n))
+        res, jac, chi2_red = evaluate(theta, weights)
+        if curved and field_curvature == "auto":
+            # Field curvature is kept where the data show it (|kappa| / sigma >= FIELD_CURVATURE_Z);
+            # without any, the fit is the one "off" gives, from the same start.
+            kept = _significant_curvature(theta, free_idx, _covariance(jac, max(1.0, chi2_red))[0], m, curved)
+            if kept != curved:
+                curved = kept
+                free = free_with(curved)
+                free_idx = np.flatnonzero(free)
+                theta, weights, converged = irls(theta0, row_on, np.ones(n))
+                res, jac, chi2_red = evaluate(theta, weights)
     if not converged:
         warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
 
@@ -311,8 +314,6 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     used = row_on > 0
     u = resid / data.sigma_px
     n_used = int(used.sum())
-    dof = max(float(np.sum(weights[used])) - len(free_idx), 1.0)
-    chi2_red = float(np.sum(res[:npad] ** 2) / dof) if n_used else 1.0
     scale2 = max(1.0, chi2_red)
     n_out = int(np.sum(np.abs(u[used]) > 5 * math.sqrt(scale2)))
 
