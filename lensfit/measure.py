@@ -60,6 +60,9 @@ class Sample:
     distance_source: str  # "pose" or "manifest"
     #: distance of the edge's middle from its setting's principal point (px; None: not known)
     field_radius_px: float | None = None
+    #: where the reading is a shaped spot's, the uniform disk's reading of the same edge and its sigma (px)
+    disk_diameter_px: float | None = None
+    disk_sigma_px: float | None = None
 
 
 @dataclass
@@ -174,7 +177,9 @@ class SampleTable:
                     sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
                     estimator=str(r.get("estimator", "")), flags=str(r.get("flags", "") or ""),
                     start_px=tuple(start), end_px=tuple(end), distance_source=str(r.get("distance_source", "")),
-                    field_radius_px=None if r.get("field_radius_px") is None else float(r["field_radius_px"])))
+                    field_radius_px=None if r.get("field_radius_px") is None else float(r["field_radius_px"]),
+                    disk_diameter_px=None if r.get("disk_diameter_px") is None else float(r["disk_diameter_px"]),
+                    disk_sigma_px=None if r.get("disk_sigma_px") is None else float(r["disk_sigma_px"])))
             except (AttributeError, KeyError, TypeError, ValueError) as exc:
                 raise SpecError(path, f"samples[{i}]", f"unreadable sample ({exc!r}); expected the columns "
                                 "lensfit measure writes") from None
@@ -469,7 +474,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
                 coc_diameter_px=est.coc_diameter_px, sigma_px=est.sigma_px, estimator=estimator,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source,
-                field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px)))))
+                field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px))),
+                disk_diameter_px=est.disk_diameter_px, disk_sigma_px=est.disk_sigma_px))
             table.fit_rms.append(est.rms_residual)
             table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
                                              read_task.clear_right_px, {k: v for k, v in read_task.context.items()

@@ -52,7 +52,10 @@ PROGRAMS = ("lensfit", "synth")
 #: The header line ``lensfit measure`` writes to a samples CSV (lensfit.measure.SampleTable.COLUMNS).
 SAMPLES_CSV_COLUMNS = ("image", "setting", "target", "edge", "distance_mm", "coc_diameter_px", "sigma_px",
                        "estimator", "flags", "distance_start_mm", "distance_end_mm", "start_px", "end_px",
-                       "distance_source", "field_radius_px")
+                       "distance_source", "field_radius_px", "disk_diameter_px", "disk_sigma_px")
+#: Headers earlier versions wrote (their files are lensfit's to replace with --force): before
+#: disk_diameter_px and disk_sigma_px (2026-11-25) and before field_radius_px (2026-11-24).
+SAMPLES_CSV_EARLIER = (SAMPLES_CSV_COLUMNS[:-2], SAMPLES_CSV_COLUMNS[:-3])
 #: The calibration columns after them (each row repeats its setting's calibration, so that a
 #: refit from the CSV alone equals the fit from the stack).
 SAMPLES_CSV_CALIBRATION = ("pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
@@ -128,7 +131,8 @@ def written_by(path: str | Path) -> str | None:
     if suffix == ".csv":
         first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
         header = next(csv.reader([first]), None)
-        known = (list(SAMPLES_CSV_COLUMNS), list(SAMPLES_CSV_COLUMNS + SAMPLES_CSV_CALIBRATION))
+        known = [list(cols + cal) for cols in (SAMPLES_CSV_COLUMNS, *SAMPLES_CSV_EARLIER)
+                 for cal in ((), SAMPLES_CSV_CALIBRATION)]
         return "lensfit" if header in known else None
     if suffix == ".png":
         return _png_software(head)

@@ -24,23 +24,25 @@ by the neighbouring edges' Airy tails, which widened f's interval 2.5x where the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from lensfit.diffraction import DEFAULT_WAVELENGTH_NM, airy_scale_px, working_f_number
+from lensfit.diffraction import DEFAULT_WAVELENGTH_NM
 from lensfit.errors import InputError
+from lensfit.fit.data import AIRY_NOT_SEEN
+from lensfit.fit.spots import AUTO_MIN_AIRY_PX, airy_per_setting
 
 #: Re-measurements at most, and the change of every f-number below which they stop.
 MAX_ROUNDS = 4
 SETTLED_REL = 1e-3
-#: The diffraction test: the Airy scale (px, at the default wavelength) from which it runs (below
-#: it the pattern moves the f-number by well under its sigma); the edges it looks at (a plain
+#: The diffraction test (run from an Airy scale of AUTO_MIN_AIRY_PX at 550 nm, where the pattern
+#: starts to matter: lensfit.fit.spots): the edges it looks at (a plain
 #: reading below this many px or Airy scales, where the pattern shapes the profile); how many it
 #: needs and reads at most, and the share of them the Airy model must fit better.
-AUTO_MIN_AIRY_PX = 0.5
 TEST_MAX_BLUR_PX = 4.0
 TEST_MAX_BLUR_AIRY = 4.0
 TEST_MIN_EDGES = 8
@@ -78,29 +80,6 @@ def diffraction_test(stack: Any, table: Any, airy: dict[str, float]) -> dict[str
             "airy_scale_px": dict(airy), "modelled": decided}
 
 
-def airy_per_setting(table: Any, result: Any, wavelength_nm: float) -> dict[str, float]:
-    """Each setting's Airy scale ``lambda N_w / p`` (px) from a fit: ``N_w = f_px p / A``. Where
-    the fit reported no aperture (the Airy pattern itself can make the f-number too uncertain to
-    report before diffraction is modelled) its solution's ``A = f / N`` serves as the start; a
-    setting without one takes the median scale of the others (0 if none)."""
-    from lensfit.fit.model import Layout
-
-    pitch = table.pixel_pitch_mm
-    at = Layout(len(result.samples.labels))
-    out: dict[str, float] = {}
-    for label, qs in result.settings.items():
-        intr = table.intrinsics.get(label)
-        a = qs["aperture_diameter_mm"].value
-        if a is None and len(result._full) == at.size:
-            k = result.samples.labels.index(label)
-            a = math.exp(result._full[at.LOG_F] - result._full[at.log_n(k)])
-        if intr is not None and a and math.isfinite(a) and a > 0:
-            out[label] = airy_scale_px(wavelength_nm, working_f_number(intr.focal_length_px * pitch, a), pitch)
-    known = sorted(out.values())
-    fill = known[len(known) // 2] if known else 0.0
-    return {label: out.get(label, fill) for label in result.settings}
-
-
 def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float | None = None,
                     fit_options: dict[str, Any] | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
@@ -108,7 +87,9 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     """Measure ``stack`` and fit it; with ``wavelength_nm`` (the light's effective wavelength, e.g.
     550 for a grey or green-weighted image) model diffraction in the blur readings; without it
     but with ``auto_diffraction``, model it (at 550 nm) where the edges show it
-    (:func:`diffraction_test`; its evidence is left in the samples' ``diffraction``).
+    (:func:`diffraction_test`; its evidence is left in the samples' ``diffraction``). Where the
+    test finds no Airy pattern, the samples are flagged ``airy_not_seen`` and the fit reads the
+    spots' shapes; where it cannot test, the fit decides by itself (``lensfit.fit.spots``).
 
     Returns (samples, fit result, rounds): ``rounds`` lists the Airy scales (px per setting) each
     diffraction round measured with (empty without diffraction).
@@ -131,15 +112,25 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         stack = load_stack(Path(stack))
     options = dict(fit_options or {})
     table = measure(stack, estimator, progress=progress)
-    result = fit(table, **options)
+    auto = wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk")
+    # Where the images are tested for the Airy pattern (or read through it), the first fit takes
+    # the spots' second moments as they are: the test decides (lensfit.fit.spots).
+    first = options.get("spot_shape", "auto")
+    result = fit(table, **{**options, "spot_shape": "shaped" if first == "auto" and (auto or wavelength_nm)
+                           else first})
     rounds: list[dict[str, float]] = []
-    if wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk"):
-        airy = airy_per_setting(table, result, DEFAULT_WAVELENGTH_NM)
+    if auto:
+        airy = airy_per_setting(result, DEFAULT_WAVELENGTH_NM)
         if max(airy.values(), default=0.0) >= AUTO_MIN_AIRY_PX:
             evidence = table.diffraction = diffraction_test(stack, table, airy)
             if evidence["modelled"]:
                 wavelength_nm = DEFAULT_WAVELENGTH_NM
-            else:
+            elif evidence["edges"] >= TEST_MIN_EDGES:  # no Airy pattern: the spots' shapes are the lens's
+                table.samples = [dataclasses.replace(s, flags=";".join(filter(None, (s.flags, AIRY_NOT_SEEN))))
+                                 for s in table.samples]
+            else:  # not tested: where the pattern would matter, the uniform disk's readings
+                result = fit(table, **options)
+            if not evidence["modelled"]:
                 scales = ", ".join(f"{k} {v:.2f} px" for k, v in airy.items())
                 why = (f"only {evidence['edges']} edge(s) with small blur to test it on"
                        if evidence["edges"] < TEST_MIN_EDGES else
@@ -150,7 +141,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     if wavelength_nm is None:
         return table, result, rounds
     for _ in range(MAX_ROUNDS):
-        airy = airy_per_setting(table, result, wavelength_nm)
+        airy = airy_per_setting(result, wavelength_nm)
         if not any(airy.values()):
             result.warnings.append("diffraction not modelled: no setting's aperture was determined")
             break

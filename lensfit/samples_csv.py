@@ -22,7 +22,8 @@ def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
 
 def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
     numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
-               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "field_radius_px")
+               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "field_radius_px",
+               "disk_diameter_px", "disk_sigma_px")
     rows = []
     with path.open(newline="") as fh:
         reader = csv.DictReader(fh)

@@ -178,8 +178,11 @@ def test_the_fit_with_diffraction_recovers_the_f_number(diffraction_stack):
     s = float(lens["sensor_distance_mm"])
     assert rounds[-1]["a"] == pytest.approx(550e-6 * n_true * s / truth["focal_length_mm"] / truth["pixel_pitch_mm"],
                                             rel=0.02)
-    # Without the model the blur floor takes the Airy pattern and N's interval is several times wider.
-    assert plain.settings["a"]["f_number"].sigma > 2 * n.sigma
+    # Without the model (and untested) the fit takes the uniform disk's readings, whose blur floor
+    # takes the Airy pattern: N's interval is wider and still holds the truth.
+    p = plain.settings["a"]["f_number"]
+    assert any("shapes were not used" in w for w in plain.warnings)
+    assert p.sigma > 1.5 * n.sigma and p.ci95[0] <= n_true <= p.ci95[1]
 
 
 def test_the_command_line_refuses_an_absurd_wavelength_and_a_samples_file(tmp_path, capsys):

@@ -44,16 +44,15 @@ def test_fit_of_a_rendered_calibration_stack(calibration_stack, calibration_samp
     assert r.chi2_reduced < 5  # the model describes the measured blur
 
 
-def test_fit_cli_writes_results_plot_and_compares_with_truth(calibration_stack, calibration_samples, tmp_path,
-                                                            capsys):
+def test_fit_cli_writes_results_plot_and_compares_with_truth(calibration_stack, tmp_path, capsys):
     from lensfit.cli import main
 
     samples = tmp_path / "samples.json"
-    calibration_samples.write(samples)
     truth_copy = tmp_path / "stack"
     out, plot = tmp_path / "results.json", tmp_path / "fit.png"
-    # From the stack folder (measure + fit), with the truth beside it.
-    assert main(["fit", str(calibration_stack), "--out", str(out), "--plot", str(plot)]) == 0
+    # From the stack folder (measure + fit), with the truth beside it; the samples as fitted
+    # (with the diffraction test's verdict on them).
+    assert main(["fit", str(calibration_stack), "--out", str(out), "--plot", str(plot), "--samples", str(samples)]) == 0
     text = capsys.readouterr().out
     assert "truth" in text and "focal_length_mm" in text and "%" in text
     doc = json.loads(out.read_text())

@@ -34,7 +34,7 @@ from typing import Any, Callable
 
 from lensfit.errors import InputError
 from lensfit.fit import fit
-from lensfit.measure import measure
+from lensfit.pipeline import measure_and_fit
 from lensfit.specs import load_toml, specs_dir
 
 LENGTH_KEYS = ("distance_mm", "square_mm", "marker_mm", "size_mm", "offset_mm", "pixel_pitch_mm", "focus_distance_mm")
@@ -165,7 +165,9 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
             truth = json.loads((folder / "truth.json").read_text())
             say(f"{name}: measuring")
             t0 = time.perf_counter()
-            table = measure(folder)
+            # As `lensfit fit`: the images tested for the Airy pattern, which decides the readings
+            # (the spots' shapes, or the pattern modelled; lensfit.fit.spots).
+            table = measure_and_fit(folder, auto_diffraction=True)[0]
             t_measure = time.perf_counter() - t0
             near = [s for s in table.samples if s.setting == "near"]
             one = copy.copy(table)

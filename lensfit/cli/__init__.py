@@ -166,6 +166,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "the in-focus inverse distance 1/X + kappa tan^2(field angle), the reported X on the axis; "
                          "auto (default) fits kappa and keeps it where it differs from 0 by 3 sigma, on keeps it "
                          "always, off assumes 0 (a thin lens)")
+    ft.add_argument("--spot-shape", choices=("auto", "shaped", "disk"), default="auto",
+                    help="where an edge's spot was read both ways, the blur reading to fit: shaped (its second "
+                         "moment through the spot's shape: a real lens's rims and cores), disk (the uniform disk's), "
+                         "or auto (default): shaped, unless the Airy pattern would reach 0.5 px and the images were "
+                         "not tested for it")
     ft.add_argument("--diffraction", type=_diffraction, nargs="?", const=550.0, default="auto",
                     metavar="NM|auto|off",
                     help="diffraction in the blur readings (the Airy pattern of each setting's working f-number): "

@@ -195,7 +195,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     forced = isinstance(args.diffraction, float)  # a wavelength; else "auto" or "off"
     options = dict(pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
                    blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification,
-                   field_curvature=args.field_curvature)
+                   field_curvature=args.field_curvature, spot_shape=args.spot_shape)
     if source.suffix.lower() in (".csv", ".json") and not source.exists():
         raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
                        "or a stack folder")

@@ -31,7 +31,11 @@ class EdgeTask:
 @dataclass(frozen=True)
 class BlurEstimate:
     """``line_px``: the edge line as the image shows it (two points), where the estimator
-    locates it; used to refine the target's corners for calibration."""
+    locates it; used to refine the target's corners for calibration. ``rms_residual``: the RMS
+    residual, in standard errors, of the estimator's uniform-disk profile (through the Airy pattern
+    where diffraction is modelled), also where the reading is another profile's.
+    ``disk_diameter_px``, ``disk_sigma_px``: where the reading is not the uniform disk's (the
+    ``edge`` estimator's shaped spot), the uniform disk's reading of the same edge and its sigma."""
 
     coc_diameter_px: float | None
     sigma_px: float | None
@@ -39,6 +43,8 @@ class BlurEstimate:
     pixels: int = 0
     rms_residual: float | None = None
     line_px: tuple[tuple[float, float], tuple[float, float]] | None = None
+    disk_diameter_px: float | None = None
+    disk_sigma_px: float | None = None
 
 
 #: Model-error floor shared by the estimators: perspective across a segment and the limits of

@@ -25,17 +25,22 @@ Method
     ``lo + (hi - lo) * ESF_pixel(d - d0; R, a, t)`` is fitted in float64 by Levenberg-Marquardt
     (``lensfit.lm``; parameters: edge offset d0, R^2 (a smooth max(., 0)), the two levels, the
     line's turn), started from a grid search over the radius with the levels solved linearly;
-    first as a uniform disk (a = 0), and where that misfits beyond the noise (RMS residual above
-    ``SHAPE_RMS`` standard errors) again as two disks (a and t free, priors a ~ 0 +- 1 and
+    first as a uniform disk (a = 0), then, wherever the spot's shape can be read (a disk reading
+    of ``SHAPE_MIN_PX`` or more), again as two disks (a and t free, priors a ~ 0 +- 1 and
     logit t ~ 0 +- 2), started from the best of a grid of cores and rims that keep the disk's
-    second moment (two disks have more than one local minimum); flag ``shaped_spot``,
-    its sigma a 3 % model error in quadrature with the fit's own. Only where the blur is the same
+    second moment (two disks have more than one local minimum); flag ``shaped_spot``, the disk's
+    reading kept beside it (``disk_diameter_px``), its sigma the fit's own in quadrature with a
+    model error of ``SHAPE_MODEL_SHARE`` of the two readings' difference (on a uniform disk they
+    agree to the noise; read this way a pure disk's scatter grows by under a fifth at 2-3 px and
+    not at all from 4 px, and its bias stays within 0.1 %). Only where the blur is the same
     along the edge: at one depth (within 1 %), or, from ``SHAPE_ACROSS_MIN_PX``, with the disk
     diameters of its two halves within ``SHAPE_MAX_STRIP_SPREAD`` of each other; elsewhere the
     profile mixes spots of several sizes, which the fit's model describes as the power mean of a
     uniform-disk reading. (Shaped only on edges at one depth and beyond 1.5 standard errors, the
     tilted boards' core-and-halo spots of a retrofocus lens at f/5.6 read 7-18 % small, N 3 %
-    high with them.) The window across the edge
+    high with them; shaped only where the disk misfit beyond the noise, a telephoto's at f/11
+    read 0.7 % small on the far side of focus and 0.25 % large on the near side, its focus
+    distance 0.28 % long.) The window across the edge
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
     each side, and the ends of the segment are skipped by the window plus the blur, so that
     neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
@@ -95,7 +100,7 @@ from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.diffraction import KERNEL_KNOTS, edge_kernel
 from lensfit.estimators.edge_model import (AIRY_START_SHARES, grid_start, residuals, shape_start, squared_radius,
                                            squared_radius_slope)
-from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, select as _select
+from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, select as _select, windows
 
 #: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the
 #: solver's step limit: fixed, so that one compilation serves every stack.
@@ -119,14 +124,9 @@ UNDETERMINED_SIGMA = 3.0
 PROBE_C_PX = 1.0
 PROBE_DCHI2 = 4.0
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
-#: RMS residual (in standard errors of the profile bins) of the uniform-disk fit above which the
-#: profile's shape is fitted too. (1.5 until 2026-11-24: a retrofocus lens's core-and-halo spots
-#: at 64 spp misfit a disk by 1.3-1.4 and read 15-18 % small at -12 of their sigmas; on synth's
-#: thin-lens demo stack the disk's RMS has median 0.73 and the share above 1.2 and 1.5 is alike.)
-SHAPE_RMS = 1.2
-#: Smallest blur diameter (disk reading) whose spot shape is read: below it the pixel footprint
-#: dominates the profile and two disks are not told from one (in noise the shape parameters then
-#: fit the noise; a 2 px core-and-halo spot already reads 12 % low, see the README).
+#: Smallest blur diameter (disk reading) whose spot shape is read (from it, on every edge where
+#: the blur is even along it): below it the pixel footprint dominates the profile and two disks
+#: are not told from one (a 2 px core-and-halo spot in 1 % noise reads 12 % low, see the README).
 SHAPE_MIN_PX = 2.0
 #: Largest relative change of depth along an edge that counts as one depth: on such an edge the
 #: spot's shape is read at once.
@@ -142,11 +142,14 @@ SHAPE_MAX_STRIP_SPREAD = 0.1
 #: 35-45 % large, 6-7 px ones 11-15 %, against 15-25 % and 6-8 % through the uniform disk): shaping
 #: every even edge took that stack's N 4.6 % low where it is fitted without the diffraction model
 #: (from 6 px: 0.2 %). On the retrofocus at f/5.6 (Airy scale 0.5 px) the tilted boards' 8-12 px
-#: core-in-a-halo spots are what needs it: far N +0.7 % of the real-ray f-number (from every even
-#: edge -0.5 %; none +3.1 %).
+#: core-in-a-halo spots are what needs it: far N +0.7 % of the real-ray f-number (none: +3.1 %).
 SHAPE_ACROSS_MIN_PX = 6.0
-#: Model error (relative, 1 sigma) of the second moment read through the shaped profile.
-SHAPE_MODEL_REL = 0.03
+#: Model error (1 sigma) of a shaped reading, as a share of its difference from the uniform
+#: disk's: two disks follow real-ray spots within 0.15-0.3 of what the disk misses (a core in a
+#: halo: 2.5 % where the disk reads 8 % small; 0.1 % where it reads 0.7 % small); on a uniform
+#: disk the two agree to the noise. Below: how many sigmas of a make a shape significant.
+SHAPE_MODEL_SHARE = 0.3
+SHAPE_SIGNIFICANT_Z = 2.0
 
 
 NPIX = STRIPS * NBINS_ACROSS
@@ -330,15 +333,11 @@ def _even_along(profiles: list[tuple]) -> list[bool]:
     return out
 
 
-def _windows(task: EdgeTask, radius: float | None):
-    clear = max(0.0, min(task.clear_left_px, task.clear_right_px) - 0.5)
-    if radius is None:  # first pass: all the clean room, ends skipped by as much
-        return clear, clear, False
-    want = radius + max(4.0, radius)
-    room = clear - radius
-    half = max(2.0, min(want, room))
-    truncated = room < radius + 1.5
-    return half, half + radius + 1.0, truncated
+def _disk_sigma(theta, cov) -> float:
+    """1 sigma of a uniform disk's diameter from its fit (see the reading in ``measure_images``)."""
+    rho = float(squared_radius(np, float(theta[1])))
+    var_rho = squared_radius_slope(float(theta[1])) ** 2 * float(cov[1, 1])
+    return 2.0 * (math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - math.sqrt(rho))
 
 
 def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True,
@@ -383,7 +382,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 images.clear()  # one image in memory at a time
                 source = items[owner[i]][0]
                 images[owner[i]] = np.asarray(source() if callable(source) else source, np.float64)
-            half, margin, truncated = _windows(task, radius[i] if attempt else None)
+            half, margin, truncated = windows(task, radius[i] if attempt else None)
             sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
             if sel is None or len(sel[0]) < 8:
                 results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
@@ -411,17 +410,20 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         fits = _fit(batch, False, None if airy is None else [np.array([0.0, radius[i] ** 2, 0.0, 1.0, 0.0])
                                                               for i in index], airy=airy)
         shaped: list[int] = []
+        disk: dict[int, tuple[float, float, float]] = {}  # the disk's (diameter, RMS, sigma) where shaped
         if second_moment and attempt == 1 and airy is None:
-            # Where a uniform disk does not follow the profile (a misfit beyond the noise), the
-            # shaped profile is fitted; elsewhere the disk's diameter is the second-moment one.
+            # The spot's shape is read wherever it can be (see the module docstring); the
+            # uniform disk's reading is kept beside it: their difference sizes the shape's
+            # model error.
             diameter = [2.0 * math.sqrt(squared_radius(np, float(theta[1]))) for theta, *_ in fits]
-            misfit = [j for j, (_, _, rms, _, _) in enumerate(fits) if rms > SHAPE_RMS and diameter[j] >= SHAPE_MIN_PX]
-            across = [j for j in misfit if not _at_one_depth(tasks[index[j]])]
+            readable = [j for j, (_, _, _, ok, _) in enumerate(fits) if ok and diameter[j] >= SHAPE_MIN_PX]
+            across = [j for j in readable if not _at_one_depth(tasks[index[j]])]
             wide = [j for j in across if diameter[j] >= SHAPE_ACROSS_MIN_PX]
             uneven = set(across) - {j for j, ok in zip(wide, _even_along([batch[j] for j in wide])) if ok}
-            shaped = [j for j in misfit if j not in uneven]
+            shaped = [j for j in readable if j not in uneven]
             for j, refit in zip(shaped, _fit([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
                                              None if airy is None else [airy[j] for j in shaped])):
+                disk[j] = (diameter[j], fits[j][2], _disk_sigma(*fits[j][:2]))
                 fits[j] = refit
         is_shaped = set(shaped)
         for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):
@@ -453,11 +455,14 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 C = np.asarray(cov[5:7, 5:7], np.float64)
                 var_c += float(g @ C @ g) + 2.0 * (k / max(r, 1e-6)) * slope * float(g @ np.asarray(cov[1, 5:7]))
             sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
-            if "shaped_spot" in f:
-                # A spot that is no uniform disk: the fit's chi-square inflation measures how far
-                # the profile family is from the spot, not how uncertain its second moment is;
-                # that is stated by the family's model error instead.
-                sigma_c = math.hypot(sigma_c / max(rms, 1.0), SHAPE_MODEL_REL * c)
+            if j in is_shaped:
+                # Chi-square inflation measures the profile family's misfit, which the model error
+                # states instead (a share of how far the spot reads from a uniform disk). Where a is
+                # within SHAPE_SIGNIFICANT_Z sigmas of 0 the noise is the disk fit's: at a = 0 the
+                # two disks' covariance overstates it (a pure disk's scatter: +0-15 %; sigma: +30 %).
+                noise = (disk[j][2] if abs(a) < SHAPE_SIGNIFICANT_Z * math.sqrt(max(float(cov[5, 5]), 0.0))
+                         else sigma_c / max(rms, 1.0))
+                sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[j][0]))
             sigma = with_model_floor(sigma_c, c)
             if c < SUB_PIXEL_PX:
                 # Below about half a pixel the pixel footprint dominates the profile and the fit's
@@ -483,8 +488,10 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                        tuple(float(x) for x in q1 + (d0 + turn * half_len) * n))
             # A window that cannot hold the spot's reach gives no value (the line is kept for the
             # corners): such readings came out 2-40 % low, their sigmas not saying so.
-            results[i] = BlurEstimate(None if "window_truncated" in f else c,
-                                      None if "window_truncated" in f else sigma, tuple(f), npixels[i], rms, line_px)
+            cut = "window_truncated" in f
+            d_c, d_rms, d_sigma = disk[j] if j in is_shaped else (None, rms, None)
+            results[i] = BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels[i], d_rms, line_px,
+                                      None if cut else d_c, None if cut or d_c is None else with_model_floor(d_sigma, d_c))
     flat = [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
     out: list[list[BlurEstimate]] = [[] for _ in items]
     for k, r in zip(owner, flat):

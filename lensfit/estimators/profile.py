@@ -193,3 +193,17 @@ def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, floa
         return 0.0, 0.0
     slope, offset = np.polyfit(centres, positions, 1)
     return float(offset), float(slope)
+
+
+def windows(task: EdgeTask, radius: float | None) -> tuple[float, float, bool]:
+    """The profile's half-width across the edge, the length skipped at each end, and whether the
+    clean room is too narrow for the spot's reach (``radius`` of the last reading; None: the first
+    pass, which takes all the clean room)."""
+    clear = max(0.0, min(task.clear_left_px, task.clear_right_px) - 0.5)
+    if radius is None:  # first pass: all the clean room, ends skipped by as much
+        return clear, clear, False
+    want = radius + max(4.0, radius)
+    room = clear - radius
+    half = max(2.0, min(want, room))
+    truncated = room < radius + 1.5
+    return half, half + radius + 1.0, truncated

@@ -21,6 +21,7 @@ from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
 from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robust_weights, _solver, _solver_args,
                                _solver_residual_fn)
+from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
 from lensfit.fit.start import _vertex_search
 from lensfit.fit.uncertainty import (_budget_parts, _covariance, _derive, _jackknife, _null_direction, _positive,
                                      _shares)
@@ -32,7 +33,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         loss: str = "huber", blur_floor_px: float | None = None,
         floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
         pupil_magnification: float | tuple[float, float] | None = None,
-        field_curvature: str = "auto") -> FitResult:
+        field_curvature: str = "auto", spot_shape: str = "auto") -> FitResult:
     """Fit focal length, and per setting f-number and focus distance, to blur samples.
 
     Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
@@ -69,6 +70,12 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         radius and spread over the field; "auto" keeps it only where it differs from 0 by
         ``FIELD_CURVATURE_Z`` sigma (elsewhere the fit is the one "off" gives: kappa = 0, as for
         a thin lens).
+    spot_shape : "auto" (default), "shaped" or "disk": which reading to take where a sample
+        gives two, its spot's second moment through the shaped-spot model or the uniform disk's
+        (``disk_diameter_px``). "auto" takes the second moment unless the Airy pattern at the
+        fitted aperture is ``AUTO_MIN_AIRY_PX`` or more and the samples were neither read through
+        it nor found without it (lensfit.fit.spots); then it fits again with the disk's, and a
+        warning says so.
 
     Returns
     -------
@@ -88,21 +95,32 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     pupil = _pupil_mode(pupil_magnification)
     if field_curvature not in FIELD_CURVATURE_MODES:
         raise InputError("field_curvature", field_curvature, "one of: " + ", ".join(FIELD_CURVATURE_MODES))
-    data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
-                   focal_length_sigma_px=focal_length_sigma_px)
-    try:
-        with np.errstate(all="ignore"):  # overflow on the way is caught below, not printed
-            result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls, pupil, field_curvature)
-    except InputError:
-        raise
-    except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
-        return _refused(data, loss, f"the fit failed numerically ({type(exc).__name__}: {exc}); the samples span "
-                        "magnitudes no lens produces: check their units (mm, px) and the pixel pitch")
-    try:
-        json.dumps(result.to_json_dict(), allow_nan=False)
-    except ValueError:
-        return _refused(data, loss, "the fit produced non-finite numbers; the samples span magnitudes no lens "
-                        "produces: check their units (mm, px) and the pixel pitch")
+    if spot_shape not in SPOT_SHAPE_MODES:
+        raise InputError("spot_shape", spot_shape, "one of: " + ", ".join(SPOT_SHAPE_MODES))
+
+    def run(disk_readings: bool) -> FitResult:
+        data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
+                       focal_length_sigma_px=focal_length_sigma_px, disk_readings=disk_readings)
+        try:
+            with np.errstate(all="ignore"):  # overflow on the way is caught below, not printed
+                result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls, pupil, field_curvature)
+        except InputError:
+            raise
+        except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+            return _refused(data, loss, f"the fit failed numerically ({type(exc).__name__}: {exc}); the samples "
+                            "span magnitudes no lens produces: check their units (mm, px) and the pixel pitch")
+        try:
+            json.dumps(result.to_json_dict(), allow_nan=False)
+        except ValueError:
+            return _refused(data, loss, "the fit produced non-finite numbers; the samples span magnitudes no lens "
+                            "produces: check their units (mm, px) and the pixel pitch")
+        return result
+
+    result = run(spot_shape == "disk")
+    why = disk_instead(result) if spot_shape == "auto" else None
+    if why:
+        result = run(True)
+        result.warnings.append(why)
     return result
 
 

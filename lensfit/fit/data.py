@@ -11,7 +11,7 @@ import numpy as np
 
 from lensfit.errors import InputError
 from lensfit.fit.constants import (BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX,
-                                   MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, _NODES_T, disk_scale_sigma)
+                                   MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, SHAPE_SCALE_SHARE, _NODES_T, disk_scale_sigma)
 
 
 @dataclass
@@ -39,8 +39,8 @@ class FitData:
     #: error, which the fit carries (lensfit.fit.model._distance_scale)
     pose: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     #: the estimator's shared scale error that applies to each sample (relative 1 sigma;
-    #: BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2, or BLUR_SCALE_SIGMA_SHAPED for a
-    #: ``shaped_spot`` reading)
+    #: BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2, more for a ``shaped_spot`` reading:
+    #: ``_scale_sigma``)
     scale_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: of ``dropped``, the edges whose blur outgrew the clean room around them (flag
     #: ``window_truncated``)
@@ -49,6 +49,11 @@ class FitData:
     #: squared), where its field radius and its setting's focal length in px are known; NaN where
     #: not (lensfit.fit.model: field curvature)
     field2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: how many samples were read through the shaped-spot model and give the uniform disk's
+    #: reading too; whether the images were read through the Airy pattern or found without one
+    #: (flags ``diffraction_modelled``, ``AIRY_NOT_SEEN``; lensfit.fit.spots)
+    shaped: int = 0
+    airy_checked: bool = False
 
     def blur_scale_sigma(self, weights: np.ndarray | None = None) -> float:
         """The estimator's shared relative scale error for this fit: each sample's weighted by
@@ -105,9 +110,17 @@ def _per_setting(value: Any, labels: list[str], name: str, default: float) -> np
 
 def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
             focal_length_px: float | dict[str, float] | None = None,
-            focal_length_sigma_px: float | dict[str, float] | None = None) -> FitData:
-    """Validate samples and turn them into :class:`FitData` (see :func:`fit`)."""
+            focal_length_sigma_px: float | dict[str, float] | None = None, disk_readings: bool = False) -> FitData:
+    """Validate samples and turn them into :class:`FitData` (see :func:`fit`). ``disk_readings``:
+    where a sample read through the shaped-spot model gives the uniform disk's reading too
+    (``disk_diameter_px``, ``disk_sigma_px``), take that one."""
     rows, ctx = _rows_from(samples)
+    shaped = [i for i, r in enumerate(rows) if "shaped_spot" in _flags(r) and r.get("disk_diameter_px") is not None
+              and r.get("disk_sigma_px") is not None and r.get("coc_diameter_px") is not None]
+    if disk_readings:
+        for i in shaped:
+            rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
+                       "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot"}))}
     pitch = pixel_pitch_mm if pixel_pitch_mm is not None else ctx.get("pixel_pitch_mm")
     if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
         raise InputError("pixel_pitch_mm", pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
@@ -167,9 +180,10 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
-                   np.array([BLUR_SCALE_SIGMA_SHAPED if "shaped_spot" in _flags(r)
-                             else disk_scale_sigma(float(r["coc_diameter_px"])) for r in used]), truncated,
-                   _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows))
+                   np.array([_scale_sigma(r) for r in used]), truncated,
+                   _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
+                   0 if disk_readings else len(shaped),
+                   any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows))
 
 
 def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> np.ndarray:
@@ -190,6 +204,24 @@ def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> n
         if math.isfinite(f):
             out[i] = (value / f) ** 2
     return out
+
+
+def _scale_sigma(row: dict[str, Any]) -> float:
+    """The estimator's shared scale error for one reading: the uniform disk's, and for a shaped
+    spot's reading ``SHAPE_SCALE_SHARE`` of its relative difference from the uniform disk's on top
+    (``BLUR_SCALE_SIGMA_SHAPED`` where samples from before 2026-11-25 do not give that)."""
+    c = float(row["coc_diameter_px"])
+    if "shaped_spot" not in _flags(row):
+        return disk_scale_sigma(c)
+    disk = row.get("disk_diameter_px")
+    if disk is None or not math.isfinite(float(disk)) or c <= 0:
+        return BLUR_SCALE_SIGMA_SHAPED
+    return disk_scale_sigma(c) + SHAPE_SCALE_SHARE * abs(c - float(disk)) / c
+
+
+#: The flag the pipeline gives samples of images its diffraction test found without an Airy
+#: pattern (lensfit.pipeline): their spots' shapes are the lens's.
+AIRY_NOT_SEEN = "airy_not_seen"
 
 
 def _flags(row: dict[str, Any]) -> set[str]:

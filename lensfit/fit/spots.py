@@ -1,0 +1,69 @@
+"""Which blur reading the fit takes where a sample gives two: its spot's second moment read
+through the edge estimator's shaped-spot model, or the uniform disk's reading of the same edge.
+
+The second moment is what the fit's model describes for a real lens's aberrated spots (a rim on
+one side of focus, a core in a halo on the other), but not for the Airy pattern: its tails fall
+off so slowly that its second moment has no finite value, and a reading of it grows with the
+window (spots of 3-10 px with an Airy scale of 1 px read 7-25 % large through two disks, against
+4-15 % through the uniform disk). Where diffraction is modelled (the pipeline's readings through
+the Airy pattern) no spot shape is read; where the images were tested and show no Airy pattern
+(flag ``airy_not_seen``, ``lensfit.pipeline``) the shapes are the lens's. Elsewhere (samples
+measured without the test, e.g. ``lensfit measure`` then ``lensfit fit samples.csv``, or
+``fit(measure(stack))``) the fit looks at the Airy scale its own aperture implies: from
+``AUTO_MIN_AIRY_PX`` the pattern is large enough to matter, and the uniform disk's readings are
+fitted instead, with a warning that says so.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from lensfit.diffraction import DEFAULT_WAVELENGTH_NM, airy_scale_px, working_f_number
+
+#: How the fit takes readings that come in two (``fit(spot_shape=...)``).
+SPOT_SHAPE_MODES = ("auto", "shaped", "disk")
+#: The Airy scale (px, at 550 nm) from which the pattern's tails matter to a reading: below it
+#: the pattern moves the f-number by well under its sigma (also where the pipeline's diffraction
+#: test starts).
+AUTO_MIN_AIRY_PX = 0.5
+
+
+def airy_per_setting(result: Any, wavelength_nm: float = DEFAULT_WAVELENGTH_NM) -> dict[str, float]:
+    """Each setting's Airy scale ``lambda N_w / p`` (px) from a fit: ``N_w = f_px p / A``. Where
+    the fit reported no aperture (the Airy pattern itself can make the f-number too uncertain to
+    report before diffraction is modelled) its solution's ``A = f / N`` serves; a setting without
+    one takes the median scale of the others (0 if none)."""
+    from lensfit.fit.model import Layout
+
+    data = result.samples
+    pitch = data.pixel_pitch_mm
+    at = Layout(len(data.labels))
+    out: dict[str, float] = {}
+    for k, label in enumerate(data.labels):
+        a = result.settings[label]["aperture_diameter_mm"].value
+        if a is None and len(result._full) == at.size:
+            a = math.exp(result._full[at.LOG_F] - result._full[at.log_n(k)])
+        fpx = float(data.focal_length_px[k])
+        if math.isfinite(fpx) and a and math.isfinite(a) and a > 0:
+            out[label] = airy_scale_px(wavelength_nm, working_f_number(fpx * pitch, a), pitch)
+    known = sorted(out.values())
+    fill = known[len(known) // 2] if known else 0.0
+    return {label: out.get(label, fill) for label in data.labels}
+
+
+def disk_instead(result: Any) -> str | None:
+    """Why the fit ``result`` (of shaped readings, ``spot_shape`` "auto") should be redone with the
+    uniform disk's readings, or None where it stands."""
+    data = result.samples
+    if not data.shaped or data.airy_checked or not result.settings:
+        return None
+    airy = airy_per_setting(result)
+    large = {k: v for k, v in airy.items() if v >= AUTO_MIN_AIRY_PX}
+    if not large:
+        return None
+    scales = ", ".join(f"{k} {v:.2f} px" for k, v in large.items())
+    return (f"the spots' shapes were not used: at the fitted aperture the Airy pattern at 550 nm has a scale of "
+            f"{scales}, whose tails a second moment counts as blur, and these samples were not tested for it; the "
+            f"uniform disk's readings of {data.shaped} edge(s) were fitted instead (`lensfit fit STACK` tests the "
+            "images, models the pattern where they show it and reads the shapes where they do not)")
