@@ -77,9 +77,9 @@ Valid range
     undetermined direction shows as a huge variance, not as none), or for a sub-pixel reading
     a blur of 1 px fitting less than 4 in chi-square worse (the rest held: a lenient test).
 Cost
-    About 1.8-2.3 ms per edge warm on 2 cores, all passes and profiles (README's stage table;
-    2.5-2.9 ms with every profile padded to 256 bins); with diffraction modelled the second
-    pass costs 6-9 times the disk's.
+    About 1.7-2.3 ms per edge warm on 2 cores, all passes and profiles, every edge's shape read
+    (1.2-1.9 ms reading it only where the disk misfit; alternating runs on the demo); with
+    diffraction modelled the second pass costs 6-9 times the disk's.
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
     W. J. Smith, *Modern Optical Engineering*.
