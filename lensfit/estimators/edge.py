@@ -489,9 +489,9 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             # A window that cannot hold the spot's reach gives no value (the line is kept for the
             # corners): such readings came out 2-40 % low, their sigmas not saying so.
             cut = "window_truncated" in f
-            d_c, d_rms, d_sigma = disk[j] if j in is_shaped else (None, rms, None)
+            d_c, d_rms, d_sigma = disk[j] if j in is_shaped and not cut else (None, rms, None)
             results[i] = BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels[i], d_rms, line_px,
-                                      None if cut else d_c, None if cut or d_c is None else with_model_floor(d_sigma, d_c))
+                                      d_c, None if d_c is None else with_model_floor(d_sigma, d_c))
     flat = [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
     out: list[list[BlurEstimate]] = [[] for _ in items]
     for k, r in zip(owner, flat):

@@ -56,7 +56,7 @@ def disk_instead(result: Any) -> str | None:
     """Why the fit ``result`` (of shaped readings, ``spot_shape`` "auto") should be redone with the
     uniform disk's readings, or None where it stands."""
     data = result.samples
-    if not data.shaped or data.airy_checked or not result.settings:
+    if not data.shaped or data.airy_checked or not any(result._full):  # (a refused fit has no solution)
         return None
     airy = airy_per_setting(result)
     large = {k: v for k, v in airy.items() if v >= AUTO_MIN_AIRY_PX}
