@@ -61,3 +61,16 @@ def test_a_bad_mode_is_refused():
     rs, fpx = rows(50.0, 8.0, 2000.0, 0.005)
     with pytest.raises(InputError, match="spot_shape"):
         fit(rs, pixel_pitch_mm=0.005, focal_length_px=fpx, spot_shape="round")
+
+
+def test_auto_takes_the_disk_only_on_the_settings_where_the_pattern_would_matter():
+    # A bracket on 4 um pixels: f/2.8 (Airy scale 0.4 px) and f/11 (1.5 px).
+    wide, fpx = rows(50.0, 2.8, 2000.0, 0.004)
+    narrow, _ = rows(50.0, 11.0, 1000.0, 0.004, seed=1)
+    both = wide + [{**r, "setting": "b", "image": "b" + r["image"]} for r in narrow]
+    kw = dict(pixel_pitch_mm=0.004, focal_length_px={"a": fpx, "b": 1.0 / (1 / 50.0 - 1 / 1000.0) / 0.004},
+              focal_length_sigma_px=0.0)
+    auto = fit(both, **kw)
+    assert auto.settings["a"]["f_number"].value == pytest.approx(2.8, rel=0.01)  # the shapes
+    assert auto.settings["b"]["f_number"].value == pytest.approx(11.0 / 1.04, rel=0.01)  # the disk
+    assert any("'b'" in w and "'a'" not in w for w in auto.warnings if "shapes were not used" in w)

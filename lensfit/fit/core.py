@@ -74,8 +74,8 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         gives two, its spot's second moment through the shaped-spot model or the uniform disk's
         (``disk_diameter_px``). "auto" takes the second moment unless the Airy pattern at the
         fitted aperture is ``AUTO_MIN_AIRY_PX`` or more and the samples were neither read through
-        it nor found without it (lensfit.fit.spots); then it fits again with the disk's, and a
-        warning says so.
+        it nor found without it (lensfit.fit.spots); then it fits again with the disk's readings
+        on those settings, and a warning says so.
 
     Returns
     -------
@@ -98,7 +98,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     if spot_shape not in SPOT_SHAPE_MODES:
         raise InputError("spot_shape", spot_shape, "one of: " + ", ".join(SPOT_SHAPE_MODES))
 
-    def run(disk_readings: bool) -> FitResult:
+    def run(disk_readings: Any) -> FitResult:
         data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
                        focal_length_sigma_px=focal_length_sigma_px, disk_readings=disk_readings)
         try:
@@ -116,11 +116,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
                             "produces: check their units (mm, px) and the pixel pitch")
         return result
 
-    result = run(spot_shape == "disk")
-    why = disk_instead(result) if spot_shape == "auto" else None
-    if why:
-        result = run(True)
-        result.warnings.append(why)
+    result = run(True if spot_shape == "disk" else ())
+    instead = disk_instead(result) if spot_shape == "auto" else None
+    if instead:
+        result = run(set(instead[0]))
+        result.warnings.append(instead[1])
     return result
 
 

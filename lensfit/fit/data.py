@@ -49,10 +49,10 @@ class FitData:
     #: squared), where its field radius and its setting's focal length in px are known; NaN where
     #: not (lensfit.fit.model: field curvature)
     field2: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    #: how many samples were read through the shaped-spot model and give the uniform disk's
+    #: True where the sample was read through the shaped-spot model and gives the uniform disk's
     #: reading too; whether the images were read through the Airy pattern or found without one
     #: (flags ``diffraction_modelled``, ``AIRY_NOT_SEEN``; lensfit.fit.spots)
-    shaped: int = 0
+    shaped: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     airy_checked: bool = False
 
     def blur_scale_sigma(self, weights: np.ndarray | None = None) -> float:
@@ -110,17 +110,18 @@ def _per_setting(value: Any, labels: list[str], name: str, default: float) -> np
 
 def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
             focal_length_px: float | dict[str, float] | None = None,
-            focal_length_sigma_px: float | dict[str, float] | None = None, disk_readings: bool = False) -> FitData:
+            focal_length_sigma_px: float | dict[str, float] | None = None,
+            disk_readings: Any = ()) -> FitData:
     """Validate samples and turn them into :class:`FitData` (see :func:`fit`). ``disk_readings``:
-    where a sample read through the shaped-spot model gives the uniform disk's reading too
-    (``disk_diameter_px``, ``disk_sigma_px``), take that one."""
+    the settings (labels; True: all) whose samples read through the shaped-spot model are taken
+    at the uniform disk's reading where they give it (``disk_diameter_px``, ``disk_sigma_px``)."""
     rows, ctx = _rows_from(samples)
     shaped = [i for i, r in enumerate(rows) if "shaped_spot" in _flags(r) and r.get("disk_diameter_px") is not None
               and r.get("disk_sigma_px") is not None and r.get("coc_diameter_px") is not None]
-    if disk_readings:
-        for i in shaped:
-            rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
-                       "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot"}))}
+    swap = [i for i in shaped if disk_readings is True or str(rows[i].get("setting")) in disk_readings]
+    for i in swap:
+        rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
+                   "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot"}))}
     pitch = pixel_pitch_mm if pixel_pitch_mm is not None else ctx.get("pixel_pitch_mm")
     if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
         raise InputError("pixel_pitch_mm", pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
@@ -182,7 +183,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
                    np.array([_scale_sigma(r) for r in used]), truncated,
                    _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
-                   0 if disk_readings else len(shaped),
+                   np.isin(np.array(used_rows, int), np.setdiff1d(np.array(shaped, int), np.array(swap, int))),
                    any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows))
 
 

@@ -52,18 +52,19 @@ def airy_per_setting(result: Any, wavelength_nm: float = DEFAULT_WAVELENGTH_NM) 
     return {label: out.get(label, fill) for label in data.labels}
 
 
-def disk_instead(result: Any) -> str | None:
-    """Why the fit ``result`` (of shaped readings, ``spot_shape`` "auto") should be redone with the
-    uniform disk's readings, or None where it stands."""
+def disk_instead(result: Any) -> tuple[list[str], str] | None:
+    """The settings whose samples the fit ``result`` (of shaped readings, ``spot_shape`` "auto")
+    should take at the uniform disk's readings, and why; None where it stands."""
     data = result.samples
-    if not data.shaped or data.airy_checked or not any(result._full):  # (a refused fit has no solution)
+    if not data.shaped.any() or data.airy_checked or not any(result._full):  # (a refused fit has no solution)
         return None
-    airy = airy_per_setting(result)
-    large = {k: v for k, v in airy.items() if v >= AUTO_MIN_AIRY_PX}
+    shaped = {data.labels[k] for k in set(data.setting[data.shaped].tolist())}
+    large = {k: v for k, v in airy_per_setting(result).items() if v >= AUTO_MIN_AIRY_PX and k in shaped}
     if not large:
         return None
     scales = ", ".join(f"{k} {v:.2f} px" for k, v in large.items())
-    return (f"the spots' shapes were not used: at the fitted aperture the Airy pattern at 550 nm has a scale of "
-            f"{scales}, whose tails a second moment counts as blur, and these samples were not tested for it; the "
-            f"uniform disk's readings of {data.shaped} edge(s) were fitted instead (`lensfit fit STACK` tests the "
-            "images, models the pattern where they show it and reads the shapes where they do not)")
+    return list(large), (
+        f"the spots' shapes were not used on setting(s) {', '.join(map(repr, large))}: at the fitted aperture the "
+        f"Airy pattern at 550 nm has a scale of {scales}, whose tails a second moment counts as blur, and these "
+        "samples were not tested for it; the uniform disk's readings were fitted there instead (`lensfit fit STACK` "
+        "tests the images, models the pattern where they show it and reads the shapes where they do not)")
