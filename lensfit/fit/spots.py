@@ -4,8 +4,8 @@ through the edge estimator's shaped-spot model, or the uniform disk's reading of
 The second moment is what the fit's model describes for a real lens's aberrated spots (a rim on
 one side of focus, a core in a halo on the other), but not for the Airy pattern: its tails fall
 off so slowly that its second moment has no finite value, and a reading of it grows with the
-window (spots of 3-10 px with an Airy scale of 1 px read 7-25 % large through two disks, against
-4-15 % through the uniform disk). Where diffraction is modelled (the pipeline's readings through
+window (on exact edges of a disk and an Airy pattern of scale 0.5 px, 4-10 px spots read 2.5-17 %
+large through two disks, against 2-7 % through the uniform disk). Where diffraction is modelled (the pipeline's readings through
 the Airy pattern) no spot shape is read; where the images were tested and show no Airy pattern
 (flag ``airy_not_seen``, ``lensfit.pipeline``) the shapes are the lens's. Elsewhere (samples
 measured without the test, e.g. ``lensfit measure`` then ``lensfit fit samples.csv``, or
