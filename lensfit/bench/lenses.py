@@ -166,8 +166,8 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
             say(f"{name}: measuring")
             t0 = time.perf_counter()
             # As `lensfit fit`: the images tested for the Airy pattern, which decides the readings
-            # (the spots' shapes, or the pattern modelled; lensfit.fit.spots).
-            table = measure_and_fit(folder, auto_diffraction=True)[0]
+            # (the spots' shapes, or the pattern modelled; lensfit.fit.spots); its fit is the bracket's.
+            table, bracket, _ = measure_and_fit(folder, auto_diffraction=True)
             t_measure = time.perf_counter() - t0
             near = [s for s in table.samples if s.setting == "near"]
             one = copy.copy(table)
@@ -175,7 +175,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
             one.intrinsics = {"near": table.intrinsics["near"]}
             P = truth["settings"]["near"]["pupil_magnification"]
             fits = {"thin (one setting)": fit(one), "thick, P given (one setting)": fit(one, pupil_magnification=P),
-                    "thick (bracket, P fitted)": fit(table)}
+                    "thick (bracket, P fitted)": bracket}
             calibration = {label: {"focal_length_px": k.focal_length_px, "sigma": k.focal_length_sigma_px,
                                    "relative_error": k.focal_length_px / truth["settings"][label]["focal_length_px"] - 1}
                            for label, k in table.intrinsics.items()}

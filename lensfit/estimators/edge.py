@@ -333,11 +333,14 @@ def _even_along(profiles: list[tuple]) -> list[bool]:
     return out
 
 
-def _disk_sigma(theta, cov) -> float:
-    """1 sigma of a uniform disk's diameter from its fit (see the reading in ``measure_images``)."""
+def _radius_terms(theta, cov) -> tuple[float, float, float, float]:
+    """Of a fit: R^2, d R^2 / d rho, the variance of R^2, and 1 sigma of R from it,
+    ``sqrt(R^2 + sigma_rho) - R`` (= sigma_rho / 2R when R is well determined, sqrt(sigma_rho) as
+    R -> 0)."""
     rho = float(squared_radius(np, float(theta[1])))
-    var_rho = squared_radius_slope(float(theta[1])) ** 2 * float(cov[1, 1])
-    return 2.0 * (math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - math.sqrt(rho))
+    slope = squared_radius_slope(float(theta[1]))
+    var_rho = slope * slope * float(cov[1, 1])
+    return rho, slope, var_rho, math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - math.sqrt(rho)
 
 
 def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True,
@@ -423,17 +426,15 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             shaped = [j for j in readable if j not in uneven]
             for j, refit in zip(shaped, _fit([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
                                              None if airy is None else [airy[j] for j in shaped])):
-                disk[j] = (diameter[j], fits[j][2], _disk_sigma(*fits[j][:2]))
+                disk[j] = (diameter[j], fits[j][2], 2.0 * _radius_terms(*fits[j][:2])[3])
                 fits[j] = refit
         is_shaped = set(shaped)
         for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):
-            rho = float(squared_radius(np, float(theta[1])))
-            slope = squared_radius_slope(float(theta[1]))
+            rho, slope, var_rho, sigma_r = _radius_terms(theta, cov)
             r = math.sqrt(rho)
             a = float(theta[5]) if j in is_shaped else 0.0
             t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
             m = 1.0 - a * (1.0 - t * t)  # variance of two disks over that of the outer one
-            var_rho = slope * slope * float(cov[1, 1])
             if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > 0.05):
                 results[i] = BlurEstimate(None, None, tuple(flags[i]) + ("fit_failed",), npixels[i])
                 radius[i] = None
@@ -445,10 +446,8 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             k = math.sqrt(m)
             c = 2.0 * r * k
             f = list(flags[i]) + (["shaped_spot"] if j in is_shaped else [])
-            # 1 sigma of R from that of R^2: sqrt(R^2 + sigma_rho) - R (= sigma_rho / 2R when R is
-            # well determined, sqrt(sigma_rho) as R -> 0); the shape's share by the gradient of c
+            # 1 sigma of c from that of R (_radius_terms); the shape's share by the gradient of c
             # in (a, logit t), with its covariance with R^2.
-            sigma_r = math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - r
             var_c = (2.0 * k * sigma_r) ** 2
             if j in is_shaped:
                 g = np.array([-r * (1.0 - t * t) / k, 2.0 * r * a * t * t * (1.0 - t) / k])

@@ -119,6 +119,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     shaped = [i for i, r in enumerate(rows) if "shaped_spot" in _flags(r) and r.get("disk_diameter_px") is not None
               and r.get("disk_sigma_px") is not None and r.get("coc_diameter_px") is not None]
     swap = [i for i in shaped if disk_readings is True or str(rows[i].get("setting")) in disk_readings]
+    kept = set(shaped) - set(swap)  # shaped readings that stay so
     for i in swap:
         rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
                    "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot"}))}
@@ -183,7 +184,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
                    np.array([_scale_sigma(r) for r in used]), truncated,
                    _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
-                   np.isin(np.array(used_rows, int), np.setdiff1d(np.array(shaped, int), np.array(swap, int))),
+                   np.array([i in kept for i in used_rows], bool),
                    any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows))
 
 
