@@ -212,7 +212,8 @@ def test_render_time_leaves_out_compilation_only():
     x = jnp.ones(3)
     out, seconds, compiling = without_compilation(lambda: outer(x).block_until_ready())
     assert out.shape == (3,)
-    assert compiling > 0.05
+    # the split, not the speed: no fixed figure (a quick machine compiles this in under 50 ms)
+    assert compiling > 0.0
     assert seconds < 0.5 * compiling  # the run itself is microseconds
     _, seconds2, compiling2 = without_compilation(lambda: outer(x).block_until_ready())
     assert compiling2 == 0.0
