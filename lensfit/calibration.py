@@ -15,6 +15,7 @@ the pose is flagged ``ambiguous`` when the runner-up is nearly as good.
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,9 @@ from lensfit.targets import Detection
 
 MIN_VIEWS = 3
 MIN_POINTS = 6
-JACKKNIFE_MIN_VIEWS = 6  # below this the focal length's sigma is OpenCV's
+#: Below this the focal length's sigma is OpenCV's, or read through the refined corners'
+#: covariance where every view states it (:func:`_correlated_sigma`).
+JACKKNIFE_MIN_VIEWS = 6
 DISTORTION_GAIN = 0.9  # keep k1, k2 only if they cut the reprojection RMS below 90 %
 #: A view whose corners reproject more than this many times the setting's median view RMS off
 #: the setting's calibration, and more than OUTLIER_VIEW_MIN_PX, is a misdetection (markers
@@ -44,7 +47,8 @@ class Intrinsics:
     views: int
     source: str  # "calibrated" or "manifest"
     #: 1-sigma of ``focal_length_px``: for a calibration the leave-one-view-out jackknife (6+
-    #: views) or OpenCV's estimate from the reprojection residuals; for manifest intrinsics the
+    #: views) or the estimate from the reprojection residuals (OpenCV's; through the points'
+    #: covariance where the corners were refined from edge lines); for manifest intrinsics the
     #: stated ``focal_length_sigma_px``, else 0 (taken as exact)
     focal_length_sigma_px: float = 0.0
 
@@ -119,9 +123,10 @@ def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, in
     image_shape : (height, width)
     fix_principal_point : hold the principal point at the image centre (recommended unless many
         strongly tilted views constrain it)
-    jackknife : the focal length's sigma from leave-one-view-out calibrations (one per view),
-        else OpenCV's own (for a calibration that is only a first step, e.g. before the
-        corners are refined)
+    jackknife : the focal length's sigma from leave-one-view-out calibrations (one per view;
+        with fewer than ``JACKKNIFE_MIN_VIEWS`` views, from the residuals read through the
+        detections' ``point_cov_px2`` where each gives it), else OpenCV's own (for a calibration
+        that is only a first step, e.g. before the corners are refined)
 
     Raises
     ------
@@ -182,7 +187,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
     def run(dets, K, dist, extra):
         obj = [d.object_points_mm.astype(np.float32) for d in _usable(dets)]
         img = [d.image_points_px.astype(np.float32) for d in _usable(dets)]
-        rms, K, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(
+        rms, K, dist, rvecs, tvecs, std, _, _ = cv2.calibrateCameraExtended(
             obj, img, (w, h), K.copy(), dist.copy(), flags=flags | extra,
             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
         # With a fixed aspect ratio OpenCV reports the spread on fy (index 1) and 0 on fx.
@@ -192,7 +197,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         points = sum(len(o) for o in obj)
         free = 6 * len(obj) + int(np.count_nonzero(np.ravel(std)))
         unit = sigma**2 / max(rms**2 * points / max(points - free, 1), 1e-300)
-        return rms, K, dist, sigma, unit
+        return rms, K, dist, sigma, unit, (rvecs, tvecs)
 
     def one_camera(f_px: dict[str, float], centre: np.ndarray) -> list[Detection]:
         """Every setting's views as one camera's: image points scaled about the principal point
@@ -228,7 +233,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
     if kept == "plain":
         flags |= plain
 
-    def jackknife(dets, K, dist, extra, sigma_opencv, unit, f_all):
+    def jackknife(dets, K, dist, extra, sigma_opencv, unit, f_all, solution):
         """Leave-one-view-out spread of the focal length (px), where there are enough views,
         each view's shift weighted by its leverage.
 
@@ -247,19 +252,22 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         """
         usable = _usable(dets)
         n = len(usable)
-        if n < JACKKNIFE_MIN_VIEWS or not with_jackknife:
+        if not with_jackknife:
             return sigma_opencv
+        if n < JACKKNIFE_MIN_VIEWS:
+            through_lines = _correlated_sigma(usable, *solution, flags | extra)
+            return sigma_opencv if through_lines is None else through_lines
         weighted = 0.0
         for i in range(n):
-            _, K_i, _, _, unit_i = run(usable[:i] + usable[i + 1:], K, dist, extra)
+            _, K_i, _, _, unit_i, _ = run(usable[:i] + usable[i + 1:], K, dist, extra)
             weighted += (K_i[0, 0] - f_all) ** 2 * (min(unit / unit_i, 1.0) if unit_i > 0 else 1.0)
         return float(np.sqrt(weighted))
 
     def setting(dets, K_start, dist_start, extra):
-        rms, K, dist, sigma, unit = run(dets, K_start, dist_start, extra)
+        rms, K, dist, sigma, unit, poses = run(dets, K_start, dist_start, extra)
         return Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
                           float(rms), len(_usable(dets)), "calibrated",
-                          jackknife(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0])))
+                          jackknife(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0]), (K, dist, poses)))
 
     if len(detections) == 1:
         (label, dets), = detections.items()
@@ -267,10 +275,59 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
     # Shared principal point and distortion from all views on one scale, each setting's focal
     # length with them held, then once more on the scale those focal lengths give.
     fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
-    _, K_all, dist_all, _, _ = fits[kept]  # all views on one scale, with the distortion the data ask for
+    _, K_all, dist_all, *_ = fits[kept]  # all views on one scale, with the distortion the data ask for
     f_px = {label: run(dets, K_all, dist_all, fixed)[1][0, 0] for label, dets in detections.items()}
-    _, K_all, dist_all, _, _ = run(one_camera(f_px, K_all[:2, 2]), K0, np.zeros(5), 0)
+    _, K_all, dist_all, *_ = run(one_camera(f_px, K_all[:2, 2]), K0, np.zeros(5), 0)
     return {label: setting(dets, K_all, dist_all, fixed) for label, dets in detections.items()}
+
+
+def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, poses, flags: int) -> float | None:
+    """1 sigma of the focal length (px) where the corner errors are correlated as each view's
+    ``point_cov_px2`` says (None where a view does not say).
+
+    OpenCV's sigma takes every coordinate's error as independent, with one variance read from the
+    residuals. Corners refined from edge lines are not: a line's turn moves the corners at its two
+    ends apart, an error the poses and the focal length hardly follow but the residuals show in
+    full, so that sigma overstates (1.2x-2x on ray-traced and Mitsuba focus brackets). Here the
+    estimate's covariance is the sandwich ``H^-1 J^T S J H^-1`` (``J`` the Jacobian of every
+    image point in the poses and the free intrinsics, ``H = J^T J``, ``S`` the points' covariance
+    up to a scale), the scale read from the residuals: ``r^T r = s^2 tr((I - J H^-1 J^T) S)``.
+    With ``S`` the identity this is OpenCV's sigma.
+    """
+    import cv2
+
+    if not dets or any(d.point_cov_px2 is None for d in dets):
+        return None
+    intrinsic = [[6, 7]]  # fx = fy: the aspect ratio is fixed
+    for cols, fixed in (([8], cv2.CALIB_FIX_PRINCIPAL_POINT), ([9], cv2.CALIB_FIX_PRINCIPAL_POINT),
+                        ([10], cv2.CALIB_FIX_K1), ([11], cv2.CALIB_FIX_K2)):
+        if not flags & fixed:
+            intrinsic.append(cols)
+    rvecs, tvecs = poses
+    n_pose = 6 * len(dets)
+    jac_rows, resid, blocks = [], [], []
+    for k, d in enumerate(dets):
+        proj, jac = cv2.projectPoints(d.object_points_mm.astype(np.float64), rvecs[k], tvecs[k], K, dist)
+        jac = np.asarray(jac, np.float64)
+        rows = np.zeros((len(jac), n_pose + len(intrinsic)))
+        rows[:, 6 * k:6 * k + 6] = jac[:, :6]
+        for j, cols in enumerate(intrinsic):
+            rows[:, n_pose + j] = jac[:, cols].sum(axis=1)
+        jac_rows.append(rows)
+        resid.append((d.image_points_px - proj.reshape(-1, 2)).ravel())
+        blocks.append(np.asarray(d.point_cov_px2, np.float64))
+    from scipy.linalg import block_diag
+
+    J, r, S = np.vstack(jac_rows), np.concatenate(resid), block_diag(*blocks)
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(S))) or len(r) <= J.shape[1]:
+        return None
+    H_inv = np.linalg.pinv(J.T @ J)
+    B = J.T @ S @ J
+    unexplained = float(np.trace(S) - np.trace(H_inv @ B))  # tr((I - J H^-1 J^T) S)
+    if not unexplained > 0:
+        return None
+    var = float(r @ r) / unexplained * float((H_inv @ B @ H_inv)[n_pose, n_pose])
+    return math.sqrt(var) if math.isfinite(var) and var >= 0 else None
 
 
 def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:

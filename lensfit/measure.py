@@ -423,8 +423,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             tasks, meta, estimates = first[i]
             refined = []
             for det in detections[i]:
-                lines = {seg.id: (est.line_px, est.coc_diameter_px) for (tid, seg, _, _), est in zip(meta, estimates)
-                         if tid == det.target_id and est.line_px is not None}
+                lines = {seg.id: (est.line_px, est.coc_diameter_px, est.line_cov_px2)
+                         for (tid, seg, _, _), est in zip(meta, estimates) if tid == det.target_id and est.line_px is not None}
                 refined.append(refine_corners(det, by_id[det.target_id], lines))
             detections[i] = refined
         with clock.stage("calibrate"):

@@ -60,12 +60,15 @@ def charuco_texels_per_square(square_mm: float, marker_mm: float, dictionary: st
 
 @dataclass(frozen=True)
 class Detection:
-    """Corresponding points of one target in one image."""
+    """Corresponding points of one target in one image. ``point_cov_px2``: where known, the
+    covariance of the image points' errors, (2N, 2N) in the order x0, y0, x1, ... (corners refined
+    from edge lines share the lines' errors; :func:`lensfit.edge_geometry.refine_corners`)."""
 
     target_id: str
     object_points_mm: np.ndarray  # (N, 3) board frame
     image_points_px: np.ndarray  # (N, 2)
     ids: np.ndarray  # (N,) corner ids (board-specific numbering)
+    point_cov_px2: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

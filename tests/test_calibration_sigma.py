@@ -125,3 +125,54 @@ def test_distortion_one_sharp_setting_shows_is_kept_though_a_blurred_one_hides_i
         got = calibrate(dets, (H, W))
         assert got["sharp"].distortion[0] < -0.04, (seed, got["sharp"].distortion)
         assert abs(got["sharp"].focal_length_px - F_PX) < 4 * got["sharp"].focal_length_sigma_px, seed
+
+
+def test_sigma_through_line_refined_corners_matches_the_spread_and_opencvs_overstates_it():
+    """Five views (a focus bracket's setting: too few for the jackknife), corners refined from
+    edge lines whose offsets and turns err independently, each view with its own noise (blur):
+    neighbouring corners' errors anti-correlate. Read through the refined points' covariance the
+    focal length's sigma matches the spread of 80 calibrations; OpenCV's sigma, which takes each
+    coordinate's error as independent, overstates it."""
+    import dataclasses
+
+    import cv2
+
+    from lensfit.edge_geometry import refine_corners
+    from lensfit.targets import Target
+
+    target = Target({"id": "board", "kind": "checkerboard", "squares": [10, 7], "square_mm": 20.0})
+    obj = target.inner_corners_mm() - np.array([90.0, 60.0, 0.0])
+    K = np.array([[F_PX, 0, (W - 1) / 2], [0, F_PX, (H - 1) / 2], [0, 0, 1]])
+    rng = np.random.default_rng(11)
+    poses = views(rng, n=5, tilted_every=2)
+    offset_px = [0.01, 0.03, 0.015, 0.04, 0.02]  # 1 sigma of a line's offset, per view
+    support = 0.8  # the share of a segment the line is fitted over (its ends are skipped)
+    f, s_lines, s_plain = [], [], []
+    for _ in range(80):
+        dets = []
+        for (r, t), sd in zip(poses, offset_px):
+            true, _ = cv2.projectPoints(obj, r, t, K, np.zeros(5))
+            true = true.reshape(-1, 2)
+            # an even spread of pixels over the support: the turn's share at the ends is 3 / support^2
+            # of the offset's
+            v_end, c_end = sd**2 * (1 + 3 / support**2), sd**2 * (1 - 3 / support**2)
+            cov = np.array([[v_end, c_end], [c_end, v_end]])
+            lines = {}
+            for seg in target.edges():
+                a, b = true[seg.corner_ids[0]], true[seg.corner_ids[1]]
+                tangent = (b - a) / np.linalg.norm(b - a)
+                normal = np.array([-tangent[1], tangent[0]])
+                e0, e1 = rng.multivariate_normal(np.zeros(2), cov)
+                lines[seg.id] = ((a + e0 * normal, b + e1 * normal), 2.0, (v_end, c_end, v_end))
+            rough = Detection("board", obj, true + rng.normal(0, 0.1, true.shape), np.arange(len(obj)))
+            dets.append(refine_corners(rough, target, lines))
+        assert all(d.point_cov_px2 is not None for d in dets)
+        got = calibrate({"a": dets}, (H, W))["a"]
+        f.append(got.focal_length_px)
+        s_lines.append(got.focal_length_sigma_px)
+        plain = [dataclasses.replace(d, point_cov_px2=None) for d in dets]
+        s_plain.append(calibrate({"a": plain}, (H, W))["a"].focal_length_sigma_px)
+    spread = np.std(f, ddof=1)
+    ratio = np.sqrt(np.mean(np.square(s_lines))) / spread
+    assert 0.85 <= ratio <= 1.2, ratio  # 1.08-1.11 on seeds 11-14
+    assert np.sqrt(np.mean(np.square(s_plain))) / spread > 1.4  # 1.9-2.3 on seeds 11-14

@@ -35,7 +35,9 @@ class BlurEstimate:
     residual, in standard errors, of the estimator's uniform-disk profile (through the Airy pattern
     where diffraction is modelled), also where the reading is another profile's.
     ``disk_diameter_px``, ``disk_sigma_px``: where the reading is not the uniform disk's (the
-    ``edge`` estimator's shaped spot), the uniform disk's reading of the same edge and its sigma."""
+    ``edge`` estimator's shaped spot), the uniform disk's reading of the same edge and its sigma.
+    ``line_cov_px2``: where ``line_px`` is given, the covariance (px^2) of its offsets across the
+    edge at its two points: (variance at the first, covariance, variance at the second)."""
 
     coc_diameter_px: float | None
     sigma_px: float | None
@@ -45,6 +47,7 @@ class BlurEstimate:
     line_px: tuple[tuple[float, float], tuple[float, float]] | None = None
     disk_diameter_px: float | None = None
     disk_sigma_px: float | None = None
+    line_cov_px2: tuple[float, float, float] | None = None
 
 
 #: Model-error floor shared by the estimators: perspective across a segment and the limits of

@@ -100,7 +100,7 @@ from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.diffraction import KERNEL_KNOTS, edge_kernel
 from lensfit.estimators.edge_model import (AIRY_START_SHARES, grid_start, residuals, shape_start, squared_radius,
                                            squared_radius_slope)
-from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, select as _select, windows
+from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, line_end_covariance, select as _select, windows
 
 #: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the
 #: solver's step limit: fixed, so that one compilation serves every stack.
@@ -490,7 +490,8 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             cut = "window_truncated" in f
             d_c, d_rms, d_sigma = disk[j] if j in is_shaped and not cut else (None, rms, None)
             results[i] = BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels[i], d_rms, line_px,
-                                      d_c, None if d_c is None else with_model_floor(d_sigma, d_c))
+                                      d_c, None if d_c is None else with_model_floor(d_sigma, d_c),
+                                      line_end_covariance(np.asarray(cov, np.float64), half_len))
     flat = [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
     out: list[list[BlurEstimate]] = [[] for _ in items]
     for k, r in zip(owner, flat):

@@ -208,3 +208,14 @@ def windows(task: EdgeTask, radius: float | None) -> tuple[float, float, bool]:
     half = max(2.0, min(want, room))
     truncated = room < radius + 1.5
     return half, half + radius + 1.0, truncated
+
+
+def line_end_covariance(cov: np.ndarray, half_len: float) -> tuple[float, float, float]:
+    """Covariance of the fitted edge line's offsets (across the edge, px) at its two ends, from
+    the edge fit's covariance of the offset ``d0`` (index 0) and the turn (index 4, radians about
+    the middle): (variance at the start, covariance, variance at the end). The turn moves the
+    two ends in opposite directions, so their errors anti-correlate (about -0.6 for an even
+    spread of pixels along the edge); corners refined from these lines inherit that
+    (:func:`lensfit.edge_geometry.refine_corners`)."""
+    c00, c44, c04 = float(cov[0, 0]), half_len * half_len * float(cov[4, 4]), half_len * float(cov[0, 4])
+    return c00 + c44 - 2.0 * c04, c00 - c44, c00 + c44 + 2.0 * c04
