@@ -424,7 +424,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             refined = []
             for det in detections[i]:
                 lines = {seg.id: (est.line_px, est.coc_diameter_px, est.line_cov_px2)
-                         for (tid, seg, _, _), est in zip(meta, estimates) if tid == det.target_id and est.line_px is not None}
+                         for (tid, seg, _, _), est in zip(meta, estimates)
+                         if tid == det.target_id and est.line_px is not None}
                 refined.append(refine_corners(det, by_id[det.target_id], lines))
             detections[i] = refined
         with clock.stage("calibrate"):
