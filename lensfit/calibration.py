@@ -305,28 +305,32 @@ def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, po
             intrinsic.append(cols)
     rvecs, tvecs = poses
     n_pose = 6 * len(dets)
-    jac_rows, resid, blocks = [], [], []
+    p = n_pose + len(intrinsic)
+    H, B = np.zeros((p, p)), np.zeros((p, p))  # J^T J and J^T S J, view by view (S is block diagonal)
+    trace_s, rss, n_rows = 0.0, 0.0, 0
     for k, d in enumerate(dets):
         proj, jac = cv2.projectPoints(d.object_points_mm.astype(np.float64), rvecs[k], tvecs[k], K, dist)
         jac = np.asarray(jac, np.float64)
-        rows = np.zeros((len(jac), n_pose + len(intrinsic)))
+        rows = np.zeros((len(jac), p))
         rows[:, 6 * k:6 * k + 6] = jac[:, :6]
         for j, cols in enumerate(intrinsic):
             rows[:, n_pose + j] = jac[:, cols].sum(axis=1)
-        jac_rows.append(rows)
-        resid.append((d.image_points_px - proj.reshape(-1, 2)).ravel())
-        blocks.append(np.asarray(d.point_cov_px2, np.float64))
-    from scipy.linalg import block_diag
-
-    J, r, S = np.vstack(jac_rows), np.concatenate(resid), block_diag(*blocks)
-    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(S))) or len(r) <= J.shape[1]:
+        S_k = np.asarray(d.point_cov_px2, np.float64)
+        r = (d.image_points_px - proj.reshape(-1, 2)).ravel()
+        if not (np.all(np.isfinite(rows)) and np.all(np.isfinite(S_k)) and np.all(np.isfinite(r))):
+            return None
+        H += rows.T @ rows
+        B += rows.T @ S_k @ rows
+        trace_s += float(np.trace(S_k))
+        rss += float(r @ r)
+        n_rows += len(r)
+    if n_rows <= p:
         return None
-    H_inv = np.linalg.pinv(J.T @ J)
-    B = J.T @ S @ J
-    unexplained = float(np.trace(S) - np.trace(H_inv @ B))  # tr((I - J H^-1 J^T) S)
+    H_inv = np.linalg.pinv(H)
+    unexplained = trace_s - float(np.trace(H_inv @ B))  # tr((I - J H^-1 J^T) S)
     if not unexplained > 0:
         return None
-    var = float(r @ r) / unexplained * float((H_inv @ B @ H_inv)[n_pose, n_pose])
+    var = rss / unexplained * float((H_inv @ B @ H_inv)[n_pose, n_pose])
     return math.sqrt(var) if math.isfinite(var) and var >= 0 else None
 
 
