@@ -187,7 +187,7 @@ def _compare(res, truth: dict[str, Any], cramer_rao: Callable) -> dict[str, Any]
             e = qs[q]
             row[q] = {"truth": t if math.isfinite(t) else None, "value": e.value, "sigma": e.sigma,
                       "ci68": list(e.ci68) if e.ci68 else None, "ci95": list(e.ci95) if e.ci95 else None,
-                      "infinite": e.infinite, "crlb": bound.get(label, {}).get(q),
+                      "infinite": e.infinite, "crlb": bound.get(label, {}).get(q), "variance_shares": e.shares,
                       "relative_error": (e.value / t - 1) if (e.value is not None and math.isfinite(t)) else None}
         out["settings"][label] = row
     return out
