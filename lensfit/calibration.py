@@ -51,6 +51,8 @@ class Intrinsics:
     #: covariance where the corners were refined from edge lines); for manifest intrinsics the
     #: stated ``focal_length_sigma_px``, else 0 (taken as exact)
     focal_length_sigma_px: float = 0.0
+    #: how that sigma was found (``SIGMA_METHODS``; "" where not known, e.g. an older file)
+    focal_length_sigma_method: str = ""
 
     @property
     def camera_matrix(self) -> np.ndarray:
@@ -75,13 +77,21 @@ class TargetPose:
         return pts @ self.R_cam_target.T + self.t_cam_target_mm
 
 
+#: How a focal length's sigma was found: the leave-one-view-out jackknife (6+ views); the
+#: residuals read through the covariance of corners refined from edge lines (fewer views);
+#: OpenCV's residuals taking every point's error as independent; stated in stack.toml; not
+#: stated (0, taken as exact).
+SIGMA_METHODS = ("jackknife", "corner covariance", "opencv", "manifest", "exact")
+
+
 def known_intrinsics(entry: dict, shape: tuple[int, int]) -> Intrinsics:
     """Intrinsics given in stack.toml ``[[intrinsics]]`` (principal point defaults to the centre)."""
     h, w = shape
     pp = entry.get("principal_point_px", [(w - 1) / 2, (h - 1) / 2])
     return Intrinsics(float(entry["focal_length_px"]), (float(pp[0]), float(pp[1])),
                       tuple(float(v) for v in entry.get("distortion", [0.0] * 5)), 0.0, 0, "manifest",
-                      float(entry.get("focal_length_sigma_px", 0.0)))
+                      float(entry.get("focal_length_sigma_px", 0.0)),
+                      "manifest" if float(entry.get("focal_length_sigma_px", 0.0)) > 0 else "exact")
 
 
 def project(points_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -253,21 +263,21 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         usable = _usable(dets)
         n = len(usable)
         if not with_jackknife:
-            return sigma_opencv
+            return sigma_opencv, "opencv"
         if n < JACKKNIFE_MIN_VIEWS:
             through_lines = _correlated_sigma(usable, *solution, flags | extra)
-            return sigma_opencv if through_lines is None else through_lines
+            return (sigma_opencv, "opencv") if through_lines is None else (through_lines, "corner covariance")
         weighted = 0.0
         for i in range(n):
             _, K_i, _, _, unit_i, _ = run(usable[:i] + usable[i + 1:], K, dist, extra)
             weighted += (K_i[0, 0] - f_all) ** 2 * (min(unit / unit_i, 1.0) if unit_i > 0 else 1.0)
-        return float(np.sqrt(weighted))
+        return float(np.sqrt(weighted)), "jackknife"
 
     def setting(dets, K_start, dist_start, extra):
         rms, K, dist, sigma, unit, poses = run(dets, K_start, dist_start, extra)
         return Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
                           float(rms), len(_usable(dets)), "calibrated",
-                          jackknife(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0]), (K, dist, poses)))
+                          *jackknife(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0]), (K, dist, poses)))
 
     if len(detections) == 1:
         (label, dets), = detections.items()

@@ -41,6 +41,7 @@ def test_jackknife_sigma_matches_the_spread_of_repeated_calibrations():
     f, s = [], []
     for _ in range(80):
         intr = calibrate({"a": draw(rng, poses, 0.05)}, (H, W))["a"]
+        assert intr.focal_length_sigma_method == "jackknife"
         f.append(intr.focal_length_px)
         s.append(intr.focal_length_sigma_px)
     ratio = np.sqrt(np.mean(np.square(s))) / np.std(f, ddof=1)
@@ -168,10 +169,13 @@ def test_sigma_through_line_refined_corners_matches_the_spread_and_opencvs_overs
             dets.append(refine_corners(rough, target, lines))
         assert all(d.point_cov_px2 is not None for d in dets)
         got = calibrate({"a": dets}, (H, W))["a"]
+        assert got.focal_length_sigma_method == "corner covariance"
         f.append(got.focal_length_px)
         s_lines.append(got.focal_length_sigma_px)
         plain = [dataclasses.replace(d, point_cov_px2=None) for d in dets]
-        s_plain.append(calibrate({"a": plain}, (H, W))["a"].focal_length_sigma_px)
+        got = calibrate({"a": plain}, (H, W))["a"]
+        assert got.focal_length_sigma_method == "opencv"
+        s_plain.append(got.focal_length_sigma_px)
     spread = np.std(f, ddof=1)
     ratio = np.sqrt(np.mean(np.square(s_lines))) / spread
     assert 0.85 <= ratio <= 1.2, ratio  # 1.08-1.11 on seeds 11-14

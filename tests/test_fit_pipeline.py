@@ -214,7 +214,7 @@ def test_focus_bracket_scene_fits_jointly(tmp_path, monkeypatch):
     table = measure(out)
     assert len(through_lines) == 2 and None not in through_lines, through_lines
     for label, intr in table.intrinsics.items():
-        assert intr.focal_length_sigma_px in through_lines
+        assert intr.focal_length_sigma_px in through_lines and intr.focal_length_sigma_method == "corner covariance"
         assert abs(intr.focal_length_px - truth["settings"][label]["focal_length_px"]) < 3 * intr.focal_length_sigma_px
     r = fit(table)
     assert r.ok, r.reasons
@@ -250,6 +250,9 @@ def test_refit_from_a_samples_file_equals_the_fit_from_the_stack(calibration_sam
     path = tmp_path / f"samples{suffix}"
     calibration_samples.write(path)
     direct, again = fit(calibration_samples), fit(SampleTable.read(path))
+    if suffix == ".json":  # the JSON keeps the calibration itself, with how its sigma was found
+        assert SampleTable.read(path).intrinsics["a"] == calibration_samples.intrinsics["a"]
+        assert calibration_samples.intrinsics["a"].focal_length_sigma_method == "jackknife"  # 8 views
     for q in ("focal_length_mm", "f_number", "focus_distance_mm"):
         a = getattr(direct, q) if q == "focal_length_mm" else direct.settings["a"][q]
         b = getattr(again, q) if q == "focal_length_mm" else again.settings["a"][q]

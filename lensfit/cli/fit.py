@@ -121,6 +121,11 @@ def _print_fit(result, document) -> None:
                   if (text := _budget_text(qs[qn].shares if qs[qn].value is not None else None))]
         if budget:
             print("variance from: " + "; ".join(budget))
+        cal = (document.get("calibration") or {}).get(label)
+        if cal and cal.get("source") == "calibrated":
+            how = cal.get("focal_length_sigma_method") or "sigma"
+            print(f"calibration: focal length {cal['focal_length_px']:.1f} ± {cal['focal_length_sigma_px']:.2g} px "
+                  f"({how}, {cal['views']} views, reprojection RMS {cal['rms_px']:.3g} px)")
         fc = qs.get("field_curvature_per_m")
         if fc is not None and fc.value is not None:
             print(f"field curvature {fc.value:.3g} ± {fc.sigma:.2g} /m: the in-focus inverse distance at field angle "
