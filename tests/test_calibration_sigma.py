@@ -211,3 +211,31 @@ def test_edge_lines_ends_anticorrelate_as_stated_and_as_they_scatter():
         assert corr_stated < -0.3 and corr_seen < -0.3 and abs(corr_seen - corr_stated) < 0.25, (c, corr_seen,
                                                                                                 corr_stated)
         assert (v0 + v1) / (seen[0, 0] + seen[1, 1]) > 0.8, (c, v0, v1, seen)
+
+
+def test_a_line_without_a_usable_covariance_leaves_the_opencv_sigma():
+    """One edge line whose stated covariance is not finite: the refined corners are kept, the
+    detection states no point covariance, and a five-view calibration takes OpenCV's sigma
+    (flagged "opencv") instead of reading a covariance it was not given."""
+    import cv2
+
+    from lensfit.edge_geometry import refine_corners
+    from lensfit.targets import Target
+
+    target = Target({"id": "board", "kind": "checkerboard", "squares": [10, 7], "square_mm": 20.0})
+    obj = target.inner_corners_mm() - np.array([90.0, 60.0, 0.0])
+    K = np.array([[F_PX, 0, (W - 1) / 2], [0, F_PX, (H - 1) / 2], [0, 0, 1]])
+    rng = np.random.default_rng(2)
+    dets = []
+    for k, (r, t) in enumerate(views(rng, n=5, tilted_every=2)):
+        true = cv2.projectPoints(obj, r, t, K, np.zeros(5))[0].reshape(-1, 2)
+        lines = {seg.id: ((true[seg.corner_ids[0]], true[seg.corner_ids[1]]), 2.0, (1e-4, -5e-5, 1e-4))
+                 for seg in target.edges()}
+        if k == 2:
+            first = target.edges()[0].id
+            lines[first] = (lines[first][0], 2.0, (float("nan"), 0.0, 1e-4))
+        rough = Detection("board", obj, true + rng.normal(0, 0.1, true.shape), np.arange(len(obj)))
+        dets.append(refine_corners(rough, target, lines))
+        assert np.abs(dets[-1].image_points_px - true).max() < 1e-6  # refined onto the exact lines
+    assert [d.point_cov_px2 is None for d in dets] == [False, False, True, False, False]
+    assert calibrate({"a": dets}, (H, W))["a"].focal_length_sigma_method == "opencv"
