@@ -177,6 +177,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
             fits = {"thin (one setting)": fit(one), "thick, P given (one setting)": fit(one, pupil_magnification=P),
                     "thick (bracket, P fitted)": bracket}
             calibration = {label: {"focal_length_px": k.focal_length_px, "sigma": k.focal_length_sigma_px,
+                                   "sigma_method": k.focal_length_sigma_method, "views": k.views,
                                    "relative_error": k.focal_length_px / truth["settings"][label]["focal_length_px"] - 1}
                            for label, k in table.intrinsics.items()}
             row = {"lens": name, "pupil_magnification": P, "seconds_render": t_render, "seconds_measure": t_measure,
