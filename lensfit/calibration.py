@@ -243,9 +243,12 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
     if kept == "plain":
         flags |= plain
 
-    def jackknife(dets, K, dist, extra, sigma_opencv, unit, f_all, solution):
-        """Leave-one-view-out spread of the focal length (px), where there are enough views,
-        each view's shift weighted by its leverage.
+    def focal_sigma(dets, K, dist, extra, sigma_opencv, unit, f_all, solution):
+        """The focal length's 1 sigma (px) and how it was found (``SIGMA_METHODS``): with
+        ``JACKKNIFE_MIN_VIEWS`` views or more the leave-one-view-out spread, each view's shift
+        weighted by its leverage; with fewer, the residuals read through the refined corners'
+        covariance (:func:`_correlated_sigma` at ``solution``: the calibration's K, distortion
+        and poses), else OpenCV's sigma.
 
         OpenCV's sigma assumes independent corner errors; corners on blurred views err per view
         (the views disagree by more than noise explains), which the jackknife sees directly. On
@@ -277,7 +280,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         rms, K, dist, sigma, unit, poses = run(dets, K_start, dist_start, extra)
         return Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
                           float(rms), len(_usable(dets)), "calibrated",
-                          *jackknife(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0]), (K, dist, poses)))
+                          *focal_sigma(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0]), (K, dist, poses)))
 
     if len(detections) == 1:
         (label, dets), = detections.items()
