@@ -1,5 +1,3 @@
-import sys
+from lensfit.cli import run
 
-from lensfit.cli import main
-
-sys.exit(main())
+run()

@@ -25,6 +25,7 @@ from typing import Any, Callable
 _DIR: list[Path | None] = [None]
 _LOADED: dict[str, Callable] = {}
 _LOCK = threading.Lock()
+_KEY_LOCKS: dict[str, threading.Lock] = {}  # one per function: loading one never waits on another
 _HASHES: dict[tuple[str, ...], str] = {}  # the source of a running process does not change
 
 
@@ -93,7 +94,9 @@ def call(name: str, fn: Callable, args: tuple, static: dict[str, Any] | None = N
     key = _key(name, args, static, modules)
     runner = _LOADED.get(key)
     if runner is None:
-        with _LOCK:  # one thread loads (lensfit.measure loads in the background), the others wait
+        with _LOCK:
+            lock = _KEY_LOCKS.setdefault(key, threading.Lock())
+        with lock:  # one thread loads a function (lensfit.measure loads in the background), others wait
             runner = _LOADED.get(key)
             if runner is None:
                 runner = _load_or_export(store / f"{key}.jaxexport", fn, args, static)

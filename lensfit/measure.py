@@ -222,20 +222,27 @@ def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
     """Import JAX and load the edge estimator's compiled fits in a background thread while the
     images are read and the targets detected and calibrated (OpenCV and numpy release the
     interpreter, so the two overlap on two cores: of about 1.2 s of CPU, 0.4 s of a fresh
-    process's wall time on the demo). A failure there is left for the measuring itself to meet
-    and report."""
+    process's wall time on the demo)."""
     if estimator not in ("edge", "edge-disk"):
         return None
 
+    def load():
+        from lensfit.estimators import edge
+
+        edge.prewarm(shaped=estimator == "edge", diffraction=diffraction)
+    return in_background(load, "lensfit-prewarm")
+
+
+def in_background(load: Callable[[], None], name: str) -> threading.Thread:
+    """Run ``load`` (loading compiled code ahead of its use) in a started thread, which the
+    caller joins before the use. A failure there is left for the use itself to meet and report."""
     def work():
         try:
-            from lensfit.estimators import edge
-
-            edge.prewarm(shaped=estimator == "edge", diffraction=diffraction)
+            load()
         except Exception:  # noqa: BLE001 - the same call in the measuring raises it properly
             pass
 
-    thread = threading.Thread(target=work, name="lensfit-prewarm")
+    thread = threading.Thread(target=work, name=name)
     thread.start()
     return thread
 

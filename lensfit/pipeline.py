@@ -99,8 +99,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     InputError
         A wavelength outside 200-2000 nm, or an estimator without a diffraction model.
     """
-    from lensfit.fit import fit
-    from lensfit.measure import measure
+    from lensfit.measure import in_background, measure
     from lensfit.stack import Stack, load_stack
 
     if wavelength_nm is not None and not (math.isfinite(wavelength_nm) and 200.0 <= wavelength_nm <= 2000.0):
@@ -113,6 +112,28 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     options = dict(fit_options or {})
     table = measure(stack, estimator, progress=progress)
     auto = wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk")
+    # The fits with the Airy pattern are loaded while the first fit runs (0.2-0.4 s of a process).
+    warming = in_background(_prewarm_airy, "lensfit-prewarm-airy") if auto or wavelength_nm else None
+    try:
+        return _fit_rounds(stack, table, estimator, wavelength_nm, options, progress, auto, warming)
+    finally:
+        if warming is not None:
+            warming.join()
+
+
+def _prewarm_airy() -> None:
+    from lensfit.estimators import edge
+
+    edge.prewarm_airy()
+
+
+def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | None, options: dict[str, Any],
+                progress: Callable[[str, int, int], None] | None, auto: bool, warming: Any):
+    """:func:`measure_and_fit` once the stack is measured; ``warming``: the thread loading the fits
+    with the Airy pattern, joined before they are first called."""
+    from lensfit.fit import fit
+    from lensfit.measure import measure
+
     # Where the images are tested for the Airy pattern (or read through it), the first fit takes
     # the spots' second moments as they are: the test decides (lensfit.fit.spots).
     first = options.get("spot_shape", "auto")
@@ -122,6 +143,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     if auto:
         airy = airy_per_setting(result, DEFAULT_WAVELENGTH_NM)
         if max(airy.values(), default=0.0) >= AUTO_MIN_AIRY_PX:
+            warming.join()
             evidence = table.diffraction = diffraction_test(stack, table, airy)
             if evidence["modelled"]:
                 wavelength_nm = DEFAULT_WAVELENGTH_NM
@@ -146,6 +168,8 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
             result.warnings.append("diffraction not modelled: no setting's aperture was determined")
             break
         rounds.append(airy)
+        if warming is not None:
+            warming.join()
         new_table = measure(stack, estimator, progress=progress, airy_px=airy, detected=table)
         new_table.diffraction = table.diffraction
         new = fit(new_table, **options)

@@ -287,6 +287,29 @@ def test_unforeseen_failure_is_one_line(capsys, monkeypatch):
     one_line_error(err, "internal error", "RuntimeError")
 
 
+@pytest.mark.parametrize("thread", [False, True])
+def test_quick_exit_keeps_the_output_and_the_status_and_waits_for_work(thread):
+    """exit_process skips JAX's exit handlers with os._exit: what was printed (block-buffered
+    into a pipe) still arrives, the status is the command's, and a thread still working is
+    not cut off (the plain exit waits for it)."""
+    script = ("import sys, threading, time\n"
+              "import jax\n"
+              "from lensfit.running import exit_process\n"
+              "def late():\n"
+              "    time.sleep(0.3)\n"
+              "    print('thread done')\n"
+              f"if {thread}:\n"
+              "    threading.Thread(target=late).start()\n"
+              "print('written')\n"
+              "sys.stderr.write('warned')\n"
+              "exit_process(3)\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # stdout block-buffered
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env)
+    assert proc.returncode == 3
+    assert proc.stdout.split() == (["written", "thread", "done"] if thread else ["written"])
+    assert proc.stderr.endswith("warned")
+
+
 # --------------------------------------------------------------------------- inputs: only inside the stack
 
 

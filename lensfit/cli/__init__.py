@@ -278,5 +278,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_guarded(args.prog, lambda: args.func(args), known)
 
 
+def run() -> None:
+    """The ``lensfit`` program: :func:`main` on the command line's arguments, then the process
+    ends (``lensfit.running.exit_process``)."""
+    from lensfit.running import exit_process
+
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -277,22 +277,36 @@ def _chunks(npix: int, samples: list, disk: list | None, airy: list[float] | Non
     return [jax.tree_util.tree_map(lambda x: x[k:k + CHUNK], arrays) for k in range(0, n, CHUNK)]
 
 
+def _dummy(npix: int) -> list[tuple]:
+    """One problem of ``npix`` bins with nothing to fit (zero weights: the solver stops at once)."""
+    d = np.linspace(-4.0, 4.0, npix)
+    return [(d, np.zeros_like(d), np.zeros_like(d), np.full_like(d, np.inf), (1.0, 0.0))]
+
+
+_DISK = [np.array([0.0, 1.0, 0.0, 1.0, 0.0])]
+
+
 def prewarm(shaped: bool = True, diffraction: bool = False) -> None:
     """Load (or trace and compile) the batched fits that :func:`measure_images` calls, for every
-    profile size (``NPIX_CLASSES``), on chunks with nothing to fit (zero weights: the solver
-    stops at once), so that a caller can overlap the loading (about 0.1 s per kind and size from
-    the stores, seconds without) with other work: ``lensfit.measure`` runs it in a background
-    thread while it reads and detects."""
-    dummy = []
+    profile size (``NPIX_CLASSES``), on chunks with nothing to fit, so that a caller can overlap
+    the loading (about 0.1 s per kind and size from the stores, seconds without) with other
+    work: ``lensfit.measure`` runs it in a background thread while it reads and detects."""
+    # One size per call (a lone small problem would move up a size), in the order of use.
     for npix in NPIX_CLASSES:
-        d = np.linspace(-4.0, 4.0, npix)
-        dummy.append((d, np.zeros_like(d), np.zeros_like(d), np.full_like(d, np.inf), (1.0, 0.0)))
-    disk = [np.array([0.0, 1.0, 0.0, 1.0, 0.0])] * len(dummy)
-    _fit(dummy, False)  # the first pass (never with the Airy model)
+        _fit(_dummy(npix), False)  # the first pass (never with the Airy model)
+    for npix in NPIX_CLASSES if shaped and not diffraction else ():
+        _fit(_dummy(npix), True, _DISK)
     if diffraction:
-        _fit(dummy, False, disk, airy=[1.0] * len(dummy))
-    if shaped and not diffraction:
-        _fit(dummy, True, disk)
+        prewarm_airy()
+
+
+def prewarm_airy() -> None:
+    """Load the fits with the Airy pattern (every profile size) and compute its tables, as
+    :func:`prewarm` does for the plain fits: ``lensfit.pipeline`` runs it in the background
+    while the first fit runs, before its diffraction test."""
+    edge_kernel(1.0, 1.0, 0.0)
+    for npix in NPIX_CLASSES:
+        _fit(_dummy(npix), False, _DISK, airy=[1.0])
 
 
 def _at_one_depth(task: EdgeTask) -> bool:

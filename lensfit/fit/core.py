@@ -174,7 +174,6 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     """The body of :func:`fit` on validated data (it may raise on data of absurd magnitude;
     :func:`fit` turns that into a refusal)."""
     import jax
-    import jax.numpy as jnp
 
     labels, m, p = data.labels, len(data.labels), data.pixel_pitch_mm
     n = len(data.coc_px)
@@ -282,7 +281,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         for it in range(rounds):
             args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
                                 p_prior)
-            sol, ok = _solver(m)[0](jnp.asarray(theta[free_idx]), args)
+            sol, ok = _solver(m)[0](theta[free_idx], args)
             sol = np.asarray(sol)
             if not np.all(np.isfinite(sol)):
                 return theta, weights, False
@@ -303,9 +302,9 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
                             p_prior)
         if free_idx.size:
-            res, jac = (np.asarray(a) for a in _solver(m)[1](jnp.asarray(theta[free_idx]), args))
+            res, jac = (np.asarray(a) for a in _solver(m)[1](theta[free_idx], args))
         else:
-            res = np.asarray(fn(jnp.asarray(theta[free_idx]), args))
+            res = np.asarray(fn(theta[free_idx], args))
             jac = np.zeros((len(res), 0))
         dof = max(float(np.sum(weights[row_on > 0])) - len(free_idx), 1.0)
         return res, jac, float(np.sum(res[:npad] ** 2) / dof) if row_on.any() else 1.0

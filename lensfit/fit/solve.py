@@ -17,7 +17,7 @@ def _residuals(theta_free, args):
 
     (theta_fixed, free_idx, m, setting, w_nodes, pose, field2, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w, floor_w,
      p_prior) = args
-    theta = theta_fixed.at[free_idx].set(theta_free)
+    theta = jnp.asarray(theta_fixed).at[free_idx].set(theta_free)  # numpy where called eagerly
     c, s = _model(theta, m, setting, w_nodes, pitch, fpx, pose, field2)
     r_blur = (c - coc) * sqrt_w_over_sigma
     r_fpx = (s / pitch - fpx) * fpx_w
@@ -118,20 +118,20 @@ def _padded_size(n: int) -> int:
 
 
 def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w, p_prior=(0.0, 0.0)):
-    """The solver's ``args`` (JAX arrays), samples padded to :func:`_padded_size`."""
-    import jax.numpy as jnp
-
+    """The solver's ``args``, samples padded to :func:`_padded_size`. numpy arrays, which the
+    compiled functions take as they are (``jnp.asarray`` compiles a small conversion per new
+    shape in every process: about 0.1 s of a cold fit)."""
     pad = _padded_size(len(data.coc_px)) - len(data.coc_px)
 
     def padded(a, fill):
-        return jnp.asarray(np.concatenate([a, np.full((pad, *np.shape(a)[1:]), fill)]))
+        return np.concatenate([a, np.full((pad, *np.shape(a)[1:]), fill)])
 
-    return (jnp.asarray(theta), jnp.asarray(free_idx), padded(data.setting.astype(np.int32), 0),
+    return (np.asarray(theta, np.float64), np.asarray(free_idx), padded(data.setting.astype(np.int32), 0),
             padded(data.w_nodes, 1e-3), padded(data.pose.astype(np.float64), 0.0),
             padded(np.nan_to_num(data.field2), 0.0), padded(data.coc_px, 1.0),
             padded(sqrt_w_over_sigma, 0.0),
-            data.pixel_pitch_mm, jnp.asarray(fpx), jnp.asarray(fpx_w), jnp.asarray(floor_w),
-            jnp.asarray(p_prior, dtype=jnp.float64))
+            data.pixel_pitch_mm, np.asarray(fpx, np.float64), np.asarray(fpx_w, np.float64),
+            np.asarray(floor_w, np.float64), np.asarray(p_prior, dtype=np.float64))
 
 
 def _solver_residual_fn(m):

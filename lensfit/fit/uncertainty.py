@@ -84,7 +84,6 @@ def _jackknife(cov, corr, z, theta, free_idx, data, used, row_on, weights, fpx, 
     Student-t intervals (G - 1 degrees of freedom) where the jackknife's is. Returns (cov, z);
     unchanged where there are too few or too many images."""
     import jax
-    import jax.numpy as jnp
 
     m = len(data.labels)
     if not (free_idx.size and np.all(data.group[used] >= 0)
@@ -96,7 +95,7 @@ def _jackknife(cov, corr, z, theta, free_idx, data, used, row_on, weights, fpx, 
         for g in groups:  # one LM solve each, robust weights held (cheap: no recompilation)
             args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on * (data.group != g)
                                 / data.sigma_px, fpx, fpx_w, floor_w, p_prior)
-            refits.append(np.asarray(_solver(m)[0](jnp.asarray(theta[free_idx]), args)[0]))
+            refits.append(np.asarray(_solver(m)[0](theta[free_idx], args)[0]))
     refits = np.array(refits)
     G = len(groups)
     spread_cov = (G - 1) * np.cov(refits.T, bias=True).reshape(len(free_idx), len(free_idx))
@@ -166,10 +165,9 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
     covariance split by source (:func:`_budget_parts`, full size); ``scale_var``: the variance
     of the estimator's shared relative scale error."""
     import jax
-    import jax.numpy as jnp
 
     with jax.enable_x64(True):
-        values, grads = _solver(m)[2](jnp.asarray(theta))
+        values, grads = _solver(m)[2](np.asarray(theta, np.float64))
         q = {k: np.asarray(v) for k, v in values.items()}
         jacs = {k: np.asarray(v) for k, v in grads.items()}
     variance = _Variance(q, jacs, cov, parts or {}, scale_var)
@@ -285,7 +283,6 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
     the parameter was not free in the fit).
     """
     import jax
-    import jax.numpy as jnp
 
     data, setup = result.samples, result._setup
     m = len(data.labels)
@@ -301,8 +298,8 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
     with jax.enable_x64(True):
         args = _solver_args(theta, free_idx, data, setup["row_on"] / data.sigma_px, setup["fpx"], setup["fpx_w"],
                             setup["floor_w"], setup.get("p_prior", (0.0, 0.0)))
-        _, jac = _solver(m)[1](jnp.asarray(theta[free_idx]), args)
-        values, grads = _solver(m)[2](jnp.asarray(theta))
+        _, jac = _solver(m)[1](theta[free_idx], args)
+        values, grads = _solver(m)[2](np.asarray(theta, np.float64))
     cov_free, _, _ = _covariance(np.asarray(jac), 1.0)
     cov = np.zeros((_size(m), _size(m)))
     cov[np.ix_(free_idx, free_idx)] = cov_free
