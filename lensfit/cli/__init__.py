@@ -255,6 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also time the first K images (default 3 6; the whole stack always)")
     bs.add_argument("--scale", type=_number, nargs="+", default=[1.0, 2.0], metavar="X",
                     help="enlargements of the whole stack (bilinear, pitch / X; default 1 2)")
+    bs.add_argument("--repeat", type=int, default=3, metavar="K",
+                    help="whole-process pairs (lensfit fit, OpenCV) run back to back; medians (default 3)")
     bs.add_argument("--json", action="store_true", help="print JSON")
     bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
     return parser
