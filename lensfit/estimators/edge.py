@@ -97,8 +97,8 @@ import numpy as np
 
 from lensfit import aot
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
-from lensfit.diffraction import KERNEL_KNOTS, edge_kernel
-from lensfit.estimators.edge_model import (AIRY_START_SHARES, grid_start, residuals, shape_start, squared_radius,
+from lensfit.diffraction import edge_kernel
+from lensfit.estimators.edge_model import (AIRY_START_SHARES, chunks, grid_start, residuals, shape_start, squared_radius,
                                            squared_radius_slope)
 from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, line_end_covariance, select as _select, windows
 
@@ -238,7 +238,7 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
     with jax.enable_x64(True):
         # numpy in, numpy out: no eager JAX operation between the compiled calls
         calls = [(members, [aot.call("edge-fit", _fit_batch, chunk, static, AOT_MODULES)
-                            for chunk in _chunks(npix, [samples[i] for i in members],
+                            for chunk in chunks(npix, CHUNK, [samples[i] for i in members],
                                                  None if disk is None else [disk[i] for i in members],
                                                  None if airy is None else [airy[i] for i in members])])
                  for npix, members in classes.items()]
@@ -249,32 +249,6 @@ def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], s
         for k, i in enumerate(members):
             out[i] = (theta[k], cov[k], float(rms[k]), bool(ok[k]), float(probe[k]))
     return out
-
-
-def _chunks(npix: int, samples: list, disk: list | None, airy: list[float] | None) -> list[tuple]:
-    """The arrays of :func:`_fit_batch` for ``samples`` padded to ``npix`` bins, in chunks of
-    ``CHUNK`` problems (padding rows: a harmless dummy problem with zero weights)."""
-    n = CHUNK * math.ceil(len(samples) / CHUNK)
-    D = np.tile(np.linspace(-4.0, 4.0, npix), (n, 1))
-    V, S, W = np.zeros((n, npix)), np.zeros((n, npix)), np.zeros((n, npix))
-    NX, NY = np.ones(n), np.zeros(n)
-    T = np.tile([0.0, 1.0, 0.0, 1.0, 0.0], (n, 1))
-    knots, changes, tails = np.zeros((n, KERNEL_KNOTS)), np.zeros((n, KERNEL_KNOTS)), np.zeros(n)
-    if airy is None:  # dummies: the compiled fit without diffraction never reads them
-        knots, changes = knots[:, :1], changes[:, :1]
-    else:  # the edges' kernels at once, 256 at a time (a peak of about 66 MB)
-        normals = np.array([nrm for *_, nrm in samples], np.float64).reshape(-1, 2)
-        scales = np.asarray(airy, np.float64)
-        for k in range(0, len(samples), 256):
-            part = slice(k, min(k + 256, len(samples)))
-            knots[part], changes[part], tails[part] = edge_kernel(scales[part], normals[part, 0], normals[part, 1])
-    for i, theta in enumerate(disk or []):
-        T[i] = theta[:5]
-    for i, (d, s_along, v, se, nrm) in enumerate(samples):
-        D[i, :len(d)], S[i, :len(d)], V[i, :len(d)], W[i, :len(d)] = d, s_along, v, 1.0 / se
-        NX[i], NY[i] = nrm
-    arrays = (D, S, V, W, NX, NY, T, (knots, changes, tails))
-    return [jax.tree_util.tree_map(lambda x: x[k:k + CHUNK], arrays) for k in range(0, n, CHUNK)]
 
 
 def _dummy(npix: int) -> list[tuple]:

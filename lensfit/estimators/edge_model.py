@@ -3,7 +3,7 @@ describes the method): the uniform disk or two concentric disks, integrated over
 in closed form, convolved where diffraction is modelled with the edge's Airy kernel
 (``lensfit.diffraction.edge_kernel``); the residuals the batched Levenberg-Marquardt solve
 minimises and the grids it starts from. Pure JAX functions of one edge: the estimator maps
-them over chunks of edges and compiles them once (``lensfit.aot``)."""
+them over chunks of edges (packed by :func:`chunks`) and compiles them once (``lensfit.aot``)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lensfit.diffraction import KERNEL_KNOTS, edge_kernel
 from lensfit.psf import disk_esf_integral2, pixel_edge_profile
 
 RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
@@ -137,3 +138,31 @@ def shape_start(theta_disk, args):
     starts = jnp.stack(starts)
     costs = jax.vmap(lambda th: jnp.sum(fn(th, args) ** 2))(starts)
     return starts[jnp.argmin(costs)]
+
+
+def chunks(npix: int, size: int, samples: list, disk: list | None, airy: list[float] | None) -> list[tuple]:
+    """The arrays of the estimator's batched fit (``lensfit.estimators.edge``) for ``samples``
+    (d, s, values, standard errors, normal) padded to ``npix`` bins, in chunks of ``size``
+    problems (padding rows: a harmless dummy problem with zero weights); ``disk``: each one's
+    uniform-disk solution to start from, ``airy``: each one's Airy scale in px (or None)."""
+    n = size * math.ceil(len(samples) / size)
+    D = np.tile(np.linspace(-4.0, 4.0, npix), (n, 1))
+    V, S, W = np.zeros((n, npix)), np.zeros((n, npix)), np.zeros((n, npix))
+    NX, NY = np.ones(n), np.zeros(n)
+    T = np.tile([0.0, 1.0, 0.0, 1.0, 0.0], (n, 1))
+    knots, changes, tails = np.zeros((n, KERNEL_KNOTS)), np.zeros((n, KERNEL_KNOTS)), np.zeros(n)
+    if airy is None:  # dummies: the compiled fit without diffraction never reads them
+        knots, changes = knots[:, :1], changes[:, :1]
+    else:  # the edges' kernels at once, 256 at a time (a peak of about 66 MB)
+        normals = np.array([nrm for *_, nrm in samples], np.float64).reshape(-1, 2)
+        scales = np.asarray(airy, np.float64)
+        for k in range(0, len(samples), 256):
+            part = slice(k, min(k + 256, len(samples)))
+            knots[part], changes[part], tails[part] = edge_kernel(scales[part], normals[part, 0], normals[part, 1])
+    for i, theta in enumerate(disk or []):
+        T[i] = theta[:5]
+    for i, (d, s_along, v, se, nrm) in enumerate(samples):
+        D[i, :len(d)], S[i, :len(d)], V[i, :len(d)], W[i, :len(d)] = d, s_along, v, 1.0 / se
+        NX[i], NY[i] = nrm
+    arrays = (D, S, V, W, NX, NY, T, (knots, changes, tails))
+    return [jax.tree_util.tree_map(lambda x: x[k:k + size], arrays) for k in range(0, n, size)]
