@@ -209,11 +209,15 @@ def test_auto_models_diffraction_where_the_edges_show_it_and_not_on_a_geometric_
     drawn: at f/16 with diffraction rendered it models the Airy pattern and recovers N; on a
     geometric render at f/8 (Airy scale 0.75 px, tested) it leaves the pattern out, as it must:
     read with it, such a stack's N comes out several per cent high."""
+    import threading
+
     from lensfit.pipeline import measure_and_fit
 
     for stack, shows_it in ((diffraction_stack, True), (calibration_stack, False)):
         truth = json.loads((stack / "truth.json").read_text())
+        before = threading.active_count()
         table, result, rounds = measure_and_fit(stack, auto_diffraction=True)
+        assert threading.active_count() == before  # the Airy fits' background loading is joined
         test = table.diffraction
         assert test is not None and test["edges"] >= 8 and test["modelled"] is shows_it, test
         assert bool(rounds) is shows_it

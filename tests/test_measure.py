@@ -454,3 +454,41 @@ def test_exact_edges_bias_stays_within_the_fits_scale_budget():
                 image, task = exact_edge(c, slant, offset)
                 rel = fn(image, [task])[0].coc_diameter_px / c - 1.0
                 assert abs(rel) <= disk_scale_sigma(c), (c, slant, offset, rel)
+
+
+def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack, monkeypatch):
+    """What the background loading covers: every (kind of fit, profile size) that measuring the
+    stack calls, so none is left to load on the critical path (a lone small dummy problem once
+    moved up a size: the 64-bin fits were never prewarmed). Recorded through the compiled
+    calls' argument shapes; the fits themselves are stubbed (zero results, the shapes kept)."""
+    import lensfit.estimators.edge as edge_module
+    from lensfit import aot
+
+    calls = set()
+
+    def record(name, fn, args, static=None, modules=()):
+        n = args[0].shape[0]
+        calls.add((static["shaped"], static["diffraction"], args[0].shape[1]))
+        return (np.zeros((n, 7)), np.zeros((n, 7, 7)), np.ones(n), np.zeros(n, bool), np.zeros(n))
+
+    monkeypatch.setattr(aot, "call", record)
+    edge_module.prewarm(shaped=True)
+    warmed = set(calls)
+    edge_module.prewarm_airy()
+    warmed_airy = calls - warmed
+    assert warmed == {(shaped, False, npix) for shaped in (False, True) for npix in edge_module.NPIX_CLASSES}
+    assert warmed_airy == {(False, True, npix) for npix in edge_module.NPIX_CLASSES}
+    # and a real measure's calls (the compiled fits run for real) are all among them
+    monkeypatch.undo()
+    used = set()
+    original = aot.call
+
+    def spy(name, fn, args, static=None, modules=()):
+        used.add((static["shaped"], static["diffraction"], args[0].shape[1]))
+        return original(name, fn, args, static, modules)
+
+    monkeypatch.setattr(aot, "call", spy)
+    measure_module = __import__("lensfit.measure", fromlist=["measure"])
+    monkeypatch.setattr(measure_module, "_prewarm", lambda *a: None)
+    measure_module.measure(calibration_stack)
+    assert used and used <= warmed, used - warmed
