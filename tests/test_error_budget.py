@@ -119,3 +119,60 @@ def test_a_shaped_reading_costs_scale_only_as_far_as_it_departs_from_the_disk():
     assert n_sigma(1.0) == pytest.approx(disk, rel=0.01)
     assert n_sigma(0.95) == pytest.approx(disk + SHAPE_SCALE_SHARE * 0.05, rel=0.25)
     assert n_sigma(None) == pytest.approx(BLUR_SCALE_SIGMA_SHAPED, rel=0.25)
+
+
+@pytest.mark.parametrize("dof, known_share", [(9, 0.5), (5, 0.3)])
+def test_jackknife_intervals_take_welch_satterthwaite_degrees_of_freedom(dof, known_share):
+    """A variance that is part jackknife (estimated with ``dof`` degrees of freedom) and part
+    known in form (calibration, scale term): Monte Carlo against the Welch-Satterthwaite multiple
+    (GUM G.4). Its 95 % intervals hold 95 % of the errors; Student's t with the jackknife's own
+    degrees of freedom for the whole (the rule before 2026-11-25) over-covers, the normal's
+    under-covers."""
+    from lensfit.fit.uncertainty import effective_z, student_z
+
+    rng = np.random.default_rng(dof)
+    n = 40000
+    estimated_true, known = 1.0 - known_share, known_share
+    errors = rng.normal(0.0, math.sqrt(estimated_true), n) + rng.normal(0.0, math.sqrt(known), n)
+    estimated = estimated_true * rng.chisquare(dof, n) / dof  # the jackknife's variance, drawn
+    total = estimated + known
+    z_ws = np.array([effective_z({"blur": 0.0, "images": a / t, "calibration": known / t}, dof)[1]
+                     for a, t in zip(estimated, total)])
+
+    def coverage(z):
+        return float(np.mean(np.abs(errors) <= z * np.sqrt(total)))
+
+    assert abs(coverage(z_ws) - 0.95) < 0.007  # Monte Carlo standard error 0.0011
+    assert coverage(student_z(dof)[1]) > 0.965
+    assert coverage(1.959963984540054) < 0.945
+    # and where the jackknife did not take over (no "images" share), the normal multiple
+    assert effective_z({"blur": 0.4, "images": 0.0, "calibration": 0.6}, dof)[1] == pytest.approx(1.959964, abs=1e-6)
+
+
+def test_each_quantity_takes_its_own_degrees_of_freedom():
+    """Large shared per-image pose errors and a tight calibration: the image jackknife takes over
+    for the f-number and the focus distance, whose 95 % multiples are then Student's with the
+    Welch-Satterthwaite degrees of freedom of their shares (11 images' jackknife: G - 1 = 11),
+    while the focal length, known from the calibration, keeps the normal 1.96."""
+    from lensfit.fit.uncertainty import student_z
+
+    rng = np.random.default_rng(3)
+    capture(rng, fpx_rel_sigma=2e-3, pose_rel_sigma=0.01, noise_px=0.005)  # a first capture; the second is fitted
+    rows, fpx, fsg = capture(rng, fpx_rel_sigma=1e-5, pose_rel_sigma=0.01, noise_px=0.005)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    s = r.settings["a"]
+
+    def multiple(q):  # of a positive quantity's log-space 95 % interval
+        return math.log(s[q].ci95[1] / s[q].value) / (s[q].sigma / s[q].value)
+
+    assert s["focal_length_mm"].shares["calibration"] > 0.9 and s["focal_length_mm"].shares["images"] == 0.0
+    assert multiple("focal_length_mm") == pytest.approx(1.959964, abs=1e-4)
+    for q in ("f_number", "focus_distance_mm"):
+        sh = s[q].shares
+        assert sh["images"] > 0.5, (q, sh)
+        expected = student_z((IMAGES - 1) / (sh["blur"] + sh["images"]) ** 2)[1]
+        assert expected > 2.1
+        got = (multiple(q) if q == "f_number" else
+               (s["inverse_focus_distance_per_m"].ci95[1] - s["inverse_focus_distance_per_m"].value)
+               / s["inverse_focus_distance_per_m"].sigma)
+        assert got == pytest.approx(expected, rel=1e-3), q

@@ -13,7 +13,7 @@ import numpy as np
 from lensfit.errors import InputError
 from lensfit.fit.constants import (FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD, FIELD_CURVATURE_MODES,
                                    FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA,
-                                   QUANTITIES, _Z95)
+                                   QUANTITIES)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _second_vertex)
@@ -24,7 +24,7 @@ from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robus
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
 from lensfit.fit.start import _vertex_search
 from lensfit.fit.uncertainty import (_budget_parts, _covariance, _derive, _jackknife, _null_direction, _positive,
-                                     _shares)
+                                     _shares, student_z)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
@@ -340,8 +340,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     fnames = [names[i] for i in free_idx]
     cov, cond, corr = _covariance(jac, scale2)
     parts = {src: _full_size(c, free_idx, m) for src, c in _budget_parts(jac, cov, npad, m, scale2).items()}
-    z = (1.0, _Z95)
-    cov, z = _jackknife(cov, corr, z, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior)
+    cov, dof = _jackknife(cov, corr, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior)
+    z = student_z(dof)  # for the field curvature and P (each reported quantity takes its own: effective_z)
     full_cov = _full_size(cov, free_idx, m)
 
     degenerate = cond > MAX_CONDITION
@@ -359,8 +359,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     reasons: list[str] = []
     thin = p_source == "assumed" and theta[i_p] == 0.0
     scale_sigma = data.blur_scale_sigma(weights * row_on)
-    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons, z,
-                    thin, parts, scale_sigma**2)
+    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
+                    dof, thin, parts, scale_sigma**2)
     for k, label in enumerate(labels):
         settings[label]["field_curvature_per_m"] = _curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
                                                                        field_curvature, _field_spread(data, k), z)

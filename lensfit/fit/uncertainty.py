@@ -74,21 +74,22 @@ def _positive(value: float, sigma_log: float, z: tuple[float, float] = (1.0, _Z9
     return Estimate(value, value * sigma_log, (value / z1, value * z1), (value / z2, value * z2))
 
 
-def _jackknife(cov, corr, z, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior):
+def _jackknife(cov, corr, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior):
     """Leave-one-image-out jackknife: the edges of one image share its pose (distance errors of
     ~0.05 % move all of them together) and its noise pattern, so they are not independent
     samples and the model-based covariance understates the spread (seen: focus-distance
     intervals holding the truth in 67 % of ray-traced stacks instead of 95 %). Each image is
     dropped in turn (zero weight, same compiled solver) and the fit redone from the solution with
-    the robust weights held; a parameter's variance is the larger of the two estimates, with
-    Student-t intervals (G - 1 degrees of freedom) where the jackknife's is. Returns (cov, z);
-    unchanged where there are too few or too many images."""
+    the robust weights held; a parameter's variance is the larger of the two estimates; unchanged
+    where there are too few or too many images. Returns (cov, dof): ``dof`` = G - 1
+    where the jackknife took over for some parameter, else infinite; each reported quantity's
+    intervals take their own multiples from it (:func:`effective_z`)."""
     import jax
 
     m = len(data.labels)
     if not (free_idx.size and np.all(data.group[used] >= 0)
             and MIN_CLUSTERS <= len(np.unique(data.group[used])) <= MAX_CLUSTERS):
-        return cov, z
+        return cov, math.inf
     groups = np.unique(data.group[used])
     with jax.enable_x64(True):
         refits = []
@@ -99,14 +100,40 @@ def _jackknife(cov, corr, z, theta, free_idx, data, used, row_on, weights, fpx, 
     refits = np.array(refits)
     G = len(groups)
     spread_cov = (G - 1) * np.cov(refits.T, bias=True).reshape(len(free_idx), len(free_idx))
+    dof = math.inf
     if np.all(np.isfinite(spread_cov)):
         sd = np.sqrt(np.maximum(np.diag(cov), np.diag(spread_cov)))
         if np.any(np.diag(spread_cov) > np.diag(cov)):
-            from scipy.special import stdtrit  # Student-t quantiles (scipy.stats takes 0.6-1.2 s to import)
-
-            z = (float(stdtrit(G - 1, 0.8413447460685429)), float(stdtrit(G - 1, 0.975)))
+            dof = float(G - 1)
         cov = corr * np.outer(sd, sd)
-    return cov, z
+    return cov, dof
+
+
+def student_z(dof: float) -> tuple[float, float]:
+    """The multiples of sigma for 68.27 % and 95 % intervals, Student's t with ``dof`` degrees of
+    freedom (normal where infinite)."""
+    if not math.isfinite(dof):
+        return (1.0, _Z95)
+    from scipy.special import stdtrit  # Student-t quantiles (scipy.stats takes 0.6-1.2 s to import)
+
+    return (float(stdtrit(dof, 0.8413447460685429)), float(stdtrit(dof, 0.975)))
+
+
+def effective_z(shares: dict[str, float] | None, dof: float) -> tuple[float, float]:
+    """The interval multiples for one reported quantity whose variance is partly the image
+    jackknife's (estimated with ``dof`` = G - 1 degrees of freedom) and partly known in form (the
+    calibration, the estimator's scale error, the priors: infinitely many): Student's t with the
+    Welch-Satterthwaite effective degrees of freedom (GUM, JCGM 100:2008 G.4)
+    ``nu = dof / r^2``, ``r`` the jackknife's share of the variance (``blur`` + ``images`` of
+    ``shares`` where the jackknife took over: ``images`` > 0). Before 2026-11-25 every quantity
+    took G - 1 where the jackknife took over for any parameter: a focal length known 75-100 %
+    from the calibration got t(11) = 2.20 instead of 1.96, its 95 % interval 12 % wider."""
+    if not math.isfinite(dof):
+        return (1.0, _Z95)
+    if not shares:
+        return student_z(dof)
+    share = shares.get("blur", 0.0) + shares.get("images", 0.0) if shares.get("images", 0.0) > 0 else 0.0
+    return student_z(dof / share**2) if share > 0 else (1.0, _Z95)
 
 
 _FROM_SENSOR_UNKNOWN = ("not determined for a thick lens: it needs the distance from the entrance pupil to the "
@@ -156,10 +183,11 @@ class _Variance:
 
 
 def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
-            z: tuple[float, float] = (1.0, _Z95), thin: bool = True, parts=None, scale_var: float = 0.0
+            dof: float = math.inf, thin: bool = True, parts=None, scale_var: float = 0.0
             ) -> Estimate:
-    """Fill ``settings`` with every reported quantity; returns the shared focal length. ``z``:
-    the multiples of sigma for the 68 % and 95 % intervals. ``thin``: the lens is taken as thin
+    """Fill ``settings`` with every reported quantity; returns the shared focal length. ``dof``:
+    the image jackknife's degrees of freedom where it took over (:func:`_jackknife`), from which
+    each quantity's multiples of sigma for its 68 % and 95 % intervals (:func:`effective_z`). ``thin``: the lens is taken as thin
     (P = 1 assumed), so the entrance pupil is the lens plane and the focus distance from the
     sensor plane is known; otherwise that distance is not determined. ``parts``: the model
     covariance split by source (:func:`_budget_parts`, full size); ``scale_var``: the variance
@@ -173,6 +201,9 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
     variance = _Variance(q, jacs, cov, parts or {}, scale_var)
     sd = variance.sd
 
+    def zs(name, k=None):
+        return effective_z(variance.shares(name, k), dof)
+
     f_val = float(q["f"])
     f_reason = None
     if not has_fpx.any():
@@ -184,7 +215,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     "the focus distance of the calibrated setting(s) is not located by the blur")
     elif all(k in blocked for k in range(m) if has_fpx[k]):
         f_reason = "the focal length needs the focus distance of a calibrated setting, which is not determined"
-    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(f_val, sd("log_f"), z)
+    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(f_val, sd("log_f"), zs("log_f"))
     f_est = _with_shares(f_est, variance.shares("log_f"))
     if f_reason:
         reasons.append(f"focal_length_mm: {f_reason}")
@@ -212,6 +243,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     out[qn] = Estimate(None, reason=why)
             reasons.append(f"settings.{label}: {why}")
         else:
+            z = zs("inv_focus_per_m", k)
             lo95, hi95 = inv_focus_per_m - z[1] * s_inv, inv_focus_per_m + z[1] * s_inv
             lo68, hi68 = inv_focus_per_m - z[0] * s_inv, inv_focus_per_m + z[0] * s_inv
             out["inverse_focus_distance_per_m"] = Estimate(inv_focus_per_m, s_inv, (lo68, hi68), (lo95, hi95))
@@ -237,9 +269,10 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                                                         else Estimate(None, reason=_FROM_SENSOR_UNKNOWN))
             fl = float(q["floor"][k])
             s_fl = sd("floor", k)
+            z = zs("floor", k)
             out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - z[0] * s_fl, 0.0), abs(fl) + z[0] * s_fl),
                                             (max(abs(fl) - z[1] * s_fl, 0.0), abs(fl) + z[1] * s_fl))
-            out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k), z)
+            out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k), zs("log_K", k))
             lens_reason = None
             if f_reason:
                 lens_reason = f_reason
@@ -254,9 +287,10 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     out["focus_distance_from_sensor_mm"] = Estimate(None, reason=lens_reason)
                 reasons.append(f"settings.{label}.f_number: {lens_reason}")
             else:
-                out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k), z)
-                out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), z)
-                out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k), z)
+                out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k), zs("log_N", k))
+                out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), zs("log_A", k))
+                out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k),
+                                                      zs("log_sx", k))
         out["focal_length_mm"] = f_est
         settings[label] = {qn: out[qn] if qn == "focal_length_mm" else _with_shares(out[qn], variance.shares(
             _CARRIER[qn], k)) for qn in QUANTITIES}
