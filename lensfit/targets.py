@@ -102,11 +102,14 @@ def detection_copies(linear: np.ndarray, gammas: tuple[float, ...] = DETECTION_G
     import cv2
 
     hi = max(float(np.percentile(linear, 99.9)), 1e-12)
-    # In float32 with OpenCV's vectorised pow and rounding (round half to even, as numpy's), a
-    # fifth of numpy's float64 time; the copy is 8-bit, so float32 changes a level at most where
-    # it falls on a half.
-    v = np.clip(np.asarray(linear, np.float32) * np.float32(1.0 / hi), 0.0, 1.0)
-    return [cv2.convertScaleAbs(v if g == 1.0 else cv2.pow(v, 1 / g), alpha=255.0) for g in gammas]
+    v = np.clip(linear / hi, 0.0, 1.0)
+    # The power in float32 (OpenCV's vectorised pow: a tenth of numpy's float64 time; the copy is
+    # 8-bit, so float32 changes a level at most where it falls on a half), scaled and rounded by
+    # OpenCV in float32 too (half to even, as numpy's: the same copy); the linear copy rounded
+    # in float64 (OpenCV's float working type there moved a few levels of a noisy image, and
+    # with them the detected corners).
+    return [np.rint(v * 255.0).astype(np.uint8) if g == 1.0
+            else cv2.convertScaleAbs(cv2.pow(v.astype(np.float32), 1 / g), alpha=255.0) for g in gammas]
 
 
 @dataclass
