@@ -201,9 +201,12 @@ class SampleTable:
                 row["end_px"] = f"{row['end_px'][0]:.3f} {row['end_px'][1]:.3f}"
                 k = self.intrinsics.get(row["setting"])
                 pitch = self.pixel_pitch_mm if math.isfinite(self.pixel_pitch_mm) else None
+                fitted = k is not None and k.source == "calibrated"  # the distortion the calibration found
                 row.update(pixel_pitch_mm=None if pitch is None else repr(pitch),
                            focal_length_px=None if k is None else repr(k.focal_length_px),
-                           focal_length_sigma_px=None if k is None else repr(k.focal_length_sigma_px))
+                           focal_length_sigma_px=None if k is None else repr(k.focal_length_sigma_px),
+                           distortion_k1=repr(float(k.distortion[0])) if fitted else None,
+                           distortion_k2=repr(float(k.distortion[1])) if fitted else None)
                 writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
 
 

@@ -57,8 +57,12 @@ SAMPLES_CSV_COLUMNS = ("image", "setting", "target", "edge", "distance_mm", "coc
 #: disk_diameter_px and disk_sigma_px (2026-11-25) and before field_radius_px (2026-11-24).
 SAMPLES_CSV_EARLIER = (SAMPLES_CSV_COLUMNS[:-2], SAMPLES_CSV_COLUMNS[:-3])
 #: The calibration columns after them (each row repeats its setting's calibration, so that a
-#: refit from the CSV alone equals the fit from the stack).
-SAMPLES_CSV_CALIBRATION = ("pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px")
+#: refit from the CSV alone equals the fit from the stack): since 2026-11-25 also the radial
+#: distortion the calibration fitted (OpenCV's k1, k2; blank where the intrinsics were given),
+#: which the fit's error budget reads (lensfit.fit.constants.BLUR_SCALE_SIGMA_PLAIN).
+SAMPLES_CSV_CALIBRATION = ("pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "distortion_k1",
+                           "distortion_k2")
+SAMPLES_CSV_CALIBRATION_EARLIER = SAMPLES_CSV_CALIBRATION[:3]
 
 _SNIFF_BYTES = 1 << 16
 
@@ -132,7 +136,7 @@ def written_by(path: str | Path) -> str | None:
         first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
         header = next(csv.reader([first]), None)
         known = [list(cols + cal) for cols in (SAMPLES_CSV_COLUMNS, *SAMPLES_CSV_EARLIER)
-                 for cal in ((), SAMPLES_CSV_CALIBRATION)]
+                 for cal in ((), SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_CALIBRATION_EARLIER)]
         return "lensfit" if header in known else None
     if suffix == ".png":
         return _png_software(head)

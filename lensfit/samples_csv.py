@@ -23,7 +23,7 @@ def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
 def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
     numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
                "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "field_radius_px",
-               "disk_diameter_px", "disk_sigma_px")
+               "disk_diameter_px", "disk_sigma_px", "distortion_k1", "distortion_k2")
     rows = []
     with path.open(newline="") as fh:
         reader = csv.DictReader(fh)
@@ -48,20 +48,23 @@ def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
 
 
 def csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """The pixel pitch and per-setting focal lengths a samples CSV repeats on its rows (empty
-    where the columns are absent); rows of one setting must agree."""
+    """The pixel pitch and per-setting focal lengths (and, where a calibration fitted them, its
+    radial distortion k1, k2) a samples CSV repeats on its rows (empty where the columns are
+    absent); rows of one setting must agree."""
     out: dict[str, Any] = {}
     pitches = {r["pixel_pitch_mm"] for r in rows if r.get("pixel_pitch_mm") is not None}
     if len(pitches) > 1:
         raise SpecError(path, "pixel_pitch_mm", f"rows disagree ({sorted(pitches)[:2]}); one stack has one pitch")
     if pitches:
         out["pixel_pitch_mm"] = pitches.pop()
-    intrinsics: dict[str, dict[str, float]] = {}
+    intrinsics: dict[str, dict[str, Any]] = {}
     for i, r in enumerate(rows, start=2):
         if r.get("focal_length_px") is None:
             continue
         entry = {"focal_length_px": r["focal_length_px"], "source": "samples CSV",
                  "focal_length_sigma_px": r.get("focal_length_sigma_px") or 0.0}
+        if r.get("distortion_k1") is not None and r.get("distortion_k2") is not None:  # a calibration's fit
+            entry.update(source="calibrated", distortion=[r["distortion_k1"], r["distortion_k2"], 0.0, 0.0, 0.0])
         first = intrinsics.setdefault(str(r["setting"]), entry)
         if first["focal_length_px"] != entry["focal_length_px"]:
             raise SpecError(path, f"line {i}: focal_length_px", f"{entry['focal_length_px']} differs from the earlier "

@@ -12,6 +12,7 @@ them before the budget) must not, which shows the test can fail.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -176,3 +177,43 @@ def test_each_quantity_takes_its_own_degrees_of_freedom():
                (s["inverse_focus_distance_per_m"].ci95[1] - s["inverse_focus_distance_per_m"].value)
                / s["inverse_focus_distance_per_m"].sigma)
         assert got == pytest.approx(expected, rel=1e-3), q
+
+
+def test_plain_readings_take_the_smaller_scale_constant(tmp_path):
+    """The estimator's shared scale constant is BLUR_SCALE_SIGMA_PLAIN only where no approximate
+    model is in play: a setting whose calibration fitted no lens distortion, samples not read
+    through the Airy model; BLUR_SCALE_SIGMA where the calibration found distortion, where the
+    Airy model was used, and where the samples do not say (intrinsics given, or none)."""
+    from lensfit.fit.constants import BLUR_SCALE_BIAS_PX2, BLUR_SCALE_SIGMA_PLAIN
+    from lensfit.fit.data import prepare
+    from lensfit.measure import SampleTable
+
+    rng = np.random.default_rng(2)
+    rows, fpx, fsg = capture(rng)
+    rows = [{**r, "setting": "b" if i % 2 else "a", "flags": "diffraction_modelled" if i % 4 == 3 else ""}
+            for i, r in enumerate(rows)]
+    calibration = {"focal_length_px": fpx, "focal_length_sigma_px": fsg, "principal_point_px": [0.0, 0.0],
+                   "rms_px": 0.02, "views": 6}
+
+    def scale_constants(intrinsics):
+        path = tmp_path / "samples.json"
+        path.write_text(json.dumps({"samples": rows, "pixel_pitch_mm": PITCH, "intrinsics": intrinsics}))
+        data = prepare(SampleTable.read(path))
+        c = np.array([r["coc_diameter_px"] for r in rows])
+        return np.round(data.scale_sigma - BLUR_SCALE_BIAS_PX2 / np.maximum(c, 0.5) ** 2, 12)
+
+    got = scale_constants({"a": {**calibration, "distortion": [0.0] * 5, "source": "calibrated"},
+                           "b": {**calibration, "distortion": [-0.1, 0.02, 0, 0, 0], "source": "calibrated"}})
+    airy = np.array(["diffraction_modelled" in r["flags"] for r in rows])
+    in_a = np.array([r["setting"] == "a" for r in rows])
+    assert np.all(got[in_a & ~airy] == BLUR_SCALE_SIGMA_PLAIN)
+    assert np.all(got[~in_a | airy] == BLUR_SCALE_SIGMA)
+    assert airy[in_a].sum() == 0 and airy.any()  # (the Airy rows fall in setting b: its own check below)
+    rows = [{**r, "setting": "a"} for r in rows]
+    in_a = np.ones(len(rows), bool)
+    got = scale_constants({"a": {**calibration, "distortion": [0.0] * 5, "source": "calibrated"}})
+    assert np.all(got[~airy] == BLUR_SCALE_SIGMA_PLAIN) and np.all(got[airy] == BLUR_SCALE_SIGMA)
+    got = scale_constants({"a": {**calibration, "distortion": [0.0] * 5, "source": "manifest"}})
+    assert np.all(got == BLUR_SCALE_SIGMA)
+    got = scale_constants({})
+    assert np.all(got == BLUR_SCALE_SIGMA)
