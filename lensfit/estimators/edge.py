@@ -98,8 +98,8 @@ import numpy as np
 from lensfit import aot
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.diffraction import edge_kernel
-from lensfit.estimators.edge_model import (AIRY_START_SHARES, chunks, grid_start, residuals, shape_start, squared_radius,
-                                           squared_radius_slope)
+from lensfit.estimators.edge_model import (AIRY_START_SHARES, chunks, grid_start, residuals, shape_start,
+                                           squared_radius, squared_radius_slope)
 from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, line_end_covariance, select as _select, windows
 
 #: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the

@@ -187,11 +187,11 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
             ) -> Estimate:
     """Fill ``settings`` with every reported quantity; returns the shared focal length. ``dof``:
     the image jackknife's degrees of freedom where it took over (:func:`_jackknife`), from which
-    each quantity's multiples of sigma for its 68 % and 95 % intervals (:func:`effective_z`). ``thin``: the lens is taken as thin
-    (P = 1 assumed), so the entrance pupil is the lens plane and the focus distance from the
-    sensor plane is known; otherwise that distance is not determined. ``parts``: the model
-    covariance split by source (:func:`_budget_parts`, full size); ``scale_var``: the variance
-    of the estimator's shared relative scale error."""
+    each quantity's multiples of sigma for its 68 % and 95 % intervals (:func:`effective_z`).
+    ``thin``: the lens is taken as thin (P = 1 assumed), so the entrance pupil is the lens plane
+    and the focus distance from the sensor plane is known; otherwise that distance is not
+    determined. ``parts``: the model covariance split by source (:func:`_budget_parts`, full
+    size); ``scale_var``: the variance of the estimator's shared relative scale error."""
     import jax
 
     with jax.enable_x64(True):
