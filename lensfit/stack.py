@@ -67,6 +67,9 @@ class Stack:
     camera: dict[str, Any] = field(default_factory=dict)
     intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_pixels: int | None = None
+    #: images kept in memory once read (None: read again each time); ``lensfit.pipeline`` keeps
+    #: a stack's images across its measuring rounds where they fit in memory
+    hold: dict[int, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     @property
     def settings(self) -> list[str]:
@@ -77,10 +80,16 @@ class Stack:
         return list(seen)
 
     def read(self, index: int) -> np.ndarray:
-        """Image ``index`` as linear float64 intensity (H, W), full scale 1."""
+        """Image ``index`` as linear float64 intensity (H, W), full scale 1 (where the stack holds
+        its images, the one array read first: not to be modified)."""
+        if self.hold is not None and index in self.hold:
+            return self.hold[index]
         entry = self.images[index]
-        return read_image(entry.file, entry.encoding, black_level=entry.black_level, white_level=entry.white_level,
-                          max_pixels=self.max_pixels)
+        image = read_image(entry.file, entry.encoding, black_level=entry.black_level, white_level=entry.white_level,
+                           max_pixels=self.max_pixels)
+        if self.hold is not None:
+            self.hold[index] = image
+        return image
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:

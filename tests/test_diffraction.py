@@ -226,3 +226,28 @@ def test_auto_models_diffraction_where_the_edges_show_it_and_not_on_a_geometric_
             n = result.settings[label]["f_number"]
             assert n.value == pytest.approx(float(lens["f_number"]), rel=0.015), (stack, label, n.value)
             assert n.ci95[0] <= float(lens["f_number"]) <= n.ci95[1]
+
+
+def test_the_rounds_decode_each_image_once(diffraction_stack, monkeypatch):
+    """measure_and_fit measures a stack up to five times (the plain reading, the diffraction test,
+    the rounds through the Airy model); each image is decoded once for all of them where the
+    stack fits in memory, and the result is the same as reading them again (measure's own
+    HOLD_BYTES at 0: nothing held)."""
+    import lensfit.measure as measure_module
+    import lensfit.stack as stack_module
+    from lensfit.pipeline import measure_and_fit
+    from lensfit.stack import load_stack
+
+    decoded = []
+    original = stack_module.read_image
+    monkeypatch.setattr(stack_module, "read_image", lambda *a, **k: decoded.append(a[0]) or original(*a, **k))
+    table, result, rounds = measure_and_fit(diffraction_stack, auto_diffraction=True)
+    assert rounds  # the stack was measured again through the Airy model
+    assert len(decoded) == len(set(decoded)) == len(load_stack(diffraction_stack).images)
+    decoded.clear()
+    monkeypatch.setattr(measure_module, "HOLD_BYTES", 0)
+    again, result_again, _ = measure_and_fit(diffraction_stack, auto_diffraction=True)
+    assert len(decoded) > 2 * len(set(decoded))
+    assert [(s.coc_diameter_px, s.sigma_px) for s in again.samples] == [(s.coc_diameter_px, s.sigma_px)
+                                                                        for s in table.samples]
+    assert result_again.settings == result.settings
