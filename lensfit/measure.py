@@ -334,17 +334,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
     clock = StageClock()
     # Images are held between the stages while the stack fits in HOLD_BYTES, else read again where
     # needed (a stack of RAW files may not fit in memory).
-    held: dict[int, np.ndarray] = {}
-    hold = n * stack.shape[0] * stack.shape[1] * 8 <= HOLD_BYTES
-
-    def load(i: int) -> np.ndarray:
-        img = held.get(i)
-        if img is None:
-            img = stack.read(i)
-            if hold:
-                held[i] = img
-        return img
-    read = clock.reader(load)
+    stack = stack.holding(HOLD_BYTES)
+    read = clock.reader(stack.read)
     total = 3 * n if refine else 2 * n
     step = [0]
 

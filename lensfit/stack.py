@@ -15,7 +15,7 @@ float images.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -67,8 +67,7 @@ class Stack:
     camera: dict[str, Any] = field(default_factory=dict)
     intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_pixels: int | None = None
-    #: images kept in memory once read (None: read again each time); ``lensfit.pipeline`` keeps
-    #: a stack's images across its measuring rounds where they fit in memory
+    #: images kept in memory once read (None: read again each time; :meth:`holding`)
     hold: dict[int, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -78,6 +77,13 @@ class Stack:
         for im in self.images:
             seen.setdefault(im.setting, None)
         return list(seen)
+
+    def holding(self, limit_bytes: int) -> "Stack":
+        """This stack keeping its images in memory once read (:attr:`hold`), where all of them fit
+        in ``limit_bytes`` as float64; else (or where it holds them already) this stack itself."""
+        if self.hold is not None or len(self.images) * self.shape[0] * self.shape[1] * 8 > limit_bytes:
+            return self
+        return replace(self, hold={})
 
     def read(self, index: int) -> np.ndarray:
         """Image ``index`` as linear float64 intensity (H, W), full scale 1 (where the stack holds
