@@ -113,5 +113,72 @@ def run_bench(repeats: int = 3, spp_list=(4, 16, 64, 256, 1024), include_compile
     return result
 
 
+#: The Mitsuba side of :func:`against_mitsuba`: a process that imports Mitsuba (and numpy, and
+#: the few lines of synth.mitsuba that build its scene from plain data: none of synth's renderer,
+#: no JAX), renders each described shot and writes it as Mitsuba's own EXR.
+_MITSUBA_PROCESS = """
+import os, pickle, sys
+from synth.mitsuba import _mitsuba, build_scene
+mi = _mitsuba(sys.argv[2])
+with open(sys.argv[1], "rb") as fh:
+    shots = pickle.load(fh)
+for k, desc in enumerate(shots):
+    image = mi.render(mi.load_dict(build_scene(mi, desc)))
+    mi.Bitmap(image).write(os.path.join(sys.argv[3], f"shot_{k:03d}.exr"))
+"""
+
+
+def against_mitsuba(scene_path: str | Path | None = None, samples_per_pixel: int = 32, pairs: int = 3,
+                    variant: str = "llvm_ad_rgb", progress=None) -> dict:
+    """Whole processes, synth's ray tracer against Mitsuba 3 on the same scene and samples per
+    pixel: ``pairs`` times, back to back, ``synth render SCENE --method raytrace --spp S`` (start-up,
+    JAX's import, loading or compiling the tracer, rendering, writing 16-bit PNGs, truth maps and
+    truth.json) and a process that imports Mitsuba, builds each shot's scene (``thinlens``
+    camera, box pixel filter, ``independent`` sampler: ``synth.mitsuba``), renders it and writes
+    an EXR (``variant``: ``llvm_ad_rgb``, Dr.Jit's vectorised LLVM backend, or ``scalar_rgb``).
+    Returns both sides' seconds per run, medians, million lens samples per second and the
+    median of the pairs' ratios (Mitsuba's seconds over synth's)."""
+    import pickle
+
+    from synth.mitsuba import check, describe
+    from synth.scene import load_scene
+    from synth.seeds import raytrace_seed
+
+    path = Path(scene_path) if scene_path is not None else specs_dir() / "scenes" / "demo.toml"
+    scene = load_scene(path)
+    for shot in scene.shots:
+        check(shot, scene.effects)
+    shots = [describe(shot, scene.background_value, samples_per_pixel, raytrace_seed(scene.render.seed, k))
+             for k, shot in enumerate(scene.shots)]
+    samples = sum(s["width_px"] * s["height_px"] for s in shots) * samples_per_pixel
+    synth_s, mitsuba_s = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        job = Path(tmp) / "shots.pkl"
+        job.write_bytes(pickle.dumps(shots))
+        for i in range(pairs):
+            for label, argv, times in (
+                    ("synth", [sys.executable, "-m", "synth.cli", "render", str(path), "--method", "raytrace",
+                               "--spp", str(samples_per_pixel), "--out", str(Path(tmp) / f"synth{i}")], synth_s),
+                    ("mitsuba", [sys.executable, "-c", _MITSUBA_PROCESS, str(job), variant,
+                                 str(Path(tmp) / f"mitsuba{i}")], mitsuba_s)):
+                if progress is not None:
+                    progress(f"pair {i + 1}/{pairs}: {label}")
+                if label == "mitsuba":
+                    (Path(tmp) / f"mitsuba{i}").mkdir()
+                t = time.perf_counter()
+                proc = subprocess.run(argv, cwd=tmp, capture_output=True, text=True)
+                times.append(time.perf_counter() - t)
+                if proc.returncode != 0:
+                    raise RuntimeError(f"{label} process failed: {(proc.stderr or proc.stdout).strip()[-400:]}")
+    synth_med, mitsuba_med = float(np.median(synth_s)), float(np.median(mitsuba_s))
+    return {"scene": path.name, "shots": len(shots), "samples_per_pixel": samples_per_pixel,
+            "lens_samples": samples, "mitsuba_variant": variant, "synth_s": synth_s, "mitsuba_s": mitsuba_s,
+            "synth_median_s": synth_med, "mitsuba_median_s": mitsuba_med,
+            "synth_mega_samples_per_s": samples / synth_med / 1e6,
+            "mitsuba_mega_samples_per_s": samples / mitsuba_med / 1e6,
+            "ratio": float(np.median([m / s for s, m in zip(synth_s, mitsuba_s)])),
+            "machine": {"cores": os.cpu_count(), "python": sys.version.split()[0]}}
+
+
 if __name__ == "__main__":  # python -m synth.bench
     print(json.dumps(run_bench(), indent=1))

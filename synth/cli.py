@@ -16,7 +16,8 @@ EXIT_OK = 0
 EXIT_USAGE = 2
 
 _OPTIONS = {"method": "--method", "samples_per_pixel": "--spp", "seed": "--seed", "out": "--out",
-            "image_format": "--format", "supersampling": "--supersampling", "preview": "--preview"}
+            "image_format": "--format", "supersampling": "--supersampling", "preview": "--preview",
+            "mitsuba_variant": "--mitsuba-variant"}
 
 
 def _render_command(args: argparse.Namespace) -> int:
@@ -58,7 +59,7 @@ def _render_locked(args: argparse.Namespace, scene) -> int:
     enable_compilation_cache()
     check_overrides(samples_per_pixel=args.spp, seed=args.seed, supersampling=args.supersampling)
     scene = scene.with_render(method=args.method, samples_per_pixel=args.spp, seed=args.seed,
-                              supersampling=args.supersampling)
+                              supersampling=args.supersampling, mitsuba_variant=args.mitsuba_variant)
     total_rows = sum(s.camera.height_px for s in scene.shots)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                   TimeElapsedColumn(), TimeRemainingColumn(), console=console,
@@ -136,6 +137,27 @@ def _bench_command(args: argparse.Namespace) -> int:
     from synth.bench import run_bench
 
     console = Console(stderr=True)
+    if args.against_mitsuba:
+        from synth.bench import against_mitsuba
+
+        with console.status("benchmarking") as status:
+            result = against_mitsuba(args.scene, args.spp, args.pairs, args.mitsuba_variant,
+                                     progress=lambda msg: status.update(f"benchmarking: {msg}"))
+        if args.json:
+            print(json.dumps(result, indent=1))
+            return EXIT_OK
+        table = Table(title=f"whole processes, {result['scene']}: {result['shots']} shots at "
+                            f"{result['samples_per_pixel']} spp ({result['lens_samples'] / 1e6:.0f} M lens samples), "
+                            f"{result['machine']['cores']} cores")
+        for col in ("renderer", "seconds (median)", "runs", "M lens samples/s"):
+            table.add_column(col, justify="right")
+        table.add_row("synth render --method raytrace", f"{result['synth_median_s']:.2f}",
+                      " ".join(f"{t:.2f}" for t in result["synth_s"]), f"{result['synth_mega_samples_per_s']:.0f}")
+        table.add_row(f"Mitsuba 3 {result['mitsuba_variant']}", f"{result['mitsuba_median_s']:.2f}",
+                      " ".join(f"{t:.2f}" for t in result["mitsuba_s"]), f"{result['mitsuba_mega_samples_per_s']:.0f}")
+        Console().print(table)
+        print(f"synth is {result['ratio']:.1f}x faster (median of the pairs' ratios)")
+        return EXIT_OK
     enable_compilation_cache()
     with console.status("benchmarking") as status:
         result = run_bench(repeats=args.repeats, include_compile=not args.no_compile,
@@ -185,6 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, metavar="DIR", help="output stack folder (new or empty)")
     r.add_argument("--seed", type=int, metavar="N", help="random seed (default: the scene's render.seed)")
     r.add_argument("--supersampling", type=int, metavar="S", help="convolve: sub-pixels per axis (default 4)")
+    r.add_argument("--mitsuba-variant", choices=["scalar_rgb", "llvm_ad_rgb"],
+                   help="method mitsuba: Mitsuba 3's variant (default: the scene's render.mitsuba_variant, else "
+                        "scalar_rgb); llvm_ad_rgb is vectorised and needs libLLVM (pip install karellen-llvm-core)")
     r.add_argument("--format", choices=["png", "tiff", "float-tiff", "dng", "jpeg"],
                    help="image files (default png, 16-bit linear; dng with the mosaic effect, which requires it; "
                         "jpeg: 8-bit sRGB with EXIF, as a camera's JPEG)")
@@ -201,6 +226,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--repeats", type=int, default=3, help="timed runs per figure; the best is kept")
     b.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
     b.add_argument("--json", action="store_true", help="print JSON")
+    b.add_argument("--against-mitsuba", action="store_true",
+                   help="instead: whole processes, synth render --method raytrace against Mitsuba 3 rendering the "
+                        "same scene at the same spp, PAIRS times back to back")
+    b.add_argument("--scene", metavar="TOML", help="--against-mitsuba: the scene (default: the demo scene)")
+    b.add_argument("--spp", type=int, default=32, metavar="N", help="--against-mitsuba: samples per pixel (default 32)")
+    b.add_argument("--pairs", type=int, default=3, metavar="K", help="--against-mitsuba: process pairs (default 3)")
+    b.add_argument("--mitsuba-variant", choices=["llvm_ad_rgb", "scalar_rgb"], default="llvm_ad_rgb",
+                   help="--against-mitsuba: Mitsuba's variant (default llvm_ad_rgb, which needs libLLVM 20 or later: "
+                        "pip install karellen-llvm-core)")
     b.set_defaults(func=_bench_command, prog="synth bench")
     return parser
 

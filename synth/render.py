@@ -24,6 +24,7 @@ from lensfit import __version__
 from lensfit.errors import InputError
 from lensfit.outputs import provenance
 from synth.convolve import render_convolve
+from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
 from synth.raytrace import render_raytrace
 from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
@@ -123,7 +124,7 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
             from synth.mitsuba import render_mitsuba
 
             img = render_mitsuba(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
-                                 effects=fx)
+                                 effects=fx, variant=r.mitsuba_variant)
         elif sp.method == "raytrace":
             img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
                                   **cam_kw, **kwargs_rt)
@@ -143,10 +144,10 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
     return state.image, state.raw, state.extra, seconds
 
 
-def _mitsuba_version() -> str:
+def _mitsuba_version(variant: str) -> str:
     from synth.mitsuba import version
 
-    return version()
+    return version(variant)
 
 
 def check_overrides(*, samples_per_pixel: int | None = None, supersampling: int | None = None,
@@ -162,14 +163,16 @@ def check_overrides(*, samples_per_pixel: int | None = None, supersampling: int 
 
 def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_pixel: int | None = None,
            seed: int | None = None, supersampling: int | None = None, image_format: str | None = None,
+           mitsuba_variant: str | None = None,
            progress: Callable[[str, int, int], None] | None = None) -> RenderResult:
     """Render every shot of a scene; deterministic for a seed.
 
     Parameters
     ----------
     scene : Scene or path to a scene TOML file.
-    method, samples_per_pixel, seed, supersampling, image_format : optional overrides of ``[render]``
-        (``image_format`` overrides ``render.format``: one of ``IMAGE_FORMATS``).
+    method, samples_per_pixel, seed, supersampling, image_format, mitsuba_variant : optional
+        overrides of ``[render]`` (``image_format`` overrides ``render.format``: one of
+        ``IMAGE_FORMATS``; ``mitsuba_variant``: one of ``synth.mitsuba.VARIANTS``).
     progress : callable(shot_name, done_rows, total_rows), optional; called as rows finish.
 
     Returns
@@ -184,8 +187,10 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     problem = scene.effects.format_problem(image_format) if image_format is not None else None
     if problem is not None:
         raise InputError("image_format", image_format, *problem)
+    if mitsuba_variant is not None and mitsuba_variant not in MITSUBA_VARIANTS:
+        raise InputError("mitsuba_variant", mitsuba_variant, "one of " + ", ".join(MITSUBA_VARIANTS))
     scene = scene.with_render(method=method, samples_per_pixel=samples_per_pixel, seed=seed,
-                              supersampling=supersampling, format=image_format)
+                              supersampling=supersampling, format=image_format, mitsuba_variant=mitsuba_variant)
     r = scene.render
     result = RenderResult(image_format=r.format, jpeg_quality=r.jpeg_quality)
     images_truth, settings = [], {}
@@ -258,7 +263,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         "effects": list(r.effects),
         "effect_parameters": scene.effects.truth(),
         "method": next(iter(methods_used)) if len(methods_used) == 1 else "mixed",
-        **({"renderer": _mitsuba_version()} if "mitsuba" in methods_used else {}),
+        **({"renderer": _mitsuba_version(r.mitsuba_variant)} if "mitsuba" in methods_used else {}),
         "method_requested": r.method,
         "samples_per_pixel": r.samples_per_pixel,
         "supersampling": r.supersampling,

@@ -28,6 +28,7 @@ DEFAULTS = {
     "seed": 0,
     "format": "png",
     "jpeg_quality": 95,
+    "mitsuba_variant": "scalar_rgb",
     "background": 0.2,
 }
 
@@ -73,6 +74,7 @@ class RenderSettings:
     seed: int
     format: str
     jpeg_quality: int = 95
+    mitsuba_variant: str = "scalar_rgb"
 
 
 @dataclass(frozen=True)
@@ -336,7 +338,8 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
         samples_per_pixel=int(render.get("samples_per_pixel", DEFAULTS["samples_per_pixel"])),
         supersampling=int(render.get("supersampling", DEFAULTS["supersampling"])),
         seed=int(render.get("seed", DEFAULTS["seed"])), format=fmt,
-        jpeg_quality=int(render.get("jpeg_quality", DEFAULTS["jpeg_quality"])))
+        jpeg_quality=int(render.get("jpeg_quality", DEFAULTS["jpeg_quality"])),
+        mitsuba_variant=render.get("mitsuba_variant", DEFAULTS["mitsuba_variant"]))
 
     targets = [_target(i, o, path, f) for i, o in enumerate(data["object"])]
     ids = [t.id for t in targets]

@@ -17,9 +17,22 @@ from synth.scene import scene_from_dict
 from synth.stack import write_stack
 from test_synth_render import disk_esf  # the disk's edge-spread function, written out there
 
+from synth.mitsuba import find_libllvm, render_mitsuba  # noqa: E402
+
+find_libllvm()  # before Mitsuba's import, which is when Dr.Jit takes libLLVM's path
 pytest.importorskip("mitsuba")
 
-from synth.mitsuba import render_mitsuba  # noqa: E402
+
+def variant_or_skip(variant: str) -> str:
+    """The variant, or a skip where it cannot start here (llvm_ad_rgb needs libLLVM 20 or later,
+    which the test extra installs on Linux x86_64: karellen-llvm-core)."""
+    from synth.mitsuba import _mitsuba
+
+    try:
+        _mitsuba(variant)
+    except InputError as e:
+        pytest.skip(str(e))
+    return variant
 
 
 def make_scene(objects, *, f=50.0, N=2.8, D=2000.0, w=96, h=96, pitch=0.006, background=0.0, spp=64, render=None,
@@ -33,8 +46,9 @@ def make_scene(objects, *, f=50.0, N=2.8, D=2000.0, w=96, h=96, pitch=0.006, bac
     })
 
 
-@pytest.mark.parametrize("N, d", [(2.0, 1400.0), (4.0, 3000.0)])
-def test_mitsuba_edge_profile_is_the_cocs_disk(N, d):
+@pytest.mark.parametrize("N, d, variant", [(2.0, 1400.0, "scalar_rgb"), (4.0, 3000.0, "scalar_rgb"),
+                                           (2.0, 1400.0, "llvm_ad_rgb")])
+def test_mitsuba_edge_profile_is_the_cocs_disk(N, d, variant):
     # Mitsuba's defocus through synth's mapping (field of view from the sensor distance, aperture
     # radius A/2, focus distance) against the CoC formula A s |1/D - 1/d| / p: the disk diameter
     # and edge position fitted to its edge profile (disk ESF with pixel integration) match.
@@ -49,7 +63,7 @@ def test_mitsuba_edge_profile_is_the_cocs_disk(N, d):
            "offset_mm": [edge_px * mm_per_px + width / 2, 0.0]}
     W, H = 160, 64
     shot = make_scene([obj], f=f, N=N, D=D, w=W, h=H, pitch=pitch).shots[0]
-    profile = render_mitsuba(shot, 0.0, 1024, 5)[4:-4].mean(axis=0).astype(np.float64)
+    profile = render_mitsuba(shot, 0.0, 1024, 5, variant=variant_or_skip(variant))[4:-4].mean(axis=0).astype(np.float64)
     u = np.arange(W) - (W - 1) / 2
     fine = (np.arange(64) + 0.5) / 64 - 0.5
 
@@ -63,7 +77,8 @@ def test_mitsuba_edge_profile_is_the_cocs_disk(N, d):
     assert np.max(np.abs(model(fitted) - profile)) < 6e-3  # the shape is the disk's (noise 2e-3)
 
 
-def test_mitsuba_and_synth_draw_the_same_tilted_board():
+@pytest.mark.parametrize("variant", ["scalar_rgb", "llvm_ad_rgb"])
+def test_mitsuba_and_synth_draw_the_same_tilted_board(variant):
     # Two renderers, one scene (a tilted ChArUco board, 13-19 px of blur across it): no shift
     # (a 0.1 px offset of the board reads 0.09 px here), no mirror, and no difference beyond
     # their Monte-Carlo noise (which two Mitsuba renders with other seeds show).
@@ -71,7 +86,8 @@ def test_mitsuba_and_synth_draw_the_same_tilted_board():
              "size_mm": [34.0, 28.0], "distance_mm": 1100.0, "offset_mm": [1.0, -0.7], "tilt_deg": [20.0, -25.0]}
     shot = make_scene([board], N=5.6, D=1500.0, w=112, h=96, background=0.3).shots[0]
     ours = render_raytrace(shot, 0.3, 256, 1).astype(np.float64)
-    theirs, again = (render_mitsuba(shot, 0.3, 256, k).astype(np.float64) for k in (1, 2))
+    theirs, again = (render_mitsuba(shot, 0.3, 256, k, variant=variant_or_skip(variant)).astype(np.float64)
+                     for k in (1, 2))
     diff = theirs - ours
     gy, gx = np.gradient(ours)
     shift = np.linalg.lstsq(np.stack([gx.ravel(), gy.ravel()], axis=1), diff.ravel(), rcond=None)[0]
@@ -83,6 +99,25 @@ def test_mitsuba_and_synth_draw_the_same_tilted_board():
     assert local(diff) < 1.2 * local(theirs - again)  # seen 0.023 against 0.029
     assert abs(diff.mean()) < 1e-3
     assert np.std(theirs[30:66, 30:82]) > 0.1  # the board is there, with contrast
+
+
+def test_an_llvm_too_old_for_mitsubas_kernels_is_refused_not_a_crash():
+    # libLLVM 19 and older abort the process on Mitsuba 3.9's kernels ("Cannot select: fmaximum");
+    # a system's libLLVM 15, where there is one, gets a one-line refusal naming the fix instead.
+    import glob
+    import os
+    import subprocess
+    import sys
+
+    old = sorted(glob.glob("/usr/lib/x86_64-linux-gnu/libLLVM-1[0-9].so*"))
+    if not old:
+        pytest.skip("no libLLVM older than 20 on this machine")
+    code = ("from lensfit.errors import InputError\nfrom synth.mitsuba import _mitsuba\n"
+            "try:\n    _mitsuba('llvm_ad_rgb')\nexcept InputError as e:\n    print('refused:', e)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={**os.environ, "DRJIT_LIBLLVM_PATH": old[-1]}, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-500:]
+    assert "refused:" in proc.stdout and "karellen-llvm-core" in proc.stdout and "20 or later" in proc.stdout
 
 
 def test_mitsuba_refuses_what_it_cannot_render():

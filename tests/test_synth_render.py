@@ -220,6 +220,51 @@ def test_occlusion_nearest_surface_wins():
     assert depth[32, 32] == pytest.approx(1000.0) and depth[2, 2] == pytest.approx(2000.0)
 
 
+def test_depth_map_covers_each_target_where_opencv_projects_it():
+    # Tilted targets, one reaching past the frame, one far off to the side (partly visible), one
+    # beyond the frame altogether: the depth map is finite exactly inside the outline OpenCV's
+    # projection of each target's corners gives, and its value there is the distance along the
+    # chief ray to the target's plane, solved for pixel by pixel here.
+    import cv2
+
+    from synth.truth import chief_ray_depth
+
+    objects = [
+        {"id": "tilted", "target": "uniform", "value": 0.5, "size_mm": [60.0, 40.0], "distance_mm": 1000.0,
+         "tilt_deg": [30.0, -20.0], "offset_mm": [-20.0, 10.0]},
+        {"id": "edge", "target": "uniform", "value": 0.5, "size_mm": [80.0, 80.0], "distance_mm": 1500.0,
+         "tilt_deg": [-15.0, 40.0], "offset_mm": [110.0, -60.0]},
+        {"id": "outside", "target": "uniform", "value": 0.5, "size_mm": [10.0, 10.0], "distance_mm": 800.0,
+         "offset_mm": [500.0, 0.0]},
+    ]
+    shot = make_scene(objects, w=160, h=120).shots[0]
+    cam = shot.camera
+    depth = chief_ray_depth(shot)
+    fpx, (cx, cy) = cam.focal_length_px, cam.principal_point_px
+    K = np.array([[fpx, 0.0, cx], [0.0, fpx, cy], [0.0, 0.0, 1.0]])
+    v, u = np.mgrid[0:cam.height_px, 0:cam.width_px]
+    expected = np.full(depth.shape, np.inf)
+    for o in shot.objects:
+        w, h = o.target.size_mm
+        R, t = o.pose.R_cam_target, o.pose.t_cam_target
+        outline = np.array([[-w / 2, -h / 2, 0.0], [w / 2, -h / 2, 0.0], [w / 2, h / 2, 0.0], [-w / 2, h / 2, 0.0]])
+        px = cv2.projectPoints(outline, cv2.Rodrigues(R)[0], t, K, np.zeros(5))[0].reshape(-1, 1, 2)
+        inside = np.array([cv2.pointPolygonTest(px.astype(np.float32), (float(x), float(y)), True)
+                           for x, y in zip(u.ravel(), v.ravel())]).reshape(depth.shape)
+        ray = np.stack([(u - cx) / fpx, (v - cy) / fpx, np.ones_like(u, float)], axis=-1)
+        z = (t @ R[:, 2]) / (ray @ R[:, 2])  # the plane n . (X - t) = 0 along the ray (X = z ray)
+        sure = inside > 1e-6  # (pixel centres on the outline itself: either way)
+        expected = np.where(sure & (z < expected), z, expected)
+        assert np.all(np.isfinite(depth[sure]))
+        if o.target.id == "outside":
+            assert not sure.any()
+    near_outline = ~np.isfinite(expected) & np.isfinite(depth)
+    assert near_outline.sum() < 0.01 * depth.size  # only pixel centres within rounding of an outline
+    both = np.isfinite(expected) & np.isfinite(depth)
+    assert both.sum() > 0.1 * depth.size
+    assert np.allclose(depth[both], expected[both], rtol=1e-9)
+
+
 def test_deterministic_for_a_seed():
     board = {"target": "checkerboard", "squares": [4, 3], "square_mm": 10.0, "distance_mm": 900.0,
              "tilt_deg": [10.0, 0.0]}
