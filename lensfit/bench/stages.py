@@ -6,7 +6,8 @@ linearise), detect (targets), calibrate (intrinsics, poses, edge geometry), meas
 of every edge), fit (the solver), uncertainty (covariance, jackknife, every reported quantity).
 
 Each configuration runs in a fresh process (``cold``: imports, loading the stored traces and
-compiled code of ``lensfit.aot`` / the persistent cache) and again in that process (``warm``).
+compiled code of ``lensfit.aot`` / the persistent cache) and again ``warm_runs`` times in that
+process (``warm``: each stage's median over them; one warm call alone scatters by a fifth).
 Sizes: the first k images of the stack, and the whole stack enlarged by a factor (bilinear, the
 pixel pitch divided by it: the same scene at more pixels). The OpenCV reference reads the same
 files, detects the ChArUco board and calibrates (cv2.aruco + cv2.calibrateCamera, nothing of
@@ -34,14 +35,18 @@ enable_compilation_cache()
 from lensfit.measure import measure
 from lensfit.fit import fit
 out = {}
-for run in ("cold", "warm"):
+warm = []
+for k in range(1 + int(sys.argv[2])):
     t = time.perf_counter()
     table = measure(sys.argv[1])
     result = fit(table)
     secs = {**table.stage_seconds, **result.stage_seconds}
     secs["total"] = time.perf_counter() - t
-    out[run] = secs
-    out[run + "_edges"] = len(table)
+    if k == 0:
+        out["cold"], out["cold_edges"] = secs, len(table)
+    else:
+        warm.append(secs)
+out["warm_runs"] = warm
 out["process_start"] = t0
 print(json.dumps(out))
 """
@@ -115,11 +120,11 @@ def _subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
 
 
 def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[float, ...] = (1.0, 1.5, 2.0),
-        progress=None, repeat: int = 3) -> dict:
+        progress=None, repeat: int = 3, warm_runs: int = 3) -> dict:
     """Rows of seconds per stage (cold and warm) per configuration; the OpenCV ratio per scale.
 
     Returns {"rows": [...], "provenance": ...}; each row: images, megapixels, edges, cold and warm
-    seconds per stage and in total, the whole-process seconds of ``lensfit fit`` and of the
+    seconds per stage and in total (warm: the median of ``warm_runs`` calls), the whole-process seconds of ``lensfit fit`` and of the
     OpenCV reference, and their ratio (scales only): ``repeat`` pairs of the two processes run
     back to back (a virtual machine's speed drifts within minutes), the median of each and of
     the pairs' ratios (``ratios``: every pair's)."""
@@ -134,12 +139,13 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
             if progress:
                 progress(f"{count} images x{scale:g}", k, len(configs))
             folder = _subset(stack, Path(tmp) / f"s{k}", count, scale)
-            _, out = _run(_CHILD, str(folder))
+            _, out = _run(_CHILD, str(folder), str(max(warm_runs, 1)))
             child = json.loads(out.strip().splitlines()[-1])
             h, w = _shape(folder)
             row = {"images": count, "megapixels": round(h * w / 1e6, 3), "edges": child["cold_edges"],
                    "cold": {s: child["cold"].get(s, 0.0) for s in (*STAGES, "total")},
-                   "warm": {s: child["warm"].get(s, 0.0) for s in (*STAGES, "total")}}
+                   "warm": {s: statistics.median(r.get(s, 0.0) for r in child["warm_runs"]) for s in (*STAGES, "total")},
+                   "warm_runs": len(child["warm_runs"])}
             if count == n_all:  # whole process: lensfit fit against OpenCV's detect + calibrate
                 pairs = []
                 for j in range(max(repeat, 1)):

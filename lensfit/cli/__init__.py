@@ -257,6 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="enlargements of the whole stack (bilinear, pitch / X; default 1 2)")
     bs.add_argument("--repeat", type=int, default=3, metavar="K",
                     help="whole-process pairs (lensfit fit, OpenCV) run back to back; medians (default 3)")
+    bs.add_argument("--warm-runs", type=int, default=3, metavar="K",
+                    help="warm calls per configuration after the cold one; each stage's median (default 3)")
     bs.add_argument("--json", action="store_true", help="print JSON")
     bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
     return parser
