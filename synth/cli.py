@@ -17,7 +17,7 @@ EXIT_USAGE = 2
 
 _OPTIONS = {"method": "--method", "samples_per_pixel": "--spp", "seed": "--seed", "out": "--out",
             "image_format": "--format", "supersampling": "--supersampling", "preview": "--preview",
-            "mitsuba_variant": "--mitsuba-variant"}
+            "mitsuba_variant": "--mitsuba-variant", "pairs": "--pairs"}
 
 
 def _render_command(args: argparse.Namespace) -> int:
@@ -139,6 +139,11 @@ def _bench_command(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     if args.against_mitsuba:
         from synth.bench import against_mitsuba
+        from synth.render import check_overrides
+
+        check_overrides(samples_per_pixel=args.spp)
+        if args.pairs < 1:
+            raise InputError("pairs", args.pairs, ">= 1")
 
         with console.status("benchmarking") as status:
             result = against_mitsuba(args.scene, args.spp, args.pairs, args.mitsuba_variant,

@@ -68,15 +68,21 @@ def find_libllvm() -> str | None:
     given = os.environ.get("DRJIT_LIBLLVM_PATH")
     if given:
         return given
-    found = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libLLVM.so.*")))
-    if not found:
+    found = _bundled_libllvm()
+    if found is None:
         return None
     runtime = os.path.join(sys.prefix, "lib", "x86_64-unknown-linux-gnu")
     for name in ("libunwind.so.1.0", "libc++abi.so.1.0", "libc++.so.1.0"):
         if os.path.exists(os.path.join(runtime, name)):
             ctypes.CDLL(os.path.join(runtime, name))  # (RTLD_LOCAL: found by its soname, shadowing nothing)
-    os.environ["DRJIT_LIBLLVM_PATH"] = found[-1]
-    return found[-1]
+    os.environ["DRJIT_LIBLLVM_PATH"] = found
+    return found
+
+
+def _bundled_libllvm() -> str | None:
+    """The newest libLLVM under the environment's ``lib/`` (karellen-llvm-core's), or None."""
+    found = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libLLVM.so.*")))
+    return found[-1] if found else None
 
 
 #: Oldest libLLVM whose code generator takes Dr.Jit's kernels (libLLVM 19 and older abort the
@@ -110,7 +116,7 @@ def _mitsuba(variant: str = "scalar_rgb"):
                 mi.set_variant("scalar_rgb")
                 late = (" (Mitsuba was imported before synth.mitsuba could point Dr.Jit at the libLLVM "
                         "of karellen-llvm-core: call synth.mitsuba.find_libllvm() first)"
-                        if imported_before and find_libllvm() else "")
+                        if imported_before and _bundled_libllvm() else "")
                 raise InputError("mitsuba_variant", variant, fix,
                                  f"Dr.Jit found libLLVM {'.'.join(map(str, found))}, whose code generator cannot "
                                  f"compile Mitsuba's kernels (it needs {MIN_LLVM[0]} or later){late}")
@@ -263,8 +269,8 @@ def render_mitsuba(shot, background: float, spp: int, seed: int, progress: Calla
 
     ``scalar_rgb``: rendered in bands of ``BAND_ROWS`` rows (``progress(n)`` after each), each
     band with its own sampler seed derived from ``seed``; ``llvm_ad_rgb``: the whole image in one
-    call with ``seed`` (one compiled kernel; a band would be a new kernel each). Deterministic for
-    a seed and variant.
+    call with ``seed`` (one vectorised kernel over all its samples, as a Mitsuba user would call
+    it; ``progress(height)`` after it). Deterministic for a seed and variant.
     """
     check(shot, effects)
     mi = _mitsuba(variant)

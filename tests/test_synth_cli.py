@@ -221,3 +221,15 @@ def test_preview_contact_sheet_is_the_render_in_srgb(tmp_path, capsys):
         assert np.allclose(decoded[below_label], np.clip(im, 0, white)[below_label], atol=0.01)
     code, _, err = run(capsys, "render", scene, "--out", tmp_path / "other", "--preview", sheet_path)
     assert code == 2 and "--preview" in err and "--force" in err
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--spp", "0"], "--spp must be between 1 and 65536, got 0"),
+    (["--pairs", "0"], "--pairs must be >= 1, got 0"),
+    (["--scene", str(specs_dir() / "scenes" / "slanted_edges.toml")], "Mitsuba cannot render target 'edge-1200'"),
+])
+def test_bench_against_mitsuba_refuses_bad_arguments_in_one_line(argv, says, capsys):
+    # Refused before any process is started: exit 2 and one line naming the option and the value.
+    assert main(["bench", "--against-mitsuba", "--pairs", "1", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0], err
