@@ -29,7 +29,7 @@ def noisy_copy(stack_dir: Path, out: Path, rng: np.random.Generator, full_well_e
                exposure: float = 1.0) -> None:
     """A copy of a stack of linear 16-bit PNGs with photon and read noise added; ``exposure``
     scales the rendered values first (a photographer exposes below clipping at high ISO)."""
-    import imageio.v3 as iio
+    import cv2
 
     stack = load_stack(stack_dir)
     out.mkdir(parents=True)
@@ -42,7 +42,10 @@ def noisy_copy(stack_dir: Path, out: Path, rng: np.random.Generator, full_well_e
         value = np.clip(electrons / full_well_e, 0.0, 1.0)
         dest = out / entry.file.relative_to(stack.path)
         dest.parent.mkdir(parents=True, exist_ok=True)
-        iio.imwrite(dest, np.round(value * 65535).astype(np.uint16))
+        # OpenCV's PNG writer: the same pixels as imageio's (Pillow's), written 6x faster (0.03
+        # against 0.17 s per 0.96 MP image; two of every three standard-suite stacks are noisy copies)
+        if not cv2.imwrite(str(dest), np.round(value * 65535).astype(np.uint16)):
+            raise OSError(f"could not write {dest}")
 
 
 def run(stack_dir: str | Path, *, seeds: int = 5, full_well_e: float = 20000.0, read_noise_e: float = 5.0,
