@@ -124,10 +124,10 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
     """Rows of seconds per stage (cold and warm) per configuration; the OpenCV ratio per scale.
 
     Returns {"rows": [...], "provenance": ...}; each row: images, megapixels, edges, cold and warm
-    seconds per stage and in total (warm: the median of ``warm_runs`` calls), the whole-process seconds of ``lensfit fit`` and of the
-    OpenCV reference, and their ratio (scales only): ``repeat`` pairs of the two processes run
-    back to back (a virtual machine's speed drifts within minutes), the median of each and of
-    the pairs' ratios (``ratios``: every pair's)."""
+    seconds per stage and in total (warm: the median of ``warm_runs`` calls), the whole-process
+    seconds of ``lensfit fit`` and of the OpenCV reference, and their ratio (scales only):
+    ``repeat`` pairs of the two processes run back to back (a virtual machine's speed drifts
+    within minutes), the median of each and of the pairs' ratios (``ratios``: every pair's)."""
     from lensfit.outputs import provenance
 
     stack = Path(stack)
@@ -144,7 +144,8 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
             h, w = _shape(folder)
             row = {"images": count, "megapixels": round(h * w / 1e6, 3), "edges": child["cold_edges"],
                    "cold": {s: child["cold"].get(s, 0.0) for s in (*STAGES, "total")},
-                   "warm": {s: statistics.median(r.get(s, 0.0) for r in child["warm_runs"]) for s in (*STAGES, "total")},
+                   "warm": {s: statistics.median(r.get(s, 0.0) for r in child["warm_runs"])
+                            for s in (*STAGES, "total")},
                    "warm_runs": len(child["warm_runs"])}
             if count == n_all:  # whole process: lensfit fit against OpenCV's detect + calibrate
                 pairs = []
