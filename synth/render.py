@@ -33,7 +33,7 @@ from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, 
 from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
 
 #: Planning and truth live in synth.planning and synth.truth; their public names are here too.
-__all__ = ["render", "plan", "choose_method", "convolve_is_exact", "check_overrides", "RenderResult", "ShotPlan",
+__all__ = ["render", "plan", "GeometricCache", "choose_method", "convolve_is_exact", "check_overrides", "RenderResult", "ShotPlan",
            "METHODS", "IMAGE_FORMATS", "image_extension", "quantise_16bit", "working_f_number", "chief_ray_depth",
            "stack_manifest"]
 
@@ -79,7 +79,59 @@ def image_extension(fmt: str) -> str:
     return {"png": ".png", "dng": ".dng", "jpeg": ".jpg"}.get(fmt, ".tiff")
 
 
-def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None]):
+class GeometricCache:
+    """The geometric renders (the defocus stage's images, before any later stage) of one process,
+    kept for renders of the same shots with other later stages: a benchmark draws one scene
+    with several effects sets (``lensfit.bench``), whose images differ only after the geometric
+    render. An entry's key is a digest of everything that render reads (method, shot, camera,
+    the tracer's aperture, front stop and warp, samples per pixel, seed, background,
+    supersampling); a hit hands out a copy, bit for bit the image a new render would give.
+
+    ``entries``: key -> {"image", "window": (start, end) in ``time.time()`` of its render};
+    ``hits``: the keys handed out, in order (the caller accounts for their seconds)."""
+
+    def __init__(self) -> None:
+        self.entries: dict[str, dict[str, Any]] = {}
+        self.hits: list[str] = []
+
+
+def _canonical(obj, depth: int = 0):
+    """A value's content, exactly, as nested tuples (dataclass fields, array bytes, floats in
+    hex): equal for equal content however the objects were built (a pickle is not: it carries
+    cached attributes and shared references)."""
+    import dataclasses
+
+    if depth > 12:
+        raise ValueError("too deep")
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return (type(obj).__qualname__,) + tuple((f.name, _canonical(getattr(obj, f.name), depth + 1))
+                                                 for f in dataclasses.fields(obj))
+    if isinstance(obj, np.ndarray):
+        return ("array", obj.dtype.str, obj.shape, obj.tobytes())
+    if isinstance(obj, float):
+        return ("float", obj.hex())
+    if isinstance(obj, (bool, int, str, bytes, type(None))):
+        return obj
+    if isinstance(obj, (np.generic,)):
+        return ("np", obj.dtype.str, obj.tobytes())
+    if isinstance(obj, (tuple, list)):
+        return (type(obj).__name__,) + tuple(_canonical(v, depth + 1) for v in obj)
+    if isinstance(obj, dict):
+        return ("dict",) + tuple(sorted((repr(k), _canonical(v, depth + 1)) for k, v in obj.items()))
+    raise ValueError(f"no canonical form for {type(obj).__name__}")
+
+
+def _geometric_key(*parts) -> str | None:
+    import hashlib
+
+    try:
+        return hashlib.sha256(repr(_canonical(parts)).encode()).hexdigest()
+    except (ValueError, TypeError):  # something without a canonical form: no sharing, never a wrong image
+        return None
+
+
+def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
+                cache: GeometricCache | None = None):
     """One shot through its stages: (linear radiance float32 (H, W) or (H, W, 3), raw DN uint16
     or None, per-image truth entries, seconds per stage). The geometric render (defocus: the
     aperture, optical vignetting, exact distortion and per-channel focus act inside it) here,
@@ -120,6 +172,19 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
             continue
         rows = (lambda n, _d=distinct: tick(n / _d)) if distinct > 1 else tick
         cam_kw = {} if ccam is cam else {"camera": ccam}
+        if cache is not None and sp.method == "mitsuba":
+            from synth.mitsuba import check
+
+            check(shot, fx)  # (what Mitsuba refuses depends on the effects, which the key leaves out)
+        key = None if cache is None else _geometric_key(
+            sp.method, shot, ccam, kwargs_rt, r.samples_per_pixel, raytrace_seed(r.seed, k), scene.background_value,
+            r.supersampling, fx.aperture, r.mitsuba_variant)
+        if key is not None and key in cache.entries:
+            planes.append(cache.entries[key]["image"].copy())
+            cache.hits.append(key)
+            rows(ccam.height_px)
+            continue
+        started = time.time()
         if sp.method == "mitsuba":
             from synth.mitsuba import render_mitsuba
 
@@ -132,6 +197,8 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None])
             img = render_convolve(shot, scene.background_value, r.supersampling, **cam_kw,
                                   **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}))
             rows(cam.height_px)
+        if key is not None:
+            cache.entries[key] = {"image": img.copy(), "window": (started, time.time())}
         planes.append(img)
     if waves:
         from synth.spectral import combine
@@ -164,7 +231,8 @@ def check_overrides(*, samples_per_pixel: int | None = None, supersampling: int 
 def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_pixel: int | None = None,
            seed: int | None = None, supersampling: int | None = None, image_format: str | None = None,
            mitsuba_variant: str | None = None,
-           progress: Callable[[str, int, int], None] | None = None) -> RenderResult:
+           progress: Callable[[str, int, int], None] | None = None,
+           geometric_cache: GeometricCache | None = None) -> RenderResult:
     """Render every shot of a scene; deterministic for a seed.
 
     Parameters
@@ -174,6 +242,9 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         overrides of ``[render]`` (``image_format`` overrides ``render.format``: one of
         ``IMAGE_FORMATS``; ``mitsuba_variant``: one of ``synth.mitsuba.VARIANTS``).
     progress : callable(shot_name, done_rows, total_rows), optional; called as rows finish.
+    geometric_cache : a :class:`GeometricCache` shared by renders of one scene with different
+        later stages (effects after the geometric render): each shot's geometric image is
+        rendered once and handed out again, bit for bit.
 
     Returns
     -------
@@ -206,7 +277,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             if progress is not None:
                 progress(_name, done[0], _h)
 
-        img, raw, extra, seconds = render_shot(scene, sp, k, tick)
+        img, raw, extra, seconds = render_shot(scene, sp, k, tick, geometric_cache)
         result.stage_seconds[name] = seconds
         methods_used.add(sp.method)
         result.images[name] = img

@@ -233,3 +233,62 @@ def test_bench_lenses_never_replaces_a_kept_stack_and_reuses_only_what_is_there(
     assert main(["bench-lenses", "--lens", "cooke-triplet-50", "--reuse", str(tmp_path / "empty")]) == 2
     err = capsys.readouterr().err.strip()
     assert "--reuse" in err and str(tmp_path / "empty") in err and "----" not in err and "\n" not in err
+
+
+def test_effects_sets_share_the_geometric_render_bit_for_bit(tmp_path):
+    # A scene drawn as written, with diffraction and as a camera's raw DNG shares one geometric
+    # render (lensfit.bench.runs.run_group): the images are those of separate renders bit for
+    # bit; a render with another seed or another aperture shares nothing.
+    from lensfit.bench.suites import scene_with_effects
+    from synth.render import GeometricCache, render
+
+    scene = tmp_path / "s.toml"
+    scene.write_text("""
+name = "s"
+[camera]
+pixel_pitch_mm = 0.006
+width_px = 96
+height_px = 64
+[lens]
+focal_length_mm = 25.0
+f_number = 8.0
+focus_distance_mm = 1000.0
+[render]
+samples_per_pixel = 8
+seed = 0
+[[object]]
+id = "board"
+target = "checkerboard"
+squares = [5, 4]
+square_mm = 6.0
+distance_mm = 700.0
+tilt_deg = [20.0, 10.0]
+""")
+    sets = [{"name": "scene"},
+            {"name": "diffraction", "effects": ["defocus", "diffraction"], "diffraction": {"wavelength_nm": 550.0}},
+            {"name": "camera-raw", "effects": ["defocus", "diffraction", "vignetting", "exposure", "mosaic", "noise"],
+             "exposure": {"shutter_s": 0.01, "iso": 400, "luminance_cd_m2": 2000.0},
+             "sensor": {"preset": "aps-c-24mp"}}]
+    shared = GeometricCache()
+    for fx in sets:
+        alone = render(scene_with_effects(scene, fx), method="raytrace")
+        together = render(scene_with_effects(scene, fx), method="raytrace", geometric_cache=shared)
+        for name, image in alone.images.items():
+            assert np.array_equal(image, together.images[name]), (fx["name"], name)
+        for name, raw in alone.raw.items():
+            assert np.array_equal(raw, together.raw[name]), (fx["name"], name)
+    assert len(shared.entries) == 1 and len(shared.hits) == 2  # drawn once, handed out twice
+    render(scene_with_effects(scene, sets[0]), method="raytrace", seed=1, geometric_cache=shared)
+    polygon = {"name": "hexagon", "effects": ["defocus", "aperture"], "aperture": {"shape": "polygon", "blades": 6}}
+    render(scene_with_effects(scene, polygon), method="raytrace", geometric_cache=shared)
+    assert len(shared.entries) == 3 and len(shared.hits) == 2
+
+
+def test_a_shared_render_is_timed_with_its_own_seconds_less_compilation():
+    # The seconds a task that takes a shared render adds for it: the render's window less the
+    # union of JAX's compile spans within it (overlapping spans counted once).
+    from lensfit.bench.runs import _warm_seconds
+
+    assert _warm_seconds((0.0, 10.0), [(1.0, 3.0), (2.0, 4.0), (8.0, 12.0)]) == pytest.approx(5.0)
+    assert _warm_seconds((0.0, 10.0), []) == pytest.approx(10.0)
+    assert _warm_seconds((5.0, 6.0), [(0.0, 20.0)]) == 0.0

@@ -2,8 +2,10 @@
 
 A suite (``data_specs/bench/NAME.toml``, schema ``bench.schema.json``) is a grid:
 scenes x render settings x effects x noise levels x estimators x solver settings x seeds. The
-work is split into tasks, one per (scene, render setting, effects, seed): a task renders its
-stack once with those synth effects (diffraction, sensor exposure and noise, Bayer mosaic to
+work is split into tasks, one per (scene, render setting, effects, seed), run in groups of one
+(scene, render setting, seed) that share their geometric renders (each shot ray-traced or
+convolved once for all the effects sets; a task that takes its images from there is timed with
+their seconds added): a task renders its stack once with those synth effects (diffraction, sensor exposure and noise, Bayer mosaic to
 DNG, ...; cached on disk), then for every noise level adds seeded photon + read noise to the
 rendered values (a quick sensor model; the ``noise`` effect simulates the sensor properly;
 effect sets that simulate the sensor get none on top), and for every estimator and solver
@@ -38,9 +40,34 @@ from lensfit.outputs import write_text
 _WARM: set[str] = set()  # estimators already compiled in this process
 
 
-def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
+def run_group(tasks: list[dict[str, Any]], cache: str) -> list[dict[str, Any]]:
+    """:func:`run_task` on tasks that differ only in their effects set (one scene, render
+    setting and seed; :func:`groups`), in one process, sharing their geometric renders
+    (``synth.render.GeometricCache``): each shot is ray-traced or convolved once for all the
+    effects sets, whose images differ only in the stages after it."""
+    from synth.render import GeometricCache
+
+    shared = GeometricCache()
+    done = []
+    for task in tasks:
+        done += run_task(task, cache, shared)
+    return done
+
+
+def groups(tasks: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:
+    """The tasks in groups of one (scene, render setting, seed), in suite order."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for t in tasks:
+        out.setdefault(json.dumps([t["scene"], t["render"], t["seed"]], sort_keys=True), []).append(t)
+    return list(out.values())
+
+
+def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, Any]]:
     """Render (or reuse) the task's stack, then measure and fit every case not yet done.
-    Returns the finished case records (also written to ``cache/cases/<id>.json``)."""
+    Returns the finished case records (also written to ``cache/cases/<id>.json``).
+    ``shared``: a ``synth.render.GeometricCache`` of renders of the same shots with other effects
+    (:func:`run_group`); a render that takes its geometric images from there is timed as if it
+    had rendered them: the seconds they took (without compilation) are added."""
     from lensfit.bench.noise import noisy_copy
     from lensfit.fit import cramer_rao, fit
     from lensfit.jaxcache import enable_compilation_cache
@@ -65,12 +92,21 @@ def run_task(task: dict[str, Any], cache: str) -> list[dict[str, Any]]:
             shutil.rmtree(stack)  # an interrupted render: start it again
         # Timed warm: the seconds JAX spent tracing and compiling the kernels (once per process
         # and scene structure, or loading them from the persistent cache) are left out.
+        spans: list[tuple[float, float]] = []
+        hits = len(shared.hits) if shared is not None else 0
         result, seconds, compiling = without_compilation(lambda: render(
             scene_with_effects(scene_path, fx), method=task["render"]["method"],
             samples_per_pixel=task["render"].get("samples_per_pixel"), seed=task["seed"],
-            supersampling=task["render"].get("supersampling")))
+            supersampling=task["render"].get("supersampling"), geometric_cache=shared), spans)
+        shared_s = 0.0
+        if shared is not None:
+            for entry in shared.entries.values():  # those rendered in this call: their seconds, warm
+                if "seconds" not in entry:
+                    entry["seconds"] = _warm_seconds(entry["window"], spans)
+            shared_s = sum(shared.entries[k]["seconds"] for k in shared.hits[hits:])
         write_stack(result, stack)
-        meta_path.write_text(json.dumps({"seconds": seconds, "seconds_compiling": compiling,
+        meta_path.write_text(json.dumps({"seconds": seconds + shared_s, "seconds_compiling": compiling,
+                                           "seconds_geometric_shared": shared_s,
                                            "megapixels": sum(im.size for im in result.images.values()) / 1e6}))
     render_meta = json.loads(meta_path.read_text())
     truth = json.loads((stack / "truth.json").read_text())
@@ -141,13 +177,13 @@ def _on_span(event: str, start: float, end: float, **_: Any) -> None:
         _SPANS.append((start, end))
 
 
-def without_compilation(work: Callable[[], Any]) -> tuple[Any, float, float]:
+def without_compilation(work: Callable[[], Any], spans_out: list | None = None) -> tuple[Any, float, float]:
     """Run ``work()``; returns (its result, seconds without JAX's compilation, seconds compiling).
 
     The compilation is the union of the spans JAX reports for tracing, lowering and compiling
     (``jax.monitoring`` time spans; nested ones counted once) within the call: what a second,
     warm call would not spend. Cheaper than timing a second run, which doubled the suite's
-    rendering."""
+    rendering. ``spans_out``: a list that receives those spans (``time.time()`` start, end)."""
     from jax import monitoring
 
     monitoring.register_event_time_span_listener(_on_span)
@@ -160,12 +196,26 @@ def without_compilation(work: Callable[[], Any]) -> tuple[Any, float, float]:
         monitoring.unregister_event_time_span_listener(_on_span)
     spans = sorted((max(a, t0), min(b, t1)) for a, b in _SPANS if b > t0 and a < t1)
     _SPANS.clear()
-    compiling, reach = 0.0, t0
-    for a, b in spans:
-        if b > reach:
-            compiling += b - max(a, reach)
-            reach = b
+    if spans_out is not None:
+        spans_out.extend(spans)
+    compiling = _overlap((t0, t1), spans)
     return out, max(wall - compiling, 0.0), compiling
+
+
+def _overlap(window: tuple[float, float], spans: list[tuple[float, float]]) -> float:
+    """Seconds of ``window`` covered by the union of ``spans`` (sorted by start)."""
+    total, reach = 0.0, window[0]
+    for a, b in spans:
+        a, b = max(a, reach), min(b, window[1])
+        if b > a:
+            total += b - a
+            reach = b
+    return total
+
+
+def _warm_seconds(window: tuple[float, float], spans: list[tuple[float, float]]) -> float:
+    """The seconds of a render that ran in ``window``, less JAX's compilation within it."""
+    return max(window[1] - window[0] - _overlap(window, sorted(spans)), 0.0)
 
 
 def _compare(res, truth: dict[str, Any], cramer_rao: Callable) -> dict[str, Any]:
@@ -235,8 +285,8 @@ def run_suite(suite: Suite, out: str | Path, *, jobs: int = 1, resume: bool = Fa
 
 def _run_local(tasks, cache: str, jobs: int, tick: Callable[[], None]) -> None:
     if jobs <= 1:
-        for t in tasks:
-            run_task(t, cache)
+        for g in groups(tasks):
+            run_group(g, cache)
             tick()
         return
     import concurrent.futures as cf
@@ -244,7 +294,7 @@ def _run_local(tasks, cache: str, jobs: int, tick: Callable[[], None]) -> None:
 
     # spawn, not fork: JAX and OpenCV hold threads that fork does not copy safely.
     with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(run_task, t, cache) for t in tasks]
+        futures = [pool.submit(run_group, g, cache) for g in groups(tasks)]
         for fut in cf.as_completed(futures):
             fut.result()
             tick()
@@ -263,7 +313,7 @@ def _run_dask(tasks, cache: str, jobs: int, executor: str, tick: Callable[[], No
         cluster = None
         client = Client(executor.replace("dask://", "tcp://", 1))
     try:
-        futures = [client.submit(run_task, t, cache, pure=False) for t in tasks]
+        futures = [client.submit(run_group, g, cache, pure=False) for g in groups(tasks)]
         for fut in as_completed(futures):
             fut.result()
             tick()
