@@ -33,7 +33,8 @@ from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, 
 from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
 
 #: Planning and truth live in synth.planning and synth.truth; their public names are here too.
-__all__ = ["render", "plan", "GeometricCache", "choose_method", "convolve_is_exact", "check_overrides", "RenderResult", "ShotPlan",
+__all__ = ["render", "plan", "GeometricCache", "choose_method", "convolve_is_exact", "check_overrides", "RenderResult",
+           "ShotPlan",
            "METHODS", "IMAGE_FORMATS", "image_extension", "quantise_16bit", "working_f_number", "chief_ray_depth",
            "stack_manifest"]
 
