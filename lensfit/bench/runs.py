@@ -6,8 +6,9 @@ work is split into tasks, one per (scene, render setting, effects, seed), run in
 (scene, render setting, seed) that share their geometric renders (each shot ray-traced or
 convolved once for all the effects sets; a task that takes its images from there is timed with
 their seconds added): a task renders its stack once with those synth effects (diffraction,
-sensor exposure and noise, Bayer mosaic to DNG, ...; cached on disk), then for every noise level adds seeded photon + read noise to the
-rendered values (a quick sensor model; the ``noise`` effect simulates the sensor properly;
+sensor exposure and noise, Bayer mosaic to DNG, ...; cached on disk), then for every noise
+level adds seeded photon + read noise to the rendered values (a quick sensor model; the
+``noise`` effect simulates the sensor properly;
 effect sets that simulate the sensor get none on top), and for every estimator and solver
 setting measures and fits. Each finished case is written as one JSON file, so an
 interrupted run resumes where it stopped. Times are warm: a render's time leaves out what JAX
