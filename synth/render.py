@@ -173,14 +173,14 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
             continue
         rows = (lambda n, _d=distinct: tick(n / _d)) if distinct > 1 else tick
         cam_kw = {} if ccam is cam else {"camera": ccam}
-        if cache is not None and sp.method == "mitsuba":
-            from synth.mitsuba import check
-
-            check(shot, fx)  # (what Mitsuba refuses depends on the effects, which the key leaves out)
         key = None if cache is None else _geometric_key(
             sp.method, shot, ccam, kwargs_rt, r.samples_per_pixel, raytrace_seed(r.seed, k), scene.background_value,
             r.supersampling, fx.aperture, r.mitsuba_variant)
         if key is not None and key in cache.entries:
+            if sp.method == "mitsuba":  # what Mitsuba refuses depends on the effects, which the key leaves out
+                from synth.mitsuba import check
+
+                check(shot, fx)
             planes.append(cache.entries[key]["image"].copy())
             cache.hits.append(key)
             rows(ccam.height_px)
