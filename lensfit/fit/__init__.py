@@ -66,8 +66,11 @@ Solver: a closed-form start (for each candidate vertex on a grid spanning the da
 least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix
 Levenberg-Marquardt, inside iteratively reweighted least squares for a robust loss (Huber by
 default, Cauchy for heavy contamination). The covariance is ``(J^T W J)^-1`` at the solution,
-scaled by the reduced chi-square when that exceeds 1, and propagated to every derived quantity
-by the delta method (log space for positive quantities, so intervals stay positive).
+the blur rows' part scaled by their reduced chi-square (up or down: their own scatter about the
+fit, from the samples less the free parameters as degrees of freedom), the calibration's and the
+priors' parts as their sigmas state them; the blur part is raised per parameter to the
+leave-one-image-out jackknife's where that is larger. Propagated to every derived quantity by the
+delta method (log space for positive quantities, so intervals stay positive).
 
 Identifiability: blur at one setting fixes only ``K`` and ``D``; the calibrated
 ``f_px`` supplies ``s``, hence ``f`` and ``N``. A parameter the data cannot determine (one

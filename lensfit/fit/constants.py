@@ -15,6 +15,10 @@ MAX_RELATIVE_SIGMA = 0.2
 MIN_DISTANCE_SPREAD = 0.02
 #: Below this every measured blur is pixel integration, diffraction and aberration.
 MIN_USEFUL_BLUR_PX = 1.0
+#: Least variance factor of the blur readings (their reduced chi-square about the fit scales
+#: their part of the covariance, down as well as up): a numerical guard for exact samples
+#: (chi-square 0), under which their sigmas shrink at most 100-fold.
+BLUR_SCALE2_MIN = 1e-4
 #: Images needed for the leave-one-image-out jackknife of the covariance (see fit).
 MIN_CLUSTERS = 6
 MAX_CLUSTERS = 400  # one LM solve each

@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import (FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD, FIELD_CURVATURE_MODES,
-                                   FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA,
-                                   QUANTITIES)
+from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD,
+                                   FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, LOSSES,
+                                   MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _second_vertex)
@@ -338,9 +338,22 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     t_solved = time.perf_counter()
     names = _parameter_names(labels)
     fnames = [names[i] for i in free_idx]
-    cov, cond, corr = _covariance(jac, scale2)
-    parts = {src: _full_size(c, free_idx, m) for src, c in _budget_parts(jac, cov, npad, m, scale2).items()}
-    cov, dof = _jackknife(cov, corr, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior)
+    # The blur rows' variance is scaled by their own reduced chi-square, up where they scatter more
+    # than their sigmas say and down where less (a Type A evaluation from some hundred degrees of
+    # freedom: their stated sigmas carry the estimator's model floor, which on clean stacks is
+    # twice their scatter); the calibration's rows and the priors keep their own sigmas. Until
+    # 2026-11-25 max(1, chi-square) scaled all of them.
+    jac_w = jac.copy()
+    jac_w[:npad] /= math.sqrt(max(chi2_red, BLUR_SCALE2_MIN))
+    _, cond, _ = _covariance(jac, 1.0)
+    cov, _, _ = _covariance(jac_w, 1.0)
+    parts_free = _budget_parts(jac_w, cov, npad, m)
+    parts = {src: _full_size(c, free_idx, m) for src, c in parts_free.items()}
+    blur_dof = max(float(np.sum(weights[used])) - len(free_idx), 1.0)
+    cov, dof = _jackknife(cov, parts_free.get("blur", cov), theta, free_idx, data, used, row_on, weights, fpx, fpx_w,
+                          floor_w, p_prior)
+    sd_all = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    corr = np.clip(cov / np.outer(np.where(sd_all > 0, sd_all, 1.0), np.where(sd_all > 0, sd_all, 1.0)), -1.0, 1.0)
     z = student_z(dof)  # for the field curvature and P (each reported quantity takes its own: effective_z)
     full_cov = _full_size(cov, free_idx, m)
 
@@ -360,7 +373,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     thin = p_source == "assumed" and theta[i_p] == 0.0
     scale_sigma = data.blur_scale_sigma(weights * row_on)
     f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
-                    dof, thin, parts, scale_sigma**2)
+                    dof, thin, parts, scale_sigma**2, blur_dof)
     for k, label in enumerate(labels):
         settings[label]["field_curvature_per_m"] = _curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
                                                                        field_curvature, _field_spread(data, k), z)

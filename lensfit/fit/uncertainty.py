@@ -40,15 +40,15 @@ def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float, np.n
 BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "priors")
 
 
-def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int, scale2: float) -> dict[str, np.ndarray]:
+def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int) -> dict[str, np.ndarray]:
     """The model covariance of the free parameters split by the rows that carry it:
-    ``H^-1 J_g^T J_g H^-1`` for each row group ``g`` (``H = J^T J``), which sum to ``H^-1``.
-    Rows: blur samples (``npad``), the focal lengths in px (``m``), then the priors."""
+    ``H^-1 J_g^T J_g H^-1`` for each row group ``g`` (``H = J^T J``, ``cov = H^-1``), which sum
+    to ``H^-1``. Rows (``jac`` as weighted for the covariance): blur samples (``npad``), the focal
+    lengths in px (``m``), then the priors."""
     if jac.shape[1] == 0:
         return {}
-    h_inv = cov / scale2
     groups = {"blur": slice(0, npad), "calibration": slice(npad, npad + m), "priors": slice(npad + m, None)}
-    return {name: scale2 * h_inv @ jac[sl].T @ jac[sl] @ h_inv for name, sl in groups.items()}
+    return {name: cov @ jac[sl].T @ jac[sl] @ cov for name, sl in groups.items()}
 
 
 def _shares(model: dict[str, float], reported_var: float) -> dict[str, float] | None:
@@ -74,16 +74,20 @@ def _positive(value: float, sigma_log: float, z: tuple[float, float] = (1.0, _Z9
     return Estimate(value, value * sigma_log, (value / z1, value * z1), (value / z2, value * z2))
 
 
-def _jackknife(cov, corr, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior):
+def _jackknife(cov, blur_cov, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior):
     """Leave-one-image-out jackknife: the edges of one image share its pose (distance errors of
     ~0.05 % move all of them together) and its noise pattern, so they are not independent
     samples and the model-based covariance understates the spread (seen: focus-distance
     intervals holding the truth in 67 % of ray-traced stacks instead of 95 %). Each image is
     dropped in turn (zero weight, same compiled solver) and the fit redone from the solution with
-    the robust weights held; a parameter's variance is the larger of the two estimates; unchanged
-    where there are too few or too many images. Returns (cov, dof): ``dof`` = G - 1
-    where the jackknife took over for some parameter, else infinite; each reported quantity's
-    intervals take their own multiples from it (:func:`effective_z`)."""
+    the robust weights held. The refits keep the calibration's focal lengths and the priors as
+    they are, so their spread is that of the blur readings alone: a parameter's blur variance is
+    the larger of the model's (``blur_cov``, the blur rows' part of ``cov``) and the jackknife's,
+    and the calibration's and the priors' parts are added to it (before 2026-11-25 the larger of
+    the jackknife's and the whole model variance was taken, which dropped the calibration's part
+    wherever the jackknife won). Unchanged where there are too few or too many images. Returns
+    (cov, dof): ``dof`` = G - 1 where the jackknife took over for some parameter, else infinite;
+    each reported quantity's intervals take their own multiples from it (:func:`effective_z`)."""
     import jax
 
     m = len(data.labels)
@@ -102,10 +106,14 @@ def _jackknife(cov, corr, theta, free_idx, data, used, row_on, weights, fpx, fpx
     spread_cov = (G - 1) * np.cov(refits.T, bias=True).reshape(len(free_idx), len(free_idx))
     dof = math.inf
     if np.all(np.isfinite(spread_cov)):
-        sd = np.sqrt(np.maximum(np.diag(cov), np.diag(spread_cov)))
-        if np.any(np.diag(spread_cov) > np.diag(cov)):
+        model, spread = np.maximum(np.diag(blur_cov), 0.0), np.diag(spread_cov)
+        if np.any(spread > model):
             dof = float(G - 1)
-        cov = corr * np.outer(sd, sd)
+        sd_model = np.sqrt(model)
+        corr = blur_cov / np.outer(np.where(sd_model > 0, sd_model, 1.0), np.where(sd_model > 0, sd_model, 1.0))
+        np.fill_diagonal(corr, 1.0)
+        sd = np.sqrt(np.maximum(model, spread))
+        cov = cov - blur_cov + np.clip(corr, -1.0, 1.0) * np.outer(sd, sd)
     return cov, dof
 
 
@@ -119,21 +127,24 @@ def student_z(dof: float) -> tuple[float, float]:
     return (float(stdtrit(dof, 0.8413447460685429)), float(stdtrit(dof, 0.975)))
 
 
-def effective_z(shares: dict[str, float] | None, dof: float) -> tuple[float, float]:
-    """The interval multiples for one reported quantity whose variance is partly the image
-    jackknife's (estimated with ``dof`` = G - 1 degrees of freedom) and partly known in form (the
-    calibration, the estimator's scale error, the priors: infinitely many): Student's t with the
-    Welch-Satterthwaite effective degrees of freedom (GUM, JCGM 100:2008 G.4)
-    ``nu = dof / r^2``, ``r`` the jackknife's share of the variance (``blur`` + ``images`` of
-    ``shares`` where the jackknife took over: ``images`` > 0). Before 2026-11-25 every quantity
-    took G - 1 where the jackknife took over for any parameter: a focal length known 75-100 %
-    from the calibration got t(11) = 2.20 instead of 1.96, its 95 % interval 12 % wider."""
-    if not math.isfinite(dof):
-        return (1.0, _Z95)
+def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = math.inf) -> tuple[float, float]:
+    """The interval multiples for one reported quantity whose variance is partly estimated from
+    the data and partly known in form (the calibration, the estimator's scale error, the priors:
+    infinitely many degrees of freedom): Student's t with the Welch-Satterthwaite effective
+    degrees of freedom (GUM, JCGM 100:2008 G.4) ``nu = nu_0 / r^2``, ``r`` the estimated share
+    of the variance. Where the image jackknife took over for the quantity (``images`` > 0 in
+    ``shares``), that share is ``blur`` + ``images`` with ``nu_0 = dof`` (G - 1); elsewhere it is
+    ``blur``, whose size the readings' own scatter about the fit sets (the reduced chi-square,
+    ``nu_0 = blur_dof``: samples less free parameters). Before 2026-11-25 every quantity took
+    G - 1 where the jackknife took over for any parameter: a focal length known 75-100 % from the
+    calibration got t(11) = 2.20 instead of 1.96, its 95 % interval 12 % wider."""
     if not shares:
         return student_z(dof)
-    share = shares.get("blur", 0.0) + shares.get("images", 0.0) if shares.get("images", 0.0) > 0 else 0.0
-    return student_z(dof / share**2) if share > 0 else (1.0, _Z95)
+    if shares.get("images", 0.0) > 0 and math.isfinite(dof):
+        share, nu = shares.get("blur", 0.0) + shares.get("images", 0.0), dof
+    else:
+        share, nu = shares.get("blur", 0.0), blur_dof
+    return student_z(nu / share**2) if share > 0 and math.isfinite(nu) else (1.0, _Z95)
 
 
 _FROM_SENSOR_UNKNOWN = ("not determined for a thick lens: it needs the distance from the entrance pupil to the "
@@ -183,15 +194,17 @@ class _Variance:
 
 
 def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
-            dof: float = math.inf, thin: bool = True, parts=None, scale_var: float = 0.0
-            ) -> Estimate:
+            dof: float = math.inf, thin: bool = True, parts=None, scale_var: float = 0.0,
+            blur_dof: float = math.inf) -> Estimate:
     """Fill ``settings`` with every reported quantity; returns the shared focal length. ``dof``:
     the image jackknife's degrees of freedom where it took over (:func:`_jackknife`), from which
     each quantity's multiples of sigma for its 68 % and 95 % intervals (:func:`effective_z`).
     ``thin``: the lens is taken as thin (P = 1 assumed), so the entrance pupil is the lens plane
     and the focus distance from the sensor plane is known; otherwise that distance is not
     determined. ``parts``: the model covariance split by source (:func:`_budget_parts`, full
-    size); ``scale_var``: the variance of the estimator's shared relative scale error."""
+    size); ``scale_var``: the variance of the estimator's shared relative scale error;
+    ``blur_dof``: the degrees of freedom of the blur readings' scatter (samples less free
+    parameters), which sets their part of the variance."""
     import jax
 
     with jax.enable_x64(True):
@@ -202,7 +215,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
     sd = variance.sd
 
     def zs(name, k=None):
-        return effective_z(variance.shares(name, k), dof)
+        return effective_z(variance.shares(name, k), dof, blur_dof)
 
     f_val = float(q["f"])
     f_reason = None
