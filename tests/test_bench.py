@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -292,3 +293,41 @@ def test_a_shared_render_is_timed_with_its_own_seconds_less_compilation():
     assert _warm_seconds((0.0, 10.0), [(1.0, 3.0), (2.0, 4.0), (8.0, 12.0)]) == pytest.approx(5.0)
     assert _warm_seconds((0.0, 10.0), []) == pytest.approx(10.0)
     assert _warm_seconds((5.0, 6.0), [(0.0, 20.0)]) == 0.0
+
+
+def test_design_effect_reads_the_correlation_it_was_drawn_with():
+    """Random-effects draws (a group's shared part with variance rho, its own with 1 - rho):
+    the estimator finds rho, and none where the groups share nothing."""
+    from lensfit.bench.report import design_effect
+
+    rng = np.random.default_rng(5)
+    for rho in (0.0, 0.3, 0.8):
+        sizes = rng.integers(4, 12, size=300)
+        groups = [list(math.sqrt(rho) * rng.normal() + math.sqrt(1 - rho) * rng.normal(size=m)) for m in sizes]
+        est, deff = design_effect(groups)
+        assert est == pytest.approx(rho, abs=0.06), (rho, est)
+        assert deff == pytest.approx(1 + (sizes.mean() - 1) * est)
+    assert design_effect([[0.1, 0.3], [0.2, 0.5]]) == (1.0, 2.0)  # too few groups: each counts once
+
+
+def test_copies_of_the_same_intervals_do_not_narrow_the_coverage_interval():
+    """Every interval counted k times (as a case's noise levels and solver settings nearly copy
+    one render's intervals) says no more about the coverage than counted once: the interval of
+    the coverage stays that of the distinct intervals, where taking them as independent narrows
+    it by sqrt(k)."""
+    from lensfit.bench.report import coverage_summary, wilson_interval
+
+    rng = np.random.default_rng(1)
+    rows = []
+    for seed in range(30):
+        z = rng.standard_t(6)
+        for copy in range(6):
+            rows.append({"quantity": "f_number", "scene": "demo", "render": "raytrace 16 spp", "seed": seed,
+                         "value": 1.0 + 0.01 * z, "truth": 1.0, "sigma": 0.01, "in68": abs(z) <= 1.0,
+                         "in95": abs(z) <= 1.96})
+    cov = coverage_summary(rows)["f_number"]
+    hits = sum(r["in95"] for r in rows[::6])
+    assert cov["intervals"] == 180 and cov["intervals_effective"] == pytest.approx(30.0)
+    assert cov["coverage95_ci95"] == pytest.approx(wilson_interval(hits, 30), abs=1e-9)
+    lo, hi = cov["coverage95_ci95_if_independent"]
+    assert hi - lo < 0.6 * (cov["coverage95_ci95"][1] - cov["coverage95_ci95"][0])
