@@ -28,21 +28,22 @@ IMAGES, EDGES = 12, 16
 
 
 def capture(rng, *, fpx_rel_sigma=0.002, pose_rel_sigma=0.001, noise_px=0.04, scale_sigma=BLUR_SCALE_SIGMA,
-            distance_source="pose", stated_over_true=1.0):
+            distance_source="pose", stated_over_true=1.0, setting="a", focus_mm=X, images=IMAGES, e=None):
     """Rows, calibrated f_px and its sigma for one Monte Carlo capture; each reading's stated
-    sigma is ``stated_over_true`` times the scatter it was drawn with."""
-    s = 1.0 / (1.0 / F - 1.0 / X)
-    e = fpx_rel_sigma * rng.normal()
+    sigma is ``stated_over_true`` times the scatter it was drawn with; ``e``: the calibration's
+    relative error (drawn where None)."""
+    s = 1.0 / (1.0 / F - 1.0 / focus_mm)
+    e = fpx_rel_sigma * rng.normal() if e is None else e
     scale = 1.0 + scale_sigma * rng.normal()
     rows = []
-    for i in range(IMAGES):
+    for i in range(images):
         pose = 1.0 + pose_rel_sigma * rng.normal()
-        d_image = X * math.exp(rng.uniform(-0.6, 0.8))  # boards in front of and behind the focus plane
+        d_image = focus_mm * math.exp(rng.uniform(-0.6, 0.8))  # boards in front of and behind the focus plane
         for j in range(EDGES):
             d = d_image * (1.0 + 0.05 * (j - EDGES / 2) / EDGES)
-            c = (F / N) * s * abs(1.0 / X - 1.0 / d) / PITCH
+            c = (F / N) * s * abs(1.0 / focus_mm - 1.0 / d) / PITCH
             sigma = math.hypot(noise_px, 0.003 * c)
-            rows.append({"setting": "a", "image": f"img{i}.png", "distance_mm": d * (1 + e) * pose,
+            rows.append({"setting": setting, "image": f"{setting}-img{i}.png", "distance_mm": d * (1 + e) * pose,
                          "coc_diameter_px": abs(c * scale + sigma * rng.normal()),
                          "sigma_px": sigma * stated_over_true,
                          "distance_source": distance_source})
@@ -247,3 +248,28 @@ def test_intervals_follow_the_readings_scatter_not_their_stated_sigmas(kw):
         rms_z = float(np.sqrt(np.mean(np.square(z[q]))))
         ratio = float(np.mean(half[q]) / np.mean(err[q]))  # 2.45 for a Gaussian with the right sigma
         assert 0.8 <= rms_z <= 1.15 and ratio <= 3.3, (q, rms_z, ratio)
+
+
+def test_a_brackets_settings_take_their_own_images_degrees_of_freedom():
+    """A focus bracket of two settings, five images each, with large per-image pose errors: the
+    jackknife, stratified by setting, gives each setting's focus distance and f-number the
+    degrees of freedom of its own five images (4 / r^2, r the jackknife's share), not of all
+    ten (9 / r^2). (Unstratified, the 95 % intervals of the focus distances held the truth in
+    89-91 % of 200 Monte Carlo brackets; stratified 92-96 %: README.)"""
+    from lensfit.fit.uncertainty import student_z
+
+    rng = np.random.default_rng(4)
+    rows, fpx, fsg = [], {}, {}
+    for setting, focus in (("a", 1500.0), ("b", 3000.0)):
+        r, fpx[setting], fsg[setting] = capture(rng, fpx_rel_sigma=1e-4, pose_rel_sigma=0.005, noise_px=0.02,
+                                                setting=setting, focus_mm=focus, images=5, e=0.0)
+        rows += r
+    res = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, loss="linear")
+    for setting in ("a", "b"):
+        s = res.settings[setting]
+        sh = s["focus_distance_mm"].shares
+        assert sh["images"] > 0.3, sh
+        got = ((s["inverse_focus_distance_per_m"].ci95[1] - s["inverse_focus_distance_per_m"].value)
+               / s["inverse_focus_distance_per_m"].sigma)
+        r = sh["blur"] + sh["images"]
+        assert got == pytest.approx(student_z(4 / r**2)[1], rel=2e-3), (setting, got, student_z(9 / r**2)[1])
