@@ -69,8 +69,9 @@ default, Cauchy for heavy contamination). The covariance is ``(J^T W J)^-1`` at 
 the blur rows' part scaled by their reduced chi-square (up or down: their own scatter about the
 fit, from the samples less the free parameters as degrees of freedom), the calibration's and the
 priors' parts as their sigmas state them; the blur part is raised per parameter to the
-leave-one-image-out jackknife's where that is larger. Propagated to every derived quantity by the
-delta method (log space for positive quantities, so intervals stay positive).
+leave-one-image-out jackknife's (stratified by setting) where that is larger. Propagated to every
+derived quantity by the delta method (log space for positive quantities, so intervals stay
+positive).
 
 Identifiability: blur at one setting fixes only ``K`` and ``D``; the calibrated
 ``f_px`` supplies ``s``, hence ``f`` and ``N``. A parameter the data cannot determine (one
