@@ -141,8 +141,9 @@ def _field_spread(data: FitData, k: int) -> bool:
 
 def _significant_curvature(theta, free_idx, cov, m: int, curved: list[int]) -> list[int]:
     """Of the settings ``curved`` (field curvature free in ``theta``, the solution; ``cov`` the
-    free parameters' model covariance, inflated by the reduced chi-square as the fit's is), those
-    whose curvature differs from 0 by ``FIELD_CURVATURE_Z`` sigma."""
+    free parameters' model covariance, inflated by the reduced chi-square where that exceeds 1: a
+    test that errs towards leaving the curvature out), those whose curvature differs from 0 by
+    ``FIELD_CURVATURE_Z`` sigma."""
     at, pos = Layout(m), {int(j): i for i, j in enumerate(free_idx)}
     return [k for k in curved if abs(theta[at.curvature(k)]) >= FIELD_CURVATURE_Z * math.sqrt(
         max(cov[pos[at.curvature(k)], pos[at.curvature(k)]], 1e-300))]

@@ -160,7 +160,8 @@ def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = m
     infinitely many degrees of freedom): Student's t with the Welch-Satterthwaite effective
     degrees of freedom (GUM, JCGM 100:2008 G.4) ``nu = nu_0 / r^2``, ``r`` the estimated share
     of the variance. Where the image jackknife took over for the quantity (``images`` > 0 in
-    ``shares``), that share is ``blur`` + ``images`` with ``nu_0 = dof`` (G - 1); elsewhere it is
+    ``shares``), that share is ``blur`` + ``images`` with ``nu_0 = dof``, the jackknife's (its
+    images less one, or for a quantity of a bracket's setting, :class:`StrataDof`); elsewhere it is
     ``blur``, whose size the readings' own scatter about the fit sets (the reduced chi-square,
     ``nu_0 = blur_dof``: samples less free parameters). Before 2026-11-25 every quantity took
     G - 1 where the jackknife took over for any parameter: a focal length known 75-100 % from the
