@@ -255,7 +255,7 @@ def test_a_brackets_settings_take_their_own_images_degrees_of_freedom():
     jackknife, stratified by setting, gives each setting's focus distance and f-number the
     degrees of freedom of its own five images (4 / r^2, r the jackknife's share), not of all
     ten (9 / r^2). (Unstratified, the 95 % intervals of the focus distances held the truth in
-    89-91 % of 200 Monte Carlo brackets; stratified 92-96 %: README.)"""
+    89-92 % of 200 Monte Carlo brackets; stratified 92-96 %: README.)"""
     from lensfit.fit.uncertainty import student_z
 
     rng = np.random.default_rng(4)
