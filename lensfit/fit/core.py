@@ -23,8 +23,8 @@ from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robus
                                _solver_residual_fn)
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
 from lensfit.fit.start import _vertex_search
-from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _covariance, _derive, _jackknife, _null_direction,
-                                     _positive, _shares, student_z)
+from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _jackknife,
+                                     _null_direction, _positive, _shares, student_z)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
@@ -346,8 +346,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # 2026-11-25 max(1, chi-square) scaled all of them.
     jac_w = jac.copy()
     jac_w[:npad] /= math.sqrt(max(chi2_red, BLUR_SCALE2_MIN))
-    _, cond, _ = _covariance(jac, 1.0)
-    cov, _, _ = _covariance(jac_w, 1.0)
+    _, cond = _covariance(jac, 1.0)
+    cov, _ = _covariance(jac_w, 1.0)
     parts_free = _budget_parts(jac_w, cov, npad, m)
     parts = {src: _full_size(c, free_idx, m) for src, c in parts_free.items()}
     blur_dof = max(float(np.sum(weights[used])) - len(free_idx), 1.0)
@@ -355,8 +355,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                              fpx_w, floor_w, p_prior)
     dof = (StrataDof([_full_size(c, free_idx, m) for c, _ in strata], [d for _, d in strata])
            if strata else math.inf)
-    sd_all = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    corr = np.clip(cov / np.outer(np.where(sd_all > 0, sd_all, 1.0), np.where(sd_all > 0, sd_all, 1.0)), -1.0, 1.0)
+    corr = _correlation(cov)
     z = student_z(dof.total if strata else dof)  # for the field curvature and P (each quantity: effective_z)
     full_cov = _full_size(cov, free_idx, m)
 

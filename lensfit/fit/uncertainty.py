@@ -13,10 +13,10 @@ from lensfit.fit.solve import _solver, _solver_args
 from lensfit.fit.start import _side_hint
 
 
-def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float, np.ndarray]:
-    """Covariance by SVD of the column-equilibrated Jacobian; its condition number; correlations."""
+def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float]:
+    """Covariance by SVD of the column-equilibrated Jacobian; its condition number."""
     if jac.shape[1] == 0:
-        return np.zeros((0, 0)), 1.0, np.zeros((0, 0))
+        return np.zeros((0, 0)), 1.0
     norms = np.linalg.norm(jac, axis=0)
     norms = np.where(norms > 0, norms, 1.0)
     u, sv, vt = np.linalg.svd(jac / norms, full_matrices=False)
@@ -25,10 +25,14 @@ def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float, np.n
     inv = np.zeros_like(sv)
     inv[keep] = 1.0 / sv[keep] ** 2
     cov_scaled = (vt.T * inv) @ vt
-    cov = scale2 * cov_scaled / np.outer(norms, norms)
+    return scale2 * cov_scaled / np.outer(norms, norms), cond
+
+
+def _correlation(cov: np.ndarray) -> np.ndarray:
+    """Correlations of a covariance (0 in the rows of a parameter without variance)."""
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    corr = cov / np.outer(np.where(sd > 0, sd, 1), np.where(sd > 0, sd, 1))
-    return cov, cond, np.clip(corr, -1, 1)
+    sd = np.where(sd > 0, sd, 1.0)
+    return np.clip(cov / np.outer(sd, sd), -1.0, 1.0)
 
 
 #: The sources a reported variance is split into (results.json ``variance_shares``): the
@@ -136,11 +140,10 @@ def _jackknife(cov, blur_cov, theta, free_idx, data, used, row_on, weights, fpx,
     if not strata or not np.all(np.isfinite(spread_cov)):
         return cov, None
     model, spread = np.maximum(np.diag(blur_cov), 0.0), np.diag(spread_cov)
-    sd_model = np.sqrt(model)
-    corr = blur_cov / np.outer(np.where(sd_model > 0, sd_model, 1.0), np.where(sd_model > 0, sd_model, 1.0))
+    corr = _correlation(blur_cov)
     np.fill_diagonal(corr, 1.0)
     sd = np.sqrt(np.maximum(model, spread))
-    cov = cov - blur_cov + np.clip(corr, -1.0, 1.0) * np.outer(sd, sd)
+    cov = cov - blur_cov + corr * np.outer(sd, sd)
     return cov, (strata if np.any(spread > model) else None)
 
 
@@ -377,7 +380,7 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
                             setup["floor_w"], setup.get("p_prior", (0.0, 0.0)))
         _, jac = _solver(m)[1](theta[free_idx], args)
         values, grads = _solver(m)[2](np.asarray(theta, np.float64))
-    cov_free, _, _ = _covariance(np.asarray(jac), 1.0)
+    cov_free, _ = _covariance(np.asarray(jac), 1.0)
     cov = np.zeros((_size(m), _size(m)))
     cov[np.ix_(free_idx, free_idx)] = cov_free
 
