@@ -74,6 +74,17 @@ def test_intervals_hold_the_truth_with_calibration_pose_and_estimator_errors():
         assert 0.90 <= rate <= 0.995, f"{q}: 95 % interval held the truth in {100 * rate:.0f} % of captures"
 
 
+def test_large_pose_errors_are_not_taken_for_outliers():
+    """Per-image pose errors of 1 % against 0.005 px of blur noise: the images near the focus plane,
+    the focus distance's best, show their pose error as residuals of hundreds of their readings'
+    sigmas. Judged against those sigmas alone, the robust loss down-weighted them as outliers and
+    the jackknife, holding the weights, missed what that costs: 95 % intervals held the focus
+    distance in 77 % of these captures (the linear loss: 93 %)."""
+    cov = coverage(60, 11, fpx_rel_sigma=1e-3, pose_rel_sigma=0.01, noise_px=0.005)
+    assert cov["focus_distance_mm"] >= 0.87, cov
+    assert cov["f_number"] >= 0.87, cov
+
+
 def test_without_the_distance_scale_the_focus_interval_is_too_short():
     # The same captures with the distances taken as measured independently of the calibration:
     # the calibration's 0.2 % then moves the focus distance with nothing in its interval for it.
@@ -172,7 +183,7 @@ def test_each_quantity_takes_its_own_degrees_of_freedom():
     # (f's small jackknife share: the focus distance's pose-driven scatter reaches f through
     # the calibration's pinhole distance, by f / X)
     assert s["focal_length_mm"].shares["calibration"] > 0.9 and s["focal_length_mm"].shares["images"] < 0.05
-    assert multiple("focal_length_mm") == pytest.approx(1.959964, abs=1e-4)
+    assert multiple("focal_length_mm") == pytest.approx(1.959964, abs=1e-3)  # not t(11) = 2.20
     for q in ("f_number", "focus_distance_mm"):
         sh = s[q].shares
         assert sh["images"] > 0.5, (q, sh)

@@ -65,7 +65,9 @@ every blur moves ``A``, ``N``, the slope and the floor alike, and nothing else) 
 Solver: a closed-form start (for each candidate vertex on a grid spanning the data, linear
 least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix
 Levenberg-Marquardt, inside iteratively reweighted least squares for a robust loss (Huber by
-default, Cauchy for heavy contamination). The covariance is ``(J^T W J)^-1`` at the solution,
+default, Cauchy for heavy contamination) that judges each residual against its sigma with its
+image's shared distance error added (the images' scatter along the blur's slope beyond what their
+readings explain: a pose error is not an outlier). The covariance is ``(J^T W J)^-1`` at the solution,
 the blur rows' part scaled by their reduced chi-square (up or down: their own scatter about the
 fit, from the samples less the free parameters as degrees of freedom), the calibration's and the
 priors' parts as their sigmas state them; the blur part is raised per parameter to the

@@ -19,8 +19,8 @@ from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, 
                                          _second_vertex)
 from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
-from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robust_weights, _solver, _solver_args,
-                               _solver_residual_fn)
+from lensfit.fit.solve import (_padded_size, _predict_all, _robust_scale, _robust_weights, _shared_sigma, _solver,
+                               _solver_args, _solver_residual_fn)
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
 from lensfit.fit.start import _vertex_search
 from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _jackknife,
@@ -291,7 +291,13 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
             converged = bool(ok)
             if loss == "linear":
                 break
-            u = (data.coc_px - _predict_all(theta, m, data)) / data.sigma_px
+            # The robust weights judge each residual against its sigma with its image's shared
+            # distance error added: an image's pose error moves all its edges' blur together, most
+            # where the blur is smallest relative to its slope (near the focus plane), and judged
+            # against the readings' sigma alone those images, the focus distance's best, were
+            # down-weighted as outliers while the jackknife, holding the weights, missed the cost
+            # (1 % pose errors: 95 % intervals held the focus distance in 77 % of captures).
+            u = (data.coc_px - _predict_all(theta, m, data)) / _shared_sigma(theta, m, data, rows)
             new = _robust_weights(u / _robust_scale(u[rows > 0]), loss)
             if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
                 break

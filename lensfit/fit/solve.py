@@ -111,6 +111,49 @@ def _robust_scale(u: np.ndarray) -> float:
     return max(1.0, float(np.median(np.abs(u))) / 0.6745) if u.size else 1.0
 
 
+def _shared_sigma(theta, m: int, data: FitData, rows: np.ndarray) -> np.ndarray:
+    """Each sample's blur sigma in px with its image's shared distance error added: ``sqrt(sigma^2
+    + (g tau)^2)``, ``g = dc / d ln w`` the blur's slope in log inverse distance (an error of an
+    image's pose moves all of its distances by one factor) and ``tau`` the scatter of the images'
+    shared errors beyond what their readings' sigmas explain (:func:`_between_scale`); the
+    stated sigma where ``tau`` is 0 or the samples name no image."""
+    import dataclasses
+
+    named = (data.group >= 0) & (rows > 0)
+    if not named.any():
+        return data.sigma_px
+    h = 1e-4
+    up = _predict_all(theta, m, dataclasses.replace(data, w_nodes=data.w_nodes * (1 + h)))
+    down = _predict_all(theta, m, dataclasses.replace(data, w_nodes=data.w_nodes * (1 - h)))
+    slope = (up - down) / (2 * h)
+    resid = data.coc_px - 0.5 * (up + down)
+    groups = np.unique(data.group[named])
+    deltas, ses = np.zeros(len(groups)), np.full(len(groups), np.inf)
+    for i, g in enumerate(groups):
+        sel = (data.group == g) & (rows > 0)
+        info = float(np.sum((slope[sel] / data.sigma_px[sel]) ** 2))
+        if info > 0:
+            deltas[i] = float(np.sum(slope[sel] * resid[sel] / data.sigma_px[sel] ** 2)) / info
+            ses[i] = 1.0 / math.sqrt(info)
+    tau = _between_scale(deltas, ses)
+    return np.sqrt(data.sigma_px**2 + np.where(data.group >= 0, slope * tau, 0.0) ** 2)
+
+
+def _between_scale(deltas: np.ndarray, ses: np.ndarray) -> float:
+    """The scatter ``tau`` of the images' shared errors beyond their standard errors: the
+    smallest ``tau >= 0`` with median ``|delta_i| / sqrt(se_i^2 + tau^2)`` at most 0.6745 (the
+    normal's median absolute value), by bisection."""
+    ok = np.isfinite(ses)
+    d, se = np.abs(deltas[ok]), ses[ok]
+    if d.size == 0 or np.median(d / se) <= 0.6745:
+        return 0.0
+    lo, hi = 0.0, float(np.max(d)) / 0.6745 + 1e-300
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.median(d / np.sqrt(se**2 + mid**2)) > 0.6745 else (lo, mid)
+    return hi
+
+
 def _padded_size(n: int) -> int:
     """Samples are padded to a power of two (zero weight), so that stacks of similar size share
     one compiled solver."""
