@@ -55,11 +55,32 @@ def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int) -> dict[s
     return {name: cov @ jac[sl].T @ jac[sl] @ cov for name, sl in groups.items()}
 
 
+def _images_part(jac: np.ndarray, data, rows: np.ndarray, scatter) -> np.ndarray:
+    """The free parameters' covariance from the images' shared distance errors:
+    ``sum_i b_i b_i'``, ``b_i = H^-1 J_i' (g_i sqrt(w_i) / sigma_i) tau`` (``jac`` the weighted
+    Jacobian of the fit, blur rows first in sample order, ``H = J' J``; ``rows`` the samples'
+    weights in it; ``scatter``: :class:`lensfit.fit.solve.ImageScatter`, whose ``tau`` is each
+    image's relative distance error, pooled over the images). An image's pose error moves all of
+    its edges' blur together, which the blur rows, taken as independent, do not carry."""
+    p = jac.shape[1]
+    out = np.zeros((p, p))
+    if p == 0 or scatter is None or scatter.tau <= 0:
+        return out
+    cov_u, _ = _covariance(jac, 1.0)
+    n = len(data.coc_px)
+    pose = scatter.slope * np.sqrt(rows) / data.sigma_px * scatter.tau
+    for g in np.unique(data.group[(rows > 0) & (data.group >= 0)]):
+        sel = (data.group == g) & (rows > 0)
+        b = cov_u @ (jac[:n][sel].T @ pose[sel])
+        out += np.outer(b, b)
+    return out
+
+
 def _shares(model: dict[str, float], reported_var: float) -> dict[str, float] | None:
     """Shares of a reported variance: ``model`` the parts the model covariance carries (and the
     estimator's scale term), the rest of ``reported_var`` the jackknife's excess ("images")."""
     v = dict(model)
-    v["images"] = max(reported_var - sum(v.values()), 0.0)
+    v["images"] = v.get("images", 0.0) + max(reported_var - sum(v.values()), 0.0)
     total = sum(v.values())
     return {src: v.get(src, 0.0) / total for src in BUDGET_SOURCES} if total > 0 else None
 
@@ -157,7 +178,8 @@ def student_z(dof: float) -> tuple[float, float]:
     return (float(stdtrit(dof, 0.8413447460685429)), float(stdtrit(dof, 0.975)))
 
 
-def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = math.inf) -> tuple[float, float]:
+def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = math.inf,
+                images_dof: float = math.inf) -> tuple[float, float]:
     """The interval multiples for one reported quantity whose variance is partly estimated from
     the data and partly known in form (the calibration, the estimator's scale error, the priors:
     infinitely many degrees of freedom): Student's t with the Welch-Satterthwaite effective
@@ -173,9 +195,9 @@ def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = m
         return student_z(dof)
     if shares.get("images", 0.0) > 0 and math.isfinite(dof):
         share, nu = shares.get("blur", 0.0) + shares.get("images", 0.0), dof
-    else:
-        share, nu = shares.get("blur", 0.0), blur_dof
-    return student_z(nu / share**2) if share > 0 and math.isfinite(nu) else (1.0, _Z95)
+        return student_z(nu / share**2) if share > 0 else (1.0, _Z95)
+    den = shares.get("blur", 0.0) ** 2 / blur_dof + shares.get("images", 0.0) ** 2 / images_dof
+    return student_z(1.0 / den) if den > 0 else (1.0, _Z95)
 
 
 _FROM_SENSOR_UNKNOWN = ("not determined for a thick lens: it needs the distance from the entrance pupil to the "
@@ -226,7 +248,7 @@ class _Variance:
 
 def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
             dof: float | StrataDof = math.inf, thin: bool = True, parts=None, scale_var: float = 0.0,
-            blur_dof: float = math.inf) -> Estimate:
+            blur_dof: float = math.inf, images_dof: float = math.inf) -> Estimate:
     """Fill ``settings`` with every reported quantity; returns the shared focal length. ``dof``:
     the image jackknife's degrees of freedom where it took over (:func:`_jackknife`; per quantity
     from its strata, :class:`StrataDof`), from which
@@ -248,7 +270,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
 
     def zs(name, k=None):
         nu = dof.of(variance._grad(name, k)) if isinstance(dof, StrataDof) else dof
-        return effective_z(variance.shares(name, k), nu, blur_dof)
+        return effective_z(variance.shares(name, k), nu, blur_dof, images_dof)
 
     f_val = float(q["f"])
     f_reason = None
