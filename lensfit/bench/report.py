@@ -54,10 +54,12 @@ def wilson_interval(hits: int, n: int, z: float = 1.959963984540054) -> list[flo
     """95 % Wilson score interval of a coverage ``hits / n`` (a binomial proportion): how well a
     benchmark of ``n`` intervals can tell 95 % coverage from 85 % (e.g. 40 intervals all holding
     the truth: 91-100 %)."""
-    p = hits / n
+    p = min(max(hits / n, 0.0), 1.0)
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return [max(0.0, centre - half), min(1.0, centre + half)]
+    # exact at the ends (every or no interval holding the truth: 1 or 0), where rounding of an
+    # effective count's hits (coverage_summary) would leave the bound a hair inside
+    return [0.0 if p <= 1e-12 else max(0.0, centre - half), 1.0 if p >= 1 - 1e-12 else min(1.0, centre + half)]
 
 
 def design_effect(groups: list[list[float]]) -> tuple[float, float]:
