@@ -118,6 +118,36 @@ def test_the_images_scatter_reads_their_pose_errors(pose):
         assert 0.6 * pose <= np.median(taus) <= 1.4 * pose, taus
 
 
+def test_a_jackknifed_calibration_takes_its_views_degrees_of_freedom(tmp_path):
+    """A calibration's focal-length sigma from a leave-one-view-out jackknife over G views is
+    itself an estimate, with G - 1 degrees of freedom: simulated here as the true sigma times
+    sqrt(chi^2_{G-1} / (G - 1)). Where the focal length's variance is the calibration's, its 95 %
+    intervals must then be Student's t(G - 1), not the normal's (1.96 sigma, as before 2026-11-25,
+    which holds t(3) at 85.5 %), to hold the truth at their rate."""
+    from lensfit.measure import SampleTable
+    from lensfit.fit.uncertainty import student_z
+
+    rng = np.random.default_rng(21)
+    views, draws, sigma_rel = 4, 80, 0.002
+    hits = {"t": 0, "normal": 0}
+    path = tmp_path / "samples.json"
+    for _ in range(draws):
+        e = sigma_rel * rng.normal()
+        rows, fpx, _ = capture(rng, fpx_rel_sigma=sigma_rel, pose_rel_sigma=0.0, noise_px=0.005, e=e)
+        stated = sigma_rel * math.sqrt(rng.chisquare(views - 1) / (views - 1)) * fpx / (1 + e)
+        cal = {"focal_length_px": fpx, "focal_length_sigma_px": stated, "focal_length_sigma_method": "jackknife",
+               "principal_point_px": [0.0, 0.0], "rms_px": 0.02, "views": views, "source": "calibrated"}
+        path.write_text(json.dumps({"samples": rows, "pixel_pitch_mm": PITCH, "intrinsics": {"a": cal}}))
+        est = fit(SampleTable.read(path)).focal_length_mm
+        assert est.shares["calibration"] > 0.95, est.shares
+        multiple = math.log(est.ci95[1] / est.value) / (est.sigma / est.value)
+        assert multiple == pytest.approx(student_z((views - 1) / est.shares["calibration"] ** 2)[1], rel=2e-3)
+        hits["t"] += est.ci95[0] <= F <= est.ci95[1]
+        hits["normal"] += abs(math.log(est.value / F)) <= 1.959964 * est.sigma / est.value
+    rate = {k: v / draws for k, v in hits.items()}
+    assert rate["t"] >= 0.9 and rate["t"] - rate["normal"] >= 0.04, rate
+
+
 def test_without_the_distance_scale_the_focus_interval_is_too_short():
     # The same captures with the distances taken as measured independently of the calibration:
     # the calibration's 0.2 % then moves the focus distance with nothing in its interval for it.

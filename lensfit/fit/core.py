@@ -368,6 +368,11 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     _, cond = _covariance(jac, 1.0)
     cov, _ = _covariance(jac_w, 1.0)
     parts_free = _budget_parts(jac_w, cov, npad, m)
+    # each setting's calibration part whose sigma a jackknife over few views estimated (its views
+    # less one degrees of freedom: Welch-Satterthwaite with the rest, effective_z)
+    calibration_terms = [(_full_size(cov @ np.outer(jac_w[npad + k], jac_w[npad + k]) @ cov, free_idx, m),
+                          float(data.focal_length_dof[k])) for k in range(m)
+                         if math.isfinite(data.focal_length_dof[k]) and fpx_w[k] > 0 and free_idx.size]
     images = _images_part(jac, data, weights * row_on, scatter)
     if np.any(images):
         parts_free["images"] = images
@@ -398,7 +403,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     scale_sigma = data.blur_scale_sigma(weights * row_on)
     f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
                     dof, thin, parts, scale_sigma**2, blur_dof,
-                    max(scatter.images - 1, 1) if scatter is not None and scatter.tau > 0 else math.inf)
+                    max(scatter.images - 1, 1) if scatter is not None and scatter.tau > 0 else math.inf,
+                    calibration_terms)
     for k, label in enumerate(labels):
         settings[label]["field_curvature_per_m"] = _curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
                                                                        field_curvature, _field_spread(data, k), z)

@@ -54,6 +54,10 @@ class FitData:
     #: (flags ``diffraction_modelled``, ``AIRY_NOT_SEEN``; lensfit.fit.spots)
     shaped: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     airy_checked: bool = False
+    #: per setting, the degrees of freedom of ``focal_length_sigma_px``: the views less one where a
+    #: leave-one-view-out jackknife estimated it from few views; inf where its form is known (the
+    #: corners' covariance from some hundred residuals, a stated sigma)
+    focal_length_dof: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def blur_scale_sigma(self, weights: np.ndarray | None = None) -> float:
         """The estimator's shared relative scale error for this fit: each sample's weighted by
@@ -90,6 +94,8 @@ def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
         ctx = {"pixel_pitch_mm": samples.pixel_pitch_mm,
                "focal_length_px": {k: v.focal_length_px for k, v in samples.intrinsics.items()},
                "focal_length_sigma_px": {k: v.focal_length_sigma_px for k, v in samples.intrinsics.items()},
+               "focal_length_dof": {k: float(max(v.views - 1, 1)) if v.focal_length_sigma_method == "jackknife"
+                                    else math.inf for k, v in samples.intrinsics.items()},
                # settings whose calibration fitted no lens distortion (lensfit.fit.constants:
                # BLUR_SCALE_SIGMA_PLAIN); intrinsics given or read back from a CSV do not say
                "undistorted": {k for k, v in samples.intrinsics.items()
@@ -173,6 +179,8 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                        labels, "focal_length_px", math.nan)
     fsg = _per_setting(focal_length_sigma_px if focal_length_sigma_px is not None
                        else ctx.get("focal_length_sigma_px"), labels, "focal_length_sigma_px", 0.0)
+    fdof = (np.full(len(labels), math.inf) if focal_length_sigma_px is not None else
+            _per_setting(ctx.get("focal_length_dof"), labels, "focal_length_dof", math.inf))
     bad = ~(np.isnan(fpx) | ((fpx >= 1.0) & (fpx <= MAX_FOCAL_LENGTH_PX)))
     if bad.any():
         raise InputError("focal_length_px", float(fpx[bad][0]), f"between 1 and {MAX_FOCAL_LENGTH_PX:g} px")
@@ -189,7 +197,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([_scale_sigma(r, ctx.get("undistorted", frozenset())) for r in used]), truncated,
                    _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
                    np.array([i in kept for i in used_rows], bool),
-                   any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows))
+                   any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows), fdof)
 
 
 def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> np.ndarray:

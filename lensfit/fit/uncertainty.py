@@ -179,7 +179,7 @@ def student_z(dof: float) -> tuple[float, float]:
 
 
 def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = math.inf,
-                images_dof: float = math.inf) -> tuple[float, float]:
+                images_dof: float = math.inf, calibration_den: float = 0.0) -> tuple[float, float]:
     """The interval multiples for one reported quantity whose variance is partly estimated from
     the data and partly known in form (the calibration, the estimator's scale error, the priors:
     infinitely many degrees of freedom): Student's t with the Welch-Satterthwaite effective
@@ -194,9 +194,9 @@ def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = m
     if not shares:
         return student_z(dof)
     if shares.get("images", 0.0) > 0 and math.isfinite(dof):
-        share, nu = shares.get("blur", 0.0) + shares.get("images", 0.0), dof
-        return student_z(nu / share**2) if share > 0 else (1.0, _Z95)
-    den = shares.get("blur", 0.0) ** 2 / blur_dof + shares.get("images", 0.0) ** 2 / images_dof
+        den = (shares.get("blur", 0.0) + shares.get("images", 0.0)) ** 2 / dof + calibration_den
+    else:
+        den = shares.get("blur", 0.0) ** 2 / blur_dof + shares.get("images", 0.0) ** 2 / images_dof + calibration_den
     return student_z(1.0 / den) if den > 0 else (1.0, _Z95)
 
 
@@ -248,7 +248,7 @@ class _Variance:
 
 def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
             dof: float | StrataDof = math.inf, thin: bool = True, parts=None, scale_var: float = 0.0,
-            blur_dof: float = math.inf, images_dof: float = math.inf) -> Estimate:
+            blur_dof: float = math.inf, images_dof: float = math.inf, calibration_terms=()) -> Estimate:
     """Fill ``settings`` with every reported quantity; returns the shared focal length. ``dof``:
     the image jackknife's degrees of freedom where it took over (:func:`_jackknife`; per quantity
     from its strata, :class:`StrataDof`), from which
@@ -270,7 +270,10 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
 
     def zs(name, k=None):
         nu = dof.of(variance._grad(name, k)) if isinstance(dof, StrataDof) else dof
-        return effective_z(variance.shares(name, k), nu, blur_dof, images_dof)
+        g, total = variance._grad(name, k), variance.var(name, k)
+        cal = (sum((max(float(g @ c @ g), 0.0) / total) ** 2 / d for c, d in calibration_terms)
+               if total > 0 else 0.0)
+        return effective_z(variance.shares(name, k), nu, blur_dof, images_dof, cal)
 
     f_val = float(q["f"])
     f_reason = None
