@@ -56,7 +56,8 @@ an angle, and does not depend on it). Distances measured otherwise (a manifest's
 
 Error budget: each reported variance is split into its sources (``Estimate.shares``,
 results.json ``variance_shares``): the blur readings' scatter, the calibration, what an image's
-edges share beyond that (the leave-one-image-out jackknife's excess), the blur estimator's
+edges share beyond that (the images' modelled shared distance error and the leave-one-image-out
+jackknife's excess over the model), the blur estimator's
 shared scale error (``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2`` per sample, the constant
 ``BLUR_SCALE_SIGMA_PLAIN`` where neither the Airy model nor a lens distortion is in play: a scale on
 every blur moves ``A``, ``N``, the slope and the floor alike, and nothing else) and the priors. The model covariance splits exactly as

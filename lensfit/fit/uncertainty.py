@@ -38,7 +38,8 @@ def _correlation(cov: np.ndarray) -> np.ndarray:
 #: The sources a reported variance is split into (results.json ``variance_shares``): the
 #: blur readings' own scatter ("blur"); the calibrated focal length in px and with it the scale
 #: of every pose distance ("calibration"); what the edges of one image share beyond that (its
-#: pose, its noise), the excess of the leave-one-image-out jackknife ("images"); the blur
+#: pose, its noise: :func:`_images_part`, and the excess of the leave-one-image-out jackknife;
+#: "images"); the blur
 #: estimator's shared scale error ("estimator_scale", ``BLUR_SCALE_SIGMA``); the priors on the
 #: blur floor and the pupil magnification ("priors").
 BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "priors")
@@ -78,7 +79,8 @@ def _images_part(jac: np.ndarray, data, rows: np.ndarray, scatter) -> np.ndarray
 
 def _shares(model: dict[str, float], reported_var: float) -> dict[str, float] | None:
     """Shares of a reported variance: ``model`` the parts the model covariance carries (and the
-    estimator's scale term), the rest of ``reported_var`` the jackknife's excess ("images")."""
+    estimator's scale term), the rest of ``reported_var``, the jackknife's excess, added to
+    ``images``."""
     v = dict(model)
     v["images"] = v.get("images", 0.0) + max(reported_var - sum(v.values()), 0.0)
     total = sum(v.values())
