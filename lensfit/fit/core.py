@@ -379,7 +379,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         cov = cov + images
     parts = {src: _full_size(c, free_idx, m) for src, c in parts_free.items()}
     cov, strata = _jackknife(cov, parts_free.get("blur", cov) + images, theta, free_idx, data, used, row_on, weights,
-                             fpx, fpx_w, floor_w, p_prior)
+                             fpx, fpx_w, floor_w, p_prior, np.diag(images))
     dof = (StrataDof([_full_size(c, free_idx, m) for c, _ in strata], [d for _, d in strata])
            if strata else math.inf)
     corr = _correlation(cov)

@@ -132,9 +132,9 @@ def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray) -> ImageScatt
     weights), and the scatter ``tau`` of those beyond their standard errors
     (:func:`_between_scale`). The fit absorbs part of their spread (``tau`` reads about
     ``sqrt(1 - free parameters / images)`` of the drawn scatter); left so, since the jackknife's
-    variance, where larger, takes over (with ``tau`` raised by that factor, 1 % pose errors gave
-    RMS error over sigma 0.72-0.92 and 95 % half-widths 3.7-4.0x the error; as it is, 0.84-1.03
-    and 3.1-3.4x)."""
+    spread is pooled with the term this gives (:func:`lensfit.fit.uncertainty._jackknife`). With
+    ``tau`` raised by that factor (and the larger of the two kept, as it then was), 1 % pose errors
+    gave 95 % half-widths 3.7-4.0x the error, RMS error over sigma 0.72-0.92."""
     import dataclasses
 
     h = 1e-4
