@@ -203,9 +203,13 @@ def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = m
     ``shares``), that share is ``blur`` + ``images`` with ``nu_0 = dof``, the jackknife's (its
     images less one, or for a quantity of a bracket's setting, :class:`StrataDof`); elsewhere it is
     ``blur``, whose size the readings' own scatter about the fit sets (the reduced chi-square,
-    ``nu_0 = blur_dof``: samples less free parameters). Before 2026-11-25 every quantity took
-    G - 1 where the jackknife took over for any parameter: a focal length known 75-100 % from the
-    calibration got t(11) = 2.20 instead of 1.96, its 95 % interval 12 % wider."""
+    ``nu_0 = blur_dof``: samples less free parameters), with the images' modelled share
+    (:func:`_images_part`) at ``images_dof``, the images less one. A calibration's part whose
+    sigma a jackknife over few views estimated adds ``calibration_den``, the sum of its settings'
+    ``r_k^2 / nu_k`` (views less one), to the denominator ``sum r^2 / nu``; other calibrations
+    count as known. Before 2026-11-25 every quantity took G - 1 where the jackknife took over for
+    any parameter: a focal length known 75-100 % from the calibration got t(11) = 2.20 instead of
+    1.96, its 95 % interval 12 % wider."""
     if not shares:
         return student_z(dof)
     if shares.get("images", 0.0) > 0 and math.isfinite(dof):
