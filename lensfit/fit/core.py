@@ -353,9 +353,10 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # Where the images scatter along the blur's slope beyond what their readings explain (an error
     # of each image's pose: tau > 0), that scatter is a term of its own, shared by each image's
     # edges (_images_part, pooled over the images; the jackknife's spread is pooled with it), and
-    # the readings' chi-square is taken about each image's shared error. (Until 2026-11-25 only the image jackknife carried it; with a
-    # few images near the focus plane setting the focus distance, its variance rested on those
-    # alone: 1 % pose errors, 95 % intervals held the focus distance in 91 % of captures.)
+    # the readings' chi-square is taken about each image's shared error. (Until 2026-11-25 only
+    # the image jackknife carried it; with a few images near the focus plane setting the focus
+    # distance, its variance rested on those alone: 1 % pose errors, 95 % intervals held the
+    # focus distance in 91 % of captures.)
     blur_dof = max(float(np.sum(weights[used])) - len(free_idx), 1.0)
     named = bool(free_idx.size) and bool(np.all(data.group[used] >= 0))
     scatter = _image_scatter(theta, m, data, weights * row_on) if named else None
