@@ -81,7 +81,8 @@ def test_large_pose_errors_are_a_term_of_their_own():
     (95 % intervals held the focus distance in 77 % of these captures). And with a few images
     setting the focus distance, the image jackknife's variance rests on them alone: with that as
     the only term for the images' shared errors, 91 %, RMS error over sigma 1.43. The images'
-    scatter along the blur's slope, pooled over all of them, is a term of its own."""
+    scatter along the blur's slope, pooled over all of them, is a term of its own (and the
+    jackknife's spread is pooled with it)."""
     rng = np.random.default_rng(11)
     hits, z = {q: 0 for q in truths()}, {q: [] for q in truths()}
     for _ in range(60):
