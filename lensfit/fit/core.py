@@ -357,16 +357,15 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # the image jackknife carried it; with a few images near the focus plane setting the focus
     # distance, its variance rested on those alone: 1 % pose errors, 95 % intervals held the
     # focus distance in 91 % of captures.)
-    blur_dof = max(float(np.sum(weights[used])) - len(free_idx), 1.0)
     named = bool(free_idx.size) and bool(np.all(data.group[used] >= 0))
     scatter = _image_scatter(theta, m, data, weights * row_on) if named else None
-    chi2_cov = chi2_red
-    if scatter is not None and scatter.tau > 0:
-        blur_dof = max(float(np.sum(weights[used])) - len(free_idx) - scatter.images, 1.0)
-        chi2_cov = float(np.sum((weights * row_on * ((resid - scatter.shared) / data.sigma_px) ** 2)[used])) / blur_dof
+    shared = scatter is not None and scatter.tau > 0  # the images' term is in the budget
+    blur_dof = max(float(np.sum(weights[used])) - len(free_idx) - (scatter.images if shared else 0), 1.0)
+    chi2_cov = (float(np.sum((weights * row_on * ((resid - scatter.shared) / data.sigma_px) ** 2)[used])) / blur_dof
+                if shared else chi2_red)
     jac_w = jac.copy()
     jac_w[:npad] /= math.sqrt(max(chi2_cov, BLUR_SCALE2_MIN))
-    _, cond = _covariance(jac, 1.0)
+    cov_fit, cond = _covariance(jac, 1.0)  # (J'J)^-1 of the fit as weighted: the images' term's H^-1
     cov, _ = _covariance(jac_w, 1.0)
     parts_free = _budget_parts(jac_w, cov, npad, m)
     # each setting's calibration part whose sigma a jackknife over few views estimated (its views
@@ -374,7 +373,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     calibration_terms = [(_full_size(cov @ np.outer(jac_w[npad + k], jac_w[npad + k]) @ cov, free_idx, m),
                           float(data.focal_length_dof[k])) for k in range(m)
                          if math.isfinite(data.focal_length_dof[k]) and fpx_w[k] > 0 and free_idx.size]
-    images = _images_part(jac, data, weights * row_on, scatter)
+    images = _images_part(jac, cov_fit, data, weights * row_on, scatter)
     if np.any(images):
         parts_free["images"] = images
         cov = cov + images
@@ -404,7 +403,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     scale_sigma = data.blur_scale_sigma(weights * row_on)
     f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
                     dof, thin, parts, scale_sigma**2, blur_dof,
-                    max(scatter.images - 1, 1) if scatter is not None and scatter.tau > 0 else math.inf,
+                    max(scatter.images - 1, 1) if shared else math.inf,
                     calibration_terms)
     for k, label in enumerate(labels):
         settings[label]["field_curvature_per_m"] = _curvature_estimate(theta, full_cov, at.curvature(k), k in curved,

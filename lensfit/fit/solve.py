@@ -106,10 +106,14 @@ def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
     return np.ones_like(a)
 
 
+#: The median of a standard normal's absolute value (MAD's consistency constant).
+_NORMAL_MAD = 0.6745
+
+
 def _robust_scale(u: np.ndarray) -> float:
     """Scale of standardised residuals: 1 when the stated sigmas are honest, more when not
     (median absolute residual / 0.6745, never below 1)."""
-    return max(1.0, float(np.median(np.abs(u))) / 0.6745) if u.size else 1.0
+    return max(1.0, float(np.median(np.abs(u))) / _NORMAL_MAD) if u.size else 1.0
 
 
 class ImageScatter(NamedTuple):
@@ -172,12 +176,12 @@ def _between_scale(deltas: np.ndarray, ses: np.ndarray) -> float:
     normal's median absolute value), by bisection."""
     ok = np.isfinite(ses)
     d, se = np.abs(deltas[ok]), ses[ok]
-    if d.size == 0 or np.median(d / se) <= 0.6745:
+    if d.size == 0 or np.median(d / se) <= _NORMAL_MAD:
         return 0.0
-    lo, hi = 0.0, float(np.max(d)) / 0.6745 + 1e-300
+    lo, hi = 0.0, float(np.max(d)) / _NORMAL_MAD + 1e-300
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if np.median(d / np.sqrt(se**2 + mid**2)) > 0.6745 else (lo, mid)
+        lo, hi = (mid, hi) if np.median(d / np.sqrt(se**2 + mid**2)) > _NORMAL_MAD else (lo, mid)
     return hi
 
 

@@ -56,18 +56,17 @@ def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int) -> dict[s
     return {name: cov @ jac[sl].T @ jac[sl] @ cov for name, sl in groups.items()}
 
 
-def _images_part(jac: np.ndarray, data, rows: np.ndarray, scatter) -> np.ndarray:
+def _images_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, scatter) -> np.ndarray:
     """The free parameters' covariance from the images' shared distance errors:
     ``sum_i b_i b_i'``, ``b_i = H^-1 J_i' (g_i sqrt(w_i) / sigma_i) tau`` (``jac`` the weighted
-    Jacobian of the fit, blur rows first in sample order, ``H = J' J``; ``rows`` the samples'
-    weights in it; ``scatter``: :class:`lensfit.fit.solve.ImageScatter`, whose ``tau`` is each
+    Jacobian of the fit, blur rows first in sample order, ``H = J' J``, ``cov_u`` its ``H^-1``;
+    ``rows`` the samples' weights in it; ``scatter``: :class:`lensfit.fit.solve.ImageScatter`, whose ``tau`` is each
     image's relative distance error, pooled over the images). An image's pose error moves all of
     its edges' blur together, which the blur rows, taken as independent, do not carry."""
     p = jac.shape[1]
     out = np.zeros((p, p))
     if p == 0 or scatter is None or scatter.tau <= 0:
         return out
-    cov_u, _ = _covariance(jac, 1.0)
     n = len(data.coc_px)
     pose = scatter.slope * np.sqrt(rows) / data.sigma_px * scatter.tau
     for g in np.unique(data.group[(rows > 0) & (data.group >= 0)]):
@@ -288,8 +287,8 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
     sd = variance.sd
 
     def zs(name, k=None):
-        nu = dof.of(variance._grad(name, k)) if isinstance(dof, StrataDof) else dof
         g, total = variance._grad(name, k), variance.var(name, k)
+        nu = dof.of(g) if isinstance(dof, StrataDof) else dof
         cal = (sum((max(float(g @ c @ g), 0.0) / total) ** 2 / d for c, d in calibration_terms)
                if total > 0 else 0.0)
         return effective_z(variance.shares(name, k), nu, blur_dof, images_dof, cal)
