@@ -98,8 +98,9 @@ import numpy as np
 from lensfit import aot
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.diffraction import edge_kernel
-from lensfit.estimators.edge_model import (AIRY_START_SHARES, chunks, grid_start, residuals, shape_start,
-                                           squared_radius, squared_radius_slope)
+from lensfit.estimators.edge_model import (AIRY_START_SHARES, MIN_VARIANCE_SHARE, chunks, from_moment, grid_start,
+                                           moment_residuals, residuals, shape_start, squared_radius,
+                                           squared_radius_slope, to_moment)
 from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, line_end_covariance, select as _select, windows
 
 #: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the
@@ -181,8 +182,12 @@ def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: 
                                      jnp.zeros(1)])  # the ramp
         else:
             start = grid_start(d, s, v, w, nx, ny)
-        theta, cost, converged = lm.least_squares(fn, start, args, max_steps=MAX_STEPS, rtol=1e-8, atol=1e-10,
-                                                  ftol=FTOL)
+        # Two disks are solved with their second moment as a parameter (edge_model.moment_residuals).
+        solve_fn, solve_start = (moment_residuals, to_moment(start)) if shaped else (fn, start)
+        theta, cost, converged = lm.least_squares(solve_fn, solve_start, args, max_steps=MAX_STEPS, rtol=1e-8,
+                                                  atol=1e-10, ftol=FTOL)
+        if shaped:
+            theta = from_moment(theta)
         # A uniform disk that has not converged is a failed reading; two disks (slow to settle in
         # their shape, which moves c little) keep their best point, which the covariance and
         # chi-square describe.
@@ -423,7 +428,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             a = float(theta[5]) if j in is_shaped else 0.0
             t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
             m = 1.0 - a * (1.0 - t * t)  # variance of two disks over that of the outer one
-            if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > 0.05):
+            if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > MIN_VARIANCE_SHARE):
                 results[i] = BlurEstimate(None, None, tuple(flags[i]) + ("fit_failed",), npixels[i])
                 radius[i] = None
                 continue
