@@ -27,8 +27,10 @@ Method
     line's turn), started from a grid search over the radius with the levels solved linearly;
     first as a uniform disk (a = 0), then, wherever the spot's shape can be read (a disk reading
     of ``SHAPE_MIN_PX`` or more), again as two disks (a and t free, priors a ~ 0 +- 1 and
-    logit t ~ 0 +- 2), started from the best of a grid of cores and rims that keep the disk's
-    second moment (two disks have more than one local minimum); flag ``shaped_spot``, the disk's
+    logit t ~ 0 +- 2), solved with the second moment ``m R^2`` as a parameter in place of ``R^2``
+    (``edge_model.moment_residuals``), started from the best of a grid of cores, rims and the
+    uniform disk itself that keep the disk's second moment (two disks have more than one local
+    minimum; with the disk among the starts the fit never ends worse than it); flag ``shaped_spot``, the disk's
     reading kept beside it (``disk_diameter_px``), its sigma the fit's own in quadrature with a
     model error of ``SHAPE_MODEL_SHARE`` of the two readings' difference (on a uniform disk they
     agree to the noise; read this way a pure disk's scatter grows by under a fifth at 2-3 px and
