@@ -79,7 +79,7 @@ Valid range
     undetermined direction shows as a huge variance, not as none), or for a sub-pixel reading
     a blur of 1 px fitting less than 4 in chi-square worse (the rest held: a lenient test).
 Cost
-    About 1.7-2.3 ms per edge warm on 2 cores, all passes and profiles, every edge's shape read
+    About 1.7-2.5 ms per edge warm on 2 cores (0.96-1.5 MP), all passes and profiles, every edge's shape read
     (1.2-1.9 ms reading it only where the disk misfit; alternating runs on the demo); with
     diffraction modelled the second pass costs 6-9 times the disk's.
 Reference
