@@ -230,9 +230,9 @@ def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
         return None
 
     def load():
-        from lensfit.estimators import edge
+        from lensfit.estimators import edge_fit
 
-        edge.prewarm(shaped=estimator == "edge", diffraction=diffraction)
+        edge_fit.prewarm(shaped=estimator == "edge", diffraction=diffraction)
     return in_background(load, "lensfit-prewarm")
 
 

@@ -125,9 +125,9 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
 
 
 def _prewarm_airy() -> None:
-    from lensfit.estimators import edge
+    from lensfit.estimators import edge_fit
 
-    edge.prewarm_airy()
+    edge_fit.prewarm_airy()
 
 
 def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | None, options: dict[str, Any],

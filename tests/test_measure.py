@@ -461,7 +461,7 @@ def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack
     stack calls, so none is left to load on the critical path (a lone small dummy problem once
     moved up a size: the 64-bin fits were never prewarmed). Recorded through the compiled
     calls' argument shapes; the fits themselves are stubbed (zero results, the shapes kept)."""
-    import lensfit.estimators.edge as edge_module
+    import lensfit.estimators.edge_fit as edge_module
     from lensfit import aot
 
     calls = set()

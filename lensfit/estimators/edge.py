@@ -47,9 +47,10 @@ Method
     each side, and the ends of the segment are skipped by the window plus the blur, so that
     neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
     128 across a wider window. Every edge of a stack is fitted in one batched solve per pass
-    (``measure_images``; ``jax.vmap`` over chunks of ``CHUNK`` edges of 64 or ``NPIX`` bins): two
-    compiled shapes per kind of fit, whatever the stack. The profile model, the residuals and the
-    start grids are in ``lensfit.estimators.edge_model``.
+    (``measure_images``; ``jax.vmap`` over chunks of 16 edges, 4 for two disks, of 64 or 256
+    bins, each chunk solved as soon as it is full while the next profiles are gathered): two
+    compiled shapes per kind of fit, whatever the stack (``lensfit.estimators.edge_fit``). The
+    profile model, the residuals and the start grids are in ``lensfit.estimators.edge_model``.
 Diffraction
     Where the caller gives the Airy scale ``a = lambda N_w / p`` (``airy_px``; the pipeline of
     ``lensfit fit --diffraction``), the model profile is the one above convolved with the Airy
@@ -90,41 +91,24 @@ Reference
 from __future__ import annotations
 
 import math
-from functools import partial
 from typing import Any, Callable
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from lensfit import aot
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
-from lensfit.diffraction import edge_kernel
-from lensfit.estimators.edge_model import (AIRY_START_SHARES, MIN_VARIANCE_SHARE, chunks, from_moment, grid_start,
-                                           moment_residuals, residuals, shape_start, squared_radius,
-                                           squared_radius_slope, to_moment)
-from lensfit.estimators.profile import NBINS_ACROSS, STRIPS, line_end_covariance, select as _select, windows
+from lensfit.estimators.edge_fit import FitQueue, fit_profiles
+from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
+from lensfit.estimators.profile import line_end_covariance, select as _select, windows
 
-#: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the
-#: solver's step limit: fixed, so that one compilation serves every stack.
-CHUNK = 16
-MAX_STEPS = 40
-#: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.aot).
-AOT_MODULES = ("lensfit.estimators.edge", "lensfit.estimators.edge_model", "lensfit.psf", "lensfit.lm",
-               "lensfit.diffraction")  # (the profile is data)
-#: The solver stops when a step gains less than this in chi-square (parameters within 1e-3
-#: standard errors of the minimum).
-FTOL = 1e-6
 SUB_PIXEL_PX = 0.5
 #: Largest Airy scale (px) the diffraction model takes: beyond it the pattern spans more than
 #: the windows the profile has (f/64 at 550 nm on 1 um pixels is 35 px).
 MAX_AIRY_PX = 64.0
 SUB_PIXEL_SIGMA_PX = 0.2
 #: A reading (c >= SUB_PIXEL_PX) whose 1 sigma exceeds this multiple of c is no reading (flag
-#: ``blur_undetermined``, no value); a sub-pixel one is none unless a blur of PROBE_C_PX fits
+#: ``blur_undetermined``, no value); a sub-pixel one is none unless a blur of ``edge_fit.PROBE_C_PX`` fits
 #: worse by PROBE_DCHI2 in chi-square.
 UNDETERMINED_SIGMA = 3.0
-PROBE_C_PX = 1.0
 PROBE_DCHI2 = 4.0
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
 #: Smallest blur diameter (disk reading) whose spot shape is read (from it, on every edge where
@@ -153,141 +137,6 @@ SHAPE_ACROSS_MIN_PX = 6.0
 #: disk the two agree to the noise. Below: how many sigmas of a make a shape significant.
 SHAPE_MODEL_SHARE = 0.3
 SHAPE_SIGNIFICANT_Z = 2.0
-
-
-NPIX = STRIPS * NBINS_ACROSS
-#: Bins per profile the compiled fits take (a problem goes to the smallest that holds it): on the
-#: demo stack 70 % of the second pass's profiles have 64 bins or fewer. Two sizes took the warm
-#: measure stage from 0.75 to 0.48-0.61 s; a third (128) saved little more and cost its loading
-#: in every new process.
-NPIX_CLASSES = (64, NPIX)
-
-
-def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: bool = False):
-    # airy: per problem the Airy kernel (knots, slope changes, tail); dummies without diffraction
-    from lensfit import lm
-
-    def one(d, s, v, w, nx, ny, theta_disk, airy):
-        args = (d, s, v, w, nx, ny, airy) if diffraction else (d, s, v, w, nx, ny)
-        fn = partial(residuals, shaped=shaped)
-        # The uniform disk starts from a grid over the radius; two disks (which have more than one
-        # local minimum: a core in a halo, a bright rim) from the best of a grid of shapes at the
-        # disk's solution.
-        # With the Airy pattern, whose blur the uniform disk read as its own (a disk reading is
-        # never smaller), the radius lies between 0 and the disk's: a grid of 8 radii over that
-        # interval, where the full grid's 24 were most of the solve's cost with the pattern.
-        if shaped:
-            start = shape_start(theta_disk, args)
-        elif diffraction:
-            radius = jnp.sqrt(squared_radius(jnp, theta_disk[1]))
-            start = jnp.concatenate([grid_start(d, s, v, w, nx, ny, airy, radius * jnp.asarray(AIRY_START_SHARES)),
-                                     jnp.zeros(1)])  # the ramp
-        else:
-            start = grid_start(d, s, v, w, nx, ny)
-        # Two disks are solved with their second moment as a parameter (edge_model.moment_residuals).
-        solve_fn, solve_start = (moment_residuals, to_moment(start)) if shaped else (fn, start)
-        theta, cost, converged = lm.least_squares(solve_fn, solve_start, args, max_steps=MAX_STEPS, rtol=1e-8,
-                                                  atol=1e-10, ftol=FTOL)
-        if shaped:
-            theta = from_moment(theta)
-        # A uniform disk that has not converged is a failed reading; two disks (slow to settle in
-        # their shape, which moves c little) keep their best point, which the covariance and
-        # chi-square describe.
-        ok = jnp.isfinite(cost) & jnp.all(jnp.isfinite(theta)) & (converged | shaped)
-        r, J = lm.residuals_and_jacobian(fn, theta, args)
-        r = r[:d.shape[0]]  # the blur's rows, without the shape's priors
-        n_eff = jnp.sum(w > 0)  # bins
-        # Residuals are in units of each bin's own standard error; a reduced chi-square above 1
-        # (model misfit) inflates the covariance, one below 1 does not shrink it.
-        dof = jnp.maximum(n_eff - theta.shape[0], 1)
-        s2 = jnp.sum(r * r) / dof
-        cov = jnp.maximum(s2, 1.0) * lm.covariance(J)
-        # How much worse a 1 px blur fits (the rest held): what a sub-pixel reading is worth.
-        probe = jnp.sum(fn(theta.at[1].set(PROBE_C_PX**2 / 4.0), args) ** 2) - cost
-        if not shaped:  # the same layout as the shaped fit's: a = 0, u = 0, no covariance
-            k = 7 - theta.shape[0]  # (the ramp of a diffraction fit takes a's place: not shaped)
-            theta = jnp.concatenate([theta, jnp.zeros(k)])
-            cov = jnp.pad(cov, ((0, k), (0, k)))
-        return theta, cov, jnp.sqrt(s2), ok, probe
-
-    return jax.vmap(one)(d, s, v, w, nx, ny, theta_disk, airy)
-
-
-def _fit(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], shaped: bool = True,
-         disk: list[np.ndarray] | None = None, airy: list[float] | None = None):
-    """Fit a list of (d, s, values, standard errors, normal); returns theta, cov, rms, ok and the
-    chi-square cost of a 1 px blur (``probe``) per item.
-    The two-disk fit (``shaped``) and the fit with the Airy pattern start from each item's
-    uniform-disk solution, ``disk``; ``airy``: each item's Airy scale in px (diffraction
-    modelled; None: not).
-
-    Every problem is padded to the smallest of ``NPIX_CLASSES`` that holds its bins and each
-    class to whole chunks of ``CHUNK``: a few compiled shapes per kind of fit for any stack; the
-    chunks are dispatched back to back and their results moved to the host once."""
-    if not samples:
-        return []
-    if airy is not None and (disk is None or len(disk) != len(samples)):
-        raise ValueError("a fit with the Airy pattern starts from each item's uniform-disk solution: give disk")
-    classes: dict[int, list[int]] = {c: [] for c in NPIX_CLASSES}
-    for i, smp in enumerate(samples):
-        classes[next((c for c in NPIX_CLASSES if len(smp[0]) <= c), NPIX)].append(i)
-    # A class's last, partial chunk costs as much as a full one (every lane of a chunk runs until
-    # its slowest problem stops): its problems move up a size where the next class's padding
-    # holds them at no extra chunk.
-    for small, large in zip(NPIX_CLASSES, NPIX_CLASSES[1:]):
-        rest = len(classes[small]) % CHUNK
-        extra = math.ceil((len(classes[large]) + rest) / CHUNK) - math.ceil(len(classes[large]) / CHUNK)
-        if rest and extra * large < small:
-            classes[large] += classes[small][len(classes[small]) - rest:]
-            del classes[small][len(classes[small]) - rest:]
-    classes = {c: members for c, members in classes.items() if members}
-    static = {"shaped": shaped, "diffraction": airy is not None}
-    with jax.enable_x64(True):
-        # numpy in, numpy out: no eager JAX operation between the compiled calls
-        calls = [(members, [aot.call("edge-fit", _fit_batch, chunk, static, AOT_MODULES)
-                            for chunk in chunks(npix, CHUNK, [samples[i] for i in members],
-                                                 None if disk is None else [disk[i] for i in members],
-                                                 None if airy is None else [airy[i] for i in members])])
-                 for npix, members in classes.items()]
-        fetched = jax.device_get([parts for _, parts in calls])
-    out: list = [None] * len(samples)
-    for (members, _), parts in zip(calls, fetched):
-        theta, cov, rms, ok, probe = (np.concatenate([p[j] for p in parts]) for j in range(5))
-        for k, i in enumerate(members):
-            out[i] = (theta[k], cov[k], float(rms[k]), bool(ok[k]), float(probe[k]))
-    return out
-
-
-def _dummy(npix: int) -> list[tuple]:
-    """One problem of ``npix`` bins with nothing to fit (zero weights: the solver stops at once)."""
-    d = np.linspace(-4.0, 4.0, npix)
-    return [(d, np.zeros_like(d), np.zeros_like(d), np.full_like(d, np.inf), (1.0, 0.0))]
-
-
-_DISK = [np.array([0.0, 1.0, 0.0, 1.0, 0.0])]
-
-
-def prewarm(shaped: bool = True, diffraction: bool = False) -> None:
-    """Load (or trace and compile) the batched fits that :func:`measure_images` calls, for every
-    profile size (``NPIX_CLASSES``), on chunks with nothing to fit, so that a caller can overlap
-    the loading (about 0.1 s per kind and size from the stores, seconds without) with other
-    work: ``lensfit.measure`` runs it in a background thread while it reads and detects."""
-    # One size per call (a lone small problem would move up a size), in the order of use.
-    for npix in NPIX_CLASSES:
-        _fit(_dummy(npix), False)  # the first pass (never with the Airy model)
-    for npix in NPIX_CLASSES if shaped and not diffraction else ():
-        _fit(_dummy(npix), True, _DISK)
-    if diffraction:
-        prewarm_airy()
-
-
-def prewarm_airy() -> None:
-    """Load the fits with the Airy pattern (every profile size) and compute its tables, as
-    :func:`prewarm` does for the plain fits: ``lensfit.pipeline`` runs it in the background
-    while the first fit runs, before its diffraction test."""
-    edge_kernel(1.0, 1.0, 0.0)
-    for npix in NPIX_CLASSES:
-        _fit(_dummy(npix), False, _DISK, airy=[1.0])
 
 
 def _at_one_depth(task: EdgeTask) -> bool:
@@ -320,7 +169,7 @@ def _even_along(profiles: list[tuple]) -> list[bool]:
             halves.append((d[p], s[p], v[p], se[p], n))
             owner.append(k)
     out = [False] * len(profiles)
-    fits = _fit(halves, False)
+    fits = fit_profiles(halves, False)
     for i in range(0, len(fits), 2):
         (t1, _, _, ok1, _), (t2, _, _, ok2, _) = fits[i], fits[i + 1]
         c1, c2 = (2.0 * math.sqrt(squared_radius(np, float(t[1]))) for t in (t1, t2))
@@ -373,6 +222,12 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
     for attempt in range(2):
         batch, index = [], []
         images: dict[int, np.ndarray] = {}
+        # The first pass only sizes the window: a uniform disk (which takes the Airy pattern for
+        # blur, so the window comes out wider, never narrower) at a tenth of the cost or less;
+        # its radius bounds the start of the fit with the pattern. Each full chunk is solved
+        # while the next profiles are gathered.
+        with_airy = airy_px is not None and attempt == 1
+        queue = FitQueue(False, with_airy)
         for i, task in enumerate(tasks):
             if results[i] is not None and attempt == 1 and radius[i] is None:
                 continue
@@ -397,16 +252,16 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             batch.append((d, s_along, v, se, n))
             npixels[i] = pixels
             index.append(i)
+            if with_airy:
+                queue.add(batch[-1], np.array([0.0, radius[i] ** 2, 0.0, 1.0, 0.0]), float(airy_px[owner[i]]))
+            else:
+                queue.add(batch[-1])
         images.clear()
         if progress and attempt == 1:
             for k in range(len(items)):
                 progress(k)
-        # The first pass only sizes the window: a uniform disk (which takes the Airy pattern for
-        # blur, so the window comes out wider, never narrower) at a tenth of the cost or less;
-        # its radius bounds the start of the fit with the pattern.
-        airy = None if airy_px is None or attempt == 0 else [float(airy_px[owner[i]]) for i in index]
-        fits = _fit(batch, False, None if airy is None else [np.array([0.0, radius[i] ** 2, 0.0, 1.0, 0.0])
-                                                              for i in index], airy=airy)
+        airy = [float(airy_px[owner[i]]) for i in index] if with_airy else None
+        fits = queue.results()
         shaped: list[int] = []
         disk: dict[int, tuple[float, float, float]] = {}  # the disk's (diameter, RMS, sigma) where shaped
         if second_moment and attempt == 1 and airy is None:
@@ -419,8 +274,9 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             wide = [j for j in across if diameter[j] >= SHAPE_ACROSS_MIN_PX]
             uneven = set(across) - {j for j, ok in zip(wide, _even_along([batch[j] for j in wide])) if ok}
             shaped = [j for j in readable if j not in uneven]
-            for j, refit in zip(shaped, _fit([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
-                                             None if airy is None else [airy[j] for j in shaped])):
+            refits = fit_profiles([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
+                                  None if airy is None else [airy[j] for j in shaped])
+            for j, refit in zip(shaped, refits):
                 disk[j] = (diameter[j], fits[j][2], 2.0 * _radius_terms(*fits[j][:2])[3])
                 fits[j] = refit
         is_shaped = set(shaped)

@@ -46,21 +46,21 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: flo
     x1, y1 = min(hi[0], w - 1), min(hi[1], h - 1)
     if x1 < x0 or y1 < y0:
         return None
-    yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-    rel_x, rel_y = xx - p0[0], yy - p0[1]
+    rel_x = (np.arange(x0, x1 + 1) - p0[0])[None, :]  # broadcast over the box: no index grids
+    rel_y = (np.arange(y0, y1 + 1) - p0[1])[:, None]
     s = rel_x * t[0] + rel_y * t[1]
     d = rel_x * n[0] + rel_y * n[1]
     margin = min(end_margin, 0.45 * L)
     keep = (np.abs(d) <= half_width) & (s >= margin) & (s <= L - margin)
     if keep.sum() < MIN_PIXELS:
         return None
-    s, d, v = s[keep], d[keep], image[y0:y1 + 1, x0:x1 + 1][keep].astype(np.float64)
+    s, d, v = s[keep], d[keep], image[y0:y1 + 1, x0:x1 + 1][keep].astype(np.float64, copy=False)
     line_a, line_b = _edge_line(s, d, v)
     d = d - (line_a + line_b * s)
     # Bin the super-sampled profile in strips along the edge (so that the fit can still turn
     # the line); the bin's mean position keeps the binning exact to first order.
     s_rel = s - 0.5 * L
-    strip = np.clip(np.floor((s - s.min()) / max(np.ptp(s), 1e-9) * STRIPS), 0, STRIPS - 1).astype(int)
+    strip = np.minimum(((s - s.min()) / max(np.ptp(s), 1e-9) * STRIPS).astype(int), STRIPS - 1)  # (>= 0: floor)
     # 1/8 px bins, coarser on wide windows (at most NBINS_ACROSS across: a bin is then still
     # under 1/60 of the window, far finer than the spot's structure there).
     bin_px = max(BIN_PX, float(np.ptp(d)) / (NBINS_ACROSS - 2))
