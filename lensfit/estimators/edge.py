@@ -47,10 +47,11 @@ Method
     each side, and the ends of the segment are skipped by the window plus the blur, so that
     neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
     128 across a wider window. Every edge of a stack is fitted in one batched solve per pass
-    (``measure_images``; ``jax.vmap`` over chunks of 16 edges, 4 for two disks, of 64 or 256
-    bins, each chunk solved as soon as it is full while the next profiles are gathered): two
-    compiled shapes per kind of fit, whatever the stack (``lensfit.estimators.edge_fit``). The
-    profile model, the residuals and the start grids are in ``lensfit.estimators.edge_model``.
+    (``measure_images``; ``jax.vmap`` over chunks of 16 edges, 4 for two disks and the Airy
+    pattern, of 64 or 256 bins, each chunk solved as soon as it is full while the next profiles
+    are gathered): two compiled shapes per kind of fit, whatever the stack
+    (``lensfit.estimators.edge_fit``). The profile model, the residuals and the start grids are
+    in ``lensfit.estimators.edge_model``.
 Diffraction
     Where the caller gives the Airy scale ``a = lambda N_w / p`` (``airy_px``; the pipeline of
     ``lensfit fit --diffraction``), the model profile is the one above convolved with the Airy

@@ -24,11 +24,15 @@ from lensfit.estimators.profile import NBINS_ACROSS, STRIPS
 #: solver's step limit: fixed, so that one compilation serves every stack.
 CHUNK = 16
 MAX_STEPS = 40
-#: Two-disk problems per compiled call: every lane of a chunk runs until its slowest problem
-#: stops, and two disks take 3-40 steps (median 11-15), where a disk takes a few. Four took the
-#: shaped fit of the demo enlarged 1.25x (217 edges) from 0.24-0.33 s to 0.19-0.20 s warm (2 and 8:
-#: no faster than 4); the readings are the same.
-SHAPED_CHUNK = 4
+#: Problems per compiled call of the costlier fits, two disks and the Airy pattern: every lane of a
+#: chunk runs until its slowest problem stops, and two disks take 3-40 steps (median 11-15). Four
+#: took the shaped fit of the demo enlarged 1.25x (217 edges) from 0.24-0.33 s to 0.19-0.20 s warm
+#: (2 and 8: no faster than 4), and the Airy pass's wait for its last chunks from 0.64-0.81 s to
+#: 0.37-0.41 s on two stacks (whole rounds about 3 % faster); the uniform disk's first passes are
+#: fastest in 16 (4: 0.49-0.60 s, 16: 0.46-0.48 s for the demo's measure stage). The readings
+#: agree to rounding (a problem may land in the other profile size: 1e-14 in a sigma, and after
+#: the diffraction rounds, which amplify it, 1e-9 in f and N).
+SMALL_CHUNK = 4
 #: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.aot).
 AOT_MODULES = ("lensfit.estimators.edge_fit", "lensfit.estimators.edge_model", "lensfit.psf", "lensfit.lm",
                "lensfit.diffraction")  # (the profile is data)
@@ -104,12 +108,12 @@ class FitQueue:
     problem (the same padding, so the same readings).
 
     Every problem is padded to the smallest of ``NPIX_CLASSES`` that holds its bins and each
-    class to whole chunks of ``CHUNK`` (``SHAPED_CHUNK`` for two disks): a few compiled shapes
-    per kind of fit for any stack."""
+    class to whole chunks of ``CHUNK`` (``SMALL_CHUNK`` for two disks and the Airy pattern): a few
+    compiled shapes per kind of fit for any stack."""
 
     def __init__(self, shaped: bool, diffraction: bool):
         self.static = {"shaped": shaped, "diffraction": diffraction}
-        self.chunk = SHAPED_CHUNK if shaped else CHUNK
+        self.chunk = SMALL_CHUNK if shaped or diffraction else CHUNK
         self.items: list[tuple] = []  # (sample, disk, airy)
         self.classes: dict[int, list[int]] = {c: [] for c in NPIX_CLASSES}
         self.sent = dict.fromkeys(NPIX_CLASSES, 0)
