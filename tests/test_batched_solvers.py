@@ -147,3 +147,42 @@ def test_a_sharp_edge_reads_sub_pixel_and_noise_without_an_edge_reads_nothing():
     flat = 0.5 + rng.normal(0.0, 0.01, sharp.shape)
     for est in edge.measure(flat, [task]):
         assert est.coc_diameter_px is None or est.sigma_px > est.coc_diameter_px or "low_contrast" in est.flags
+
+
+def test_queued_chunks_give_each_profile_its_own_reading():
+    """The edge fits' queue (lensfit.estimators.edge_fit.FitQueue) dispatches a chunk as soon as
+    it fills, per profile size, and moves a small size's last partial chunk up a size: 37 profiles
+    of two sizes, in mixed order, must each come back with their own disk's radius (exact
+    profiles, so the truth is known) and as fitted alone; a result given to the wrong problem, or
+    a problem left out of a chunk, fails."""
+    from lensfit.estimators.edge_fit import CHUNK, SMALL_CHUNK, fit_profiles
+    from lensfit.psf import pixel_edge_profile
+
+    rng = np.random.default_rng(11)
+    profiles, radii = [], []
+    for k in range(37):
+        radius = float(rng.uniform(0.8, 6.0))
+        bins = 48 if k % 3 else 200  # 64-bin and 256-bin problems, interleaved
+        d = np.linspace(-(radius + 4.0), radius + 4.0, bins)
+        angle = float(rng.uniform(0.1, 1.4))
+        nx, ny = float(np.cos(angle)), float(np.sin(angle))
+        with jax.enable_x64(True):
+            level = np.asarray(pixel_edge_profile(jnp.asarray(d), radius, nx, ny))
+        v = 0.1 + 0.7 * level + rng.normal(0.0, 1e-4, bins)
+        profiles.append((d, np.zeros(bins), v, np.full(bins, 1e-4), (nx, ny)))
+        radii.append(radius)
+    assert len(profiles) > 2 * CHUNK and SMALL_CHUNK < CHUNK  # several chunks of each kind
+    together = fit_profiles(profiles, False)
+    for k in (0, 1, 2, 17, 36):
+        alone = fit_profiles([profiles[k]], False)[0]
+        np.testing.assert_allclose(together[k][0], alone[0], rtol=1e-9, atol=1e-12)
+    for (theta, _, _, ok, _), radius in zip(together, radii):
+        assert ok and np.sqrt(theta[1]) == pytest.approx(radius, rel=2e-3)
+    disks = [t[0] for t in together]
+    shaped = fit_profiles(profiles, True, disks)  # two disks, chunks of SMALL_CHUNK, from each one's disk
+    for k in (3, 20, 36):
+        alone = fit_profiles([profiles[k]], True, [disks[k]])[0]
+        np.testing.assert_allclose(shaped[k][0], alone[0], rtol=1e-9, atol=1e-12)
+    for (theta, _, _, ok, _), radius in zip(shaped, radii):
+        m = 1.0 - theta[5] * (1.0 - (1.0 / (1.0 + np.exp(-theta[6]))) ** 2)
+        assert ok and np.sqrt(theta[1] * m) == pytest.approx(radius, rel=1e-2)
