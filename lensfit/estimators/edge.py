@@ -81,9 +81,9 @@ Valid range
     undetermined direction shows as a huge variance, not as none), or for a sub-pixel reading
     a blur of 1 px fitting less than 4 in chi-square worse (the rest held: a lenient test).
 Cost
-    About 1.7-2.5 ms per edge warm on 2 cores (0.96-1.5 MP), all passes and profiles, every edge's shape read
-    (1.2-1.9 ms reading it only where the disk misfit; alternating runs on the demo); with
-    diffraction modelled the second pass costs 6-9 times the disk's.
+    About 1.4-1.9 ms per edge warm on 2 cores (12 images of 0.96-1.5 MP; 2.1 ms on 3 images), all
+    passes and profiles, every edge's shape read (README, "Where the time goes"); with diffraction
+    modelled the second pass costs 6-9 times the disk's.
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
     W. J. Smith, *Modern Optical Engineering*.
