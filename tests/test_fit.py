@@ -426,3 +426,43 @@ def test_property_recovers_or_refuses(f, N, D_over_f, near, far, seed):
     r = run_fit(rows, fpx, fsig)
     assert_no_nan(r)
     assert_recovered_or_refused(r, {"focal_length_mm": f, "f_number": N, "focus_distance_mm": D}, 0.05, 5.0)
+
+
+@pytest.mark.parametrize("loss", ["linear", "huber"])
+def test_a_floor_left_at_zero_by_an_earlier_solve_is_tried_again(loss, monkeypatch):
+    """The model takes the blur floor squared, so a floor of exactly 0 is a stationary point
+    whatever the data: a solve that starts there stays there. Where an earlier solve (a
+    reweighting round) leaves it at 0, simulated here by zeroing the first solve's floor, the fit
+    must still find the floor the samples were simulated with (lensfit.fit.constants.FLOOR_START_PX)."""
+    import lensfit.fit.core as core
+    from lensfit.fit.model import Layout
+
+    f, N, D, floor = 50.0, 4.0, 1500.0, 1.5
+    rng = np.random.default_rng(9)
+    rows, fpx, fpx_sigma = simulate(f, N, D, spread(1000, 2500, 80), rng, floor_px=floor, noise_px=0.03)
+    real = core._solver
+    zeroed = []
+
+    class FirstSolveZeroesTheFloor:
+        def __init__(self, m):
+            self.inner, self.m = real(m), m
+
+        def __getitem__(self, k):
+            if k != 0:
+                return self.inner[k]
+
+            def solve(theta0, args):
+                sol, ok = self.inner[0](theta0, args)
+                if not zeroed:
+                    free_idx = np.asarray(args[1])
+                    sol = np.array(sol)
+                    sol[np.flatnonzero(free_idx == Layout(self.m).floor(0))] = 0.0
+                    zeroed.append(True)
+                return sol, ok
+            return solve
+
+    monkeypatch.setattr(core, "_solver", FirstSolveZeroesTheFloor)
+    r = run_fit(rows, fpx, fpx_sigma, loss=loss)
+    assert zeroed and r.ok, r.reasons
+    check_close(r.settings["a"]["blur_floor_px"], floor, 0.05)
+    check_close(r.settings["a"]["f_number"], N, 0.01)

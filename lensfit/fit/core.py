@@ -12,8 +12,8 @@ import numpy as np
 
 from lensfit.errors import InputError
 from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD,
-                                   FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, LOSSES,
-                                   MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
+                                   FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, FLOOR_SADDLE_PX,
+                                   FLOOR_START_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _second_vertex)
@@ -203,7 +203,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         x, slope, b = _vertex_search(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], np.ones(sel.sum()),
                                      not fixed_floor, blur_floor_px or 0.0)
         verts[k], slopes[k] = x, max(slope, 1e-6)
-        theta[at.floor(k)] = blur_floor_px if fixed_floor else max(b, 0.3)
+        theta[at.floor(k)] = blur_floor_px if fixed_floor else max(b, FLOOR_START_PX)
 
     # ---- the pupil magnification: fitted, given a prior, or assumed (never silently)
     fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
@@ -275,6 +275,25 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     fn = _solver_residual_fn(m)
     rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
 
+    def floor_retried(theta, rows, weights, converged):
+        """A free floor that ends at 0 tried again from ``FLOOR_START_PX`` with the same weights:
+        the model takes it squared, so 0 is a minimum of its own whatever the data, and the
+        reweighting may settle there beside a fit with a floor. Where the floor fits better, the
+        reweighting goes on from there (:func:`irls`)."""
+        lo = at.floor(0)
+        near = [j for j in free_idx if lo <= j < lo + m and abs(theta[j]) < FLOOR_SADDLE_PX]
+        if not near:
+            return theta, weights, converged
+        args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
+                            p_prior)
+        alt = theta.copy()
+        alt[near] = FLOOR_START_PX
+        alt[free_idx] = np.asarray(_solver(m)[0](alt[free_idx], args)[0])
+        if not np.all(np.isfinite(alt)):
+            return theta, weights, converged
+        cost = [float(np.sum(np.asarray(_solver(m)[1](t[free_idx], args)[0]) ** 2)) for t in (theta, alt)]
+        return irls(alt, rows, weights) if cost[1] < cost[0] * (1.0 - 1e-9) else (theta, weights, converged)
+
     def irls(theta, rows, weights):
         """Levenberg-Marquardt inside iteratively reweighted least squares over the blur rows
         ``rows`` (0/1 per sample); returns (theta, weights, converged)."""
@@ -330,6 +349,10 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                 free_idx = np.flatnonzero(free)
                 theta, weights, converged = irls(theta0, row_on, np.ones(n))
                 res, jac, chi2_red = evaluate(theta, weights)
+        retried = floor_retried(theta, row_on, weights, converged)
+        if retried[0] is not theta:  # a floor fitted better than the one at 0
+            theta, weights, converged = retried
+            res, jac, chi2_red = evaluate(theta, weights)
     if not converged:
         warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
 
