@@ -68,7 +68,10 @@ least squares for the slope and floor in ``c^2``; the best vertex wins), then op
 Levenberg-Marquardt, inside iteratively reweighted least squares for a robust loss (Huber by
 default, Cauchy for heavy contamination) that judges each residual against its sigma with its
 image's shared distance error added (the images' scatter along the blur's slope beyond what their
-readings explain: a pose error is not an outlier). The covariance is ``(J^T W J)^-1`` at the solution,
+readings explain: a pose error is not an outlier). A floor that ends at 0 (the model takes it
+squared: 0 is a minimum of its own) is solved once more from ``FLOOR_START_PX`` with the final
+weights, and the reweighting goes on from there where that fits better. The covariance is
+``(J^T W J)^-1`` at the solution,
 the blur rows' part scaled by their reduced chi-square (up or down: their own scatter about the
 fit, from the samples less the free parameters as degrees of freedom), the calibration's and the
 priors' parts as their sigmas state them; the blur part is raised per parameter to the
