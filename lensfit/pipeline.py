@@ -113,7 +113,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     # camera-raw stack spent 2.0 of 5.5 s decoding its 10 DNG files four times).
     stack = stack.holding(HOLD_BYTES)
     options = dict(fit_options or {})
-    table = measure(stack, estimator, progress=progress)
+    table = measure(stack, estimator, progress=progress, fit_ahead=True)
     auto = wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk")
     # The fits with the Airy pattern are loaded while the first fit runs (0.2-0.4 s of a process).
     warming = in_background(_prewarm_airy, "lensfit-prewarm-airy") if auto or wavelength_nm else None

@@ -492,3 +492,49 @@ def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack
     monkeypatch.setattr(measure_module, "_prewarm", lambda *a: None)
     measure_module.measure(calibration_stack)
     assert used and used <= warmed, used - warmed
+
+
+def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkeypatch):
+    """``measure(fit_ahead=True)`` loads the CoC fit's compiled functions in the background for the
+    stack's settings and edges (``lensfit.fit.solve.prewarm``), and those are the ones the fit of
+    its samples then calls: every compiled call of ``fit`` has a name, settings count and argument
+    dtypes and shapes that the loading had (an int32 where the fit passes int64, or a sample count
+    padded otherwise, would make the loading useless and fails here)."""
+    import lensfit.fit.solve as solve_module
+    import lensfit.measure as measure_module
+    from lensfit import aot
+    from lensfit.fit import fit
+
+    def signature(name, args, static):
+        leaves = __import__("jax").tree_util.tree_leaves(args)
+        return (name, tuple(sorted((static or {}).items())),
+                tuple(f"{getattr(a, 'dtype', type(a).__name__)}{list(getattr(a, 'shape', ()))}" for a in leaves))
+
+    loaded, used, asked = set(), set(), []
+    original, load = aot.call, solve_module.prewarm
+
+    def record(name, fn, args, static=None, modules=()):
+        if name.startswith("fit-"):
+            loaded.add(signature(name, args, static))
+        return original(name, fn, args, static, modules)
+
+    def prewarm(m, n):
+        asked.append((m, n))
+        monkeypatch.setattr(aot, "call", record)
+        try:
+            load(m, n)
+        finally:
+            monkeypatch.setattr(aot, "call", original)
+
+    monkeypatch.setattr(solve_module, "prewarm", prewarm)
+    table = measure_module.measure(calibration_stack, fit_ahead=True)
+    assert asked == [(1, len(table))]
+
+    def spy(name, fn, args, static=None, modules=()):
+        used.add(signature(name, args, static))
+        return original(name, fn, args, static, modules)
+
+    monkeypatch.setattr(aot, "call", spy)
+    result = fit(table)
+    assert result.code == "ok" and used
+    assert used <= loaded, sorted(used - loaded)

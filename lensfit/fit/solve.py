@@ -97,6 +97,44 @@ def _solver(m: int) -> _Solver:
     return _Solver(m)
 
 
+def likely_free_counts(m: int) -> tuple[int, ...]:
+    """The numbers of free parameters a fit of ``m`` settings most likely solves for, in the order
+    it meets them: ``log f`` and per setting the focus, ``log N`` and the floor, ``log P`` where
+    two or more settings may determine it; first with every setting's field curvature free
+    (``field_curvature`` "auto" starts so where the samples spread over the field), then without
+    (where it is not significant; also the floor's retry)."""
+    base = 1 + 3 * m + (1 if m >= 2 else 0)
+    return (base + m, base)
+
+
+def prewarm(m: int, n: int) -> None:
+    """Load (or trace and compile) the fit's compiled functions for ``m`` settings and ``n``
+    samples (padded as the fit pads them) on data with nothing to fit, so that the caller can
+    overlap their loading with other work: ``lensfit.measure`` runs it in a background thread
+    once the stack's edges are known, while they are measured (a fresh process spent 0.3-0.5 s
+    of the fit loading them; ``lensfit.aot``). Which functions the fit then calls depends on its
+    data (:func:`likely_free_counts` guesses); one it did not load here loads at its first call."""
+    import jax
+
+    from lensfit.fit.constants import EDGE_NODES
+    from lensfit.fit.model import _size
+
+    npad = _padded_size(n)
+    size = _size(m)
+    # zero weights everywhere: the solver meets a zero residual and stops at once
+    args = (np.zeros(npad, np.int64), np.full((npad, EDGE_NODES), 1e-3), np.zeros(npad), np.zeros(npad),
+            np.ones(npad), np.zeros(npad), 1.0, np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(2))
+    theta = np.zeros(size)
+    solver = _solver(m)
+    with jax.enable_x64(True):
+        for k in likely_free_counts(m):
+            free_idx = np.arange(min(k, size), dtype=np.int64)
+            full = (theta, free_idx, *args)
+            jax.block_until_ready(solver.solve(theta[free_idx], full))
+            jax.block_until_ready(solver.evaluate(theta[free_idx], full))
+        jax.block_until_ready(solver.derived(theta))
+
+
 def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
     a = np.abs(u)
     if loss == "huber":
