@@ -236,17 +236,6 @@ def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
     return in_background(load, "lensfit-prewarm")
 
 
-def _fit_ahead(settings: int, edges: int) -> threading.Thread:
-    """Load the CoC fit's compiled functions for ``settings`` settings and ``edges`` samples in a
-    background thread while the edges are measured (``lensfit.fit.solve.prewarm``): a fresh
-    ``lensfit fit`` process spent 0.3-0.5 s of its fit loading them."""
-    def load():
-        from lensfit.fit.solve import prewarm
-
-        prewarm(settings, edges)
-    return in_background(load, "lensfit-prewarm-fit")
-
-
 def in_background(load: Callable[[], None], name: str) -> threading.Thread:
     """Run ``load`` (loading compiled code ahead of its use) in a started thread, which the
     caller joins before the use. A failure there is left for the use itself to meet and report."""
@@ -264,7 +253,7 @@ def in_background(load: Callable[[], None], name: str) -> threading.Thread:
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
             progress: Callable[[str, int, int], None] | None = None,
             airy_px: dict[str, float] | None = None, detected: SampleTable | None = None,
-            fit_ahead: bool = False) -> SampleTable:
+            on_edges: Callable[[int, int], None] | None = None) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
 
     Parameters
@@ -280,9 +269,9 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     detected : a table this process measured of the same stack: its targets as detected are
         taken instead of detecting them again (the diffraction rounds of ``lensfit.pipeline``;
         the corners are refined, the intrinsics calibrated and the blur read afresh)
-    fit_ahead : a fit of the samples follows (``lensfit.pipeline``): its compiled functions, for
-        this stack's settings and edges, are loaded in the background while the edges are
-        measured (``lensfit.fit.solve.prewarm``)
+    on_edges : called with the number of settings and of edges once the edges are known, before
+        they are measured (``lensfit.pipeline`` starts loading the fit's compiled functions for
+        them there, in the background)
 
     Returns
     -------
@@ -308,15 +297,13 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         raise SpecError(stack.manifest_path, "target", "no [[target]] tables; describe the calibration targets "
                         "(kind, squares, square_mm, ...) so that they can be found")
     warming = _prewarm(estimator, airy_px is not None)
-    ahead: list[threading.Thread] = []
     try:
         return _measure(stack, estimator, fn, refine, progress, airy_px,
                         None if detected is None or len(detected.detections) != len(stack.images)
-                        else detected.detections, ahead if fit_ahead else None)
+                        else detected.detections, on_edges)
     finally:
-        for thread in [warming, *ahead]:
-            if thread is not None:
-                thread.join()
+        if warming is not None:
+            warming.join()
 
 
 def remeasure(stack: Stack, table: SampleTable, which: list[int], airy_px: dict[str, float]) -> list[Any]:
@@ -340,11 +327,10 @@ def remeasure(stack: Stack, table: SampleTable, which: list[int], airy_px: dict[
 def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
              progress: Callable[[str, int, int], None] | None, airy_px: dict[str, float] | None,
              detected: dict[int, list[Detection]] | None = None,
-             ahead: list[threading.Thread] | None = None) -> SampleTable:
+             on_edges: Callable[[int, int], None] | None = None) -> SampleTable:
     """:func:`measure` once its arguments are checked (the edge estimator's compiled fits loading
     in the background meanwhile, :func:`_prewarm`); ``detected``: the targets of each image as an
-    earlier measure of the stack detected them; ``ahead``: where given, the thread that loads the
-    CoC fit's compiled functions once the edges are known is appended to it (``fit_ahead``)."""
+    earlier measure of the stack detected them; ``on_edges``: see :func:`measure`."""
     def airy(i):
         return None if airy_px is None else float(airy_px[stack.images[i].setting])
     targets = [Target(spec) for spec in stack.targets]
@@ -434,8 +420,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         # Every edge of the stack in one batched solve per pass; images read when needed.
         with clock.stage("calibrate"):
             work = {i: tasks_for(i, table.intrinsics) for i in range(n)}
-        if ahead is not None:
-            ahead.append(_fit_ahead(len({e.setting for e in stack.images}), sum(len(w[0]) for w in work.values())))
+        if on_edges is not None:
+            on_edges(len({e.setting for e in stack.images}), sum(len(w[0]) for w in work.values()))
         with clock.stage("measure"):
             per_image = edge_estimator.measure_images([(partial(read, i), work[i][0]) for i in range(n)],
                                                       progress=lambda k: tick("edges"),

@@ -495,15 +495,14 @@ def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack
 
 
 def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkeypatch):
-    """``measure(fit_ahead=True)`` loads the CoC fit's compiled functions in the background for the
-    stack's settings and edges (``lensfit.fit.solve.prewarm``), and those are the ones the fit of
-    its samples then calls: every compiled call of ``fit`` has a name, settings count and argument
+    """The pipeline loads the CoC fit's compiled functions in the background once the stack's
+    edges are known (``measure(on_edges=...)``, ``lensfit.fit.solve.prewarm``), and those are the
+    ones its fit then calls: every compiled call of the fit has a name, settings count and argument
     dtypes and shapes that the loading had (an int32 where the fit passes int64, or a sample count
     padded otherwise, would make the loading useless and fails here)."""
     import lensfit.fit.solve as solve_module
-    import lensfit.measure as measure_module
     from lensfit import aot
-    from lensfit.fit import fit
+    from lensfit.pipeline import measure_and_fit
 
     def signature(name, args, static):
         leaves = __import__("jax").tree_util.tree_leaves(args)
@@ -515,26 +514,17 @@ def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkey
 
     def record(name, fn, args, static=None, modules=()):
         if name.startswith("fit-"):
-            loaded.add(signature(name, args, static))
+            (used if asked[-1] == "done" else loaded).add(signature(name, args, static))
         return original(name, fn, args, static, modules)
 
     def prewarm(m, n):
         asked.append((m, n))
-        monkeypatch.setattr(aot, "call", record)
-        try:
-            load(m, n)
-        finally:
-            monkeypatch.setattr(aot, "call", original)
+        load(m, n)
+        asked.append("done")
 
     monkeypatch.setattr(solve_module, "prewarm", prewarm)
-    table = measure_module.measure(calibration_stack, fit_ahead=True)
-    assert asked == [(1, len(table))]
-
-    def spy(name, fn, args, static=None, modules=()):
-        used.add(signature(name, args, static))
-        return original(name, fn, args, static, modules)
-
-    monkeypatch.setattr(aot, "call", spy)
-    result = fit(table)
-    assert result.code == "ok" and used
+    monkeypatch.setattr(aot, "call", record)
+    table, result, _ = measure_and_fit(calibration_stack)
+    assert asked == [(1, len(table)), "done"]
+    assert result.code == "ok" and used and loaded
     assert used <= loaded, sorted(used - loaded)
