@@ -110,10 +110,11 @@ def likely_free_counts(m: int) -> tuple[int, ...]:
 def prewarm(m: int, n: int) -> None:
     """Load (or trace and compile) the fit's compiled functions for ``m`` settings and ``n``
     samples (padded as the fit pads them) on data with nothing to fit, so that the caller can
-    overlap their loading with other work: ``lensfit.measure`` runs it in a background thread
+    overlap their loading with other work: ``lensfit.pipeline`` runs it in a background thread
     once the stack's edges are known, while they are measured (a fresh process spent 0.3-0.5 s
     of the fit loading them; ``lensfit.aot``). Which functions the fit then calls depends on its
-    data (:func:`likely_free_counts` guesses); one it did not load here loads at its first call."""
+    data (:func:`likely_free_counts` guesses); one it did not load here loads at its first call.
+    SciPy's special functions, which the intervals take, are imported here too."""
     import jax
 
     from lensfit.fit.constants import EDGE_NODES
@@ -133,6 +134,7 @@ def prewarm(m: int, n: int) -> None:
             jax.block_until_ready(solver.solve(theta[free_idx], full))
             jax.block_until_ready(solver.evaluate(theta[free_idx], full))
         jax.block_until_ready(solver.derived(theta))
+    import scipy.special  # noqa: F401 - the intervals' Student-t quantiles (0.07 s of a fresh fit)
 
 
 def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
