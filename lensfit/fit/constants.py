@@ -19,17 +19,6 @@ FLOOR_PRIOR_SIGMA_PX = 1.0
 #: 2.6x slower, each solve creeping back to a floor of 0.)
 FLOOR_START_PX = 0.3
 FLOOR_SADDLE_PX = 1e-3
-#: The Levenberg-Marquardt solve stops when a step moves every parameter by less than
-#: ``SOLVER_ATOL + SOLVER_RTOL |value|`` (log f and log N: parts per million; the focus in
-#: dioptres, the floor in px) and the residuals as little; the reweighting stops when a round moves
-#: every parameter by less than ``IRLS_SETTLED`` (and no weight by 1e-6). A millionth is a
-#: thousandth of the smallest standard error a fit reports. Until 2026-11-27 they were 1e-10 and
-#: 1e-12 (and 1e-9): a floor ending at 0 converges there only linearly (the model takes it squared;
-#: each step about halves it), and the demo's 28 solves took 18-118 steps each, 0.34 s of its 0.38
-#: s fit. With these: estimates and sigmas the same to 1e-6 relative, about 2.5x fewer steps.
-SOLVER_RTOL = 1e-7
-SOLVER_ATOL = 1e-6
-IRLS_SETTLED = 1e-6
 #: A parameter whose relative 1 sigma exceeds this is reported as not identifiable.
 MAX_RELATIVE_SIGMA = 0.2
 #: Samples whose distances spread less than this (relative) count as one distance.

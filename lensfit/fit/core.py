@@ -13,7 +13,7 @@ import numpy as np
 from lensfit.errors import InputError
 from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD,
                                    FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, FLOOR_SADDLE_PX,
-                                   FLOOR_START_PX, IRLS_SETTLED, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
+                                   FLOOR_START_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _second_vertex)
@@ -318,7 +318,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
             # (1 % pose errors: 95 % intervals held the focus distance in 77 % of captures).
             u = (data.coc_px - _predict_all(theta, m, data)) / _shared_sigma(theta, m, data, rows)
             new = _robust_weights(u / _robust_scale(u[rows > 0]), loss)
-            if it and change < IRLS_SETTLED and np.max(np.abs(new - weights)) < 1e-6:
+            if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
                 break
             weights = new
         return theta, weights, converged

@@ -7,7 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lensfit.fit.constants import SOLVER_ATOL, SOLVER_RTOL, _CAUCHY_C, _HUBER_K
+from lensfit.fit.constants import _CAUCHY_C, _HUBER_K
 from lensfit.fit.data import FitData
 from lensfit.fit.model import Layout, _model, _model_np, _pinhole_distance, _unpack
 
@@ -35,7 +35,7 @@ AOT_MODULES = ("lensfit.fit.solve", "lensfit.fit.model", "lensfit.fit.constants"
 def _optx_solve(theta0, args, m: int):
     import optimistix as optx
 
-    solver = optx.LevenbergMarquardt(rtol=SOLVER_RTOL, atol=SOLVER_ATOL)
+    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
     sol = optx.least_squares(_solver_residual_fn(m), solver, theta0, args=args, max_steps=400, throw=False)
     return sol.value, sol.result == optx.RESULTS.successful
 
