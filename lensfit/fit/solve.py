@@ -120,17 +120,18 @@ def prewarm(m: int, n: int) -> None:
     from lensfit.fit.constants import EDGE_NODES
     from lensfit.fit.model import _size
 
-    npad = _padded_size(n)
-    size = _size(m)
-    # zero weights everywhere: the solver meets a zero residual and stops at once
-    args = (np.zeros(npad, np.int64), np.full((npad, EDGE_NODES), 1e-3), np.zeros(npad), np.zeros(npad),
-            np.ones(npad), np.zeros(npad), 1.0, np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(2))
-    theta = np.zeros(size)
+    # n samples with zero weights, through the fit's own argument builder (the same dtypes and
+    # padding as the fit's): the solver meets a zero residual and stops at once
+    data = FitData(labels=[str(k) for k in range(m)], setting=np.zeros(n, int), distance_mm=np.ones(n),
+                   w_mean=np.full(n, 1e-3), w_nodes=np.full((n, EDGE_NODES), 1e-3), coc_px=np.ones(n),
+                   sigma_px=np.ones(n), pixel_pitch_mm=1.0, focal_length_px=np.zeros(m),
+                   focal_length_sigma_px=np.zeros(m), pose=np.zeros(n, bool), field2=np.zeros(n))
+    theta = np.zeros(_size(m))
     solver = _solver(m)
     with jax.enable_x64(True):
         for k in likely_free_counts(m):
-            free_idx = np.arange(min(k, size), dtype=np.int64)
-            full = (theta, free_idx, *args)
+            free_idx = np.arange(min(k, theta.size), dtype=np.int64)
+            full = _solver_args(theta, free_idx, data, np.zeros(n), np.zeros(m), np.zeros(m), np.zeros(m))
             jax.block_until_ready(solver.solve(theta[free_idx], full))
             jax.block_until_ready(solver.evaluate(theta[free_idx], full))
         jax.block_until_ready(solver.derived(theta))
