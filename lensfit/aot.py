@@ -3,12 +3,17 @@
 Tracing a batched solver with closed-form pixel profiles takes seconds, in every new process
 (the persistent compilation cache keeps compiled code, not traces). A function wrapped here is
 traced and exported at its first use with a given argument shape and stored beside the
-compilation cache; later processes deserialize it (milliseconds) and compile it from the
-persistent cache. Only where the command-line tools switched the cache on
+compilation cache, and on the CPU its compiled executable too (``jax.experimental.
+serialize_executable``): later processes load the executable (20-80 ms a function), or where
+there is none deserialize the trace and compile it from the persistent cache (about 0.17 s a
+function, 0.1 s of it fetching the compiled code by a key that needs the trace lowered again:
+1.9 s of CPU for the eleven functions of a demo fit, against 0.5 s loaded as executables).
+Only where the command-line tools switched the cache on
 (:func:`lensfit.jaxcache.enable_compilation_cache`); otherwise, and on any failure to read or
 write the store, the plain ``jax.jit`` path runs (same results). The file name carries the JAX
 version, the backend and a hash of the source of the modules the function depends on, so a
-change of any of them traces afresh.
+change of any of them traces afresh; an executable's also the arguments' tree and the
+processor (its model and instruction-set flags: the code is compiled for this machine's).
 """
 
 from __future__ import annotations
@@ -99,9 +104,164 @@ def call(name: str, fn: Callable, args: tuple, static: dict[str, Any] | None = N
         with lock:  # one thread loads a function (lensfit.measure loads in the background), others wait
             runner = _LOADED.get(key)
             if runner is None:
-                runner = _load_or_export(store / f"{key}.jaxexport", fn, args, static)
+                runner = _executable(store, key, args, lambda: _load_or_export(store / f"{key}.jaxexport", fn,
+                                                                                args, static))
                 _LOADED[key] = runner
     return runner(*args)
+
+
+def _executable_path(store: Path, key: str, args) -> Path | None:
+    """Where the compiled executable of ``key`` for these arguments is kept; None where
+    executables are not kept (a backend other than the CPU, or a JAX without the hook that
+    prepares LAPACK's kernels, without which a loaded executable that calls them crashes)."""
+    import jax
+
+    if jax.default_backend() != "cpu" or not _prepare_custom_calls():
+        return None
+    import jaxlib
+
+    tree = str(jax.tree_util.tree_structure(args))
+    tag = hashlib.sha256(f"{tree}|{jaxlib.__version__}|{_processor()}".encode()).hexdigest()[:12]
+    return store / f"{key}-{tag}.jaxexe"
+
+
+_PREPARED: list[bool] = []
+
+
+def _prepare_custom_calls() -> bool:
+    """LAPACK's kernels (the solves' Cholesky and SVD) take their routines from SciPy when a
+    function that uses them is first lowered; a loaded executable is never lowered, so this is
+    done before one is loaded (one that called them without it segfaulted, jaxlib 0.10). False
+    where this JAX has no such hook: then no executable is kept or loaded."""
+    with _LOCK:
+        if not _PREPARED:
+            try:
+                from jax._src.lax import linalg
+
+                linalg.initialize_lapack()
+                _PREPARED.append(True)
+            except Exception:  # another JAX: traces only
+                _PREPARED.append(False)
+    return _PREPARED[0]
+
+
+_PROCESSOR: list[str] = []
+
+
+def _processor() -> str:
+    """This machine's processor: its model name and instruction-set flags (``/proc/cpuinfo``),
+    else what ``platform`` says."""
+    if not _PROCESSOR:
+        import platform
+
+        text = platform.machine() + "|" + platform.processor()
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+                seen = {}
+                for line in fh:
+                    name, _, value = line.partition(":")
+                    name = name.strip()
+                    if name in ("model name", "flags", "Features", "CPU part") and name not in seen:
+                        seen[name] = value.strip()
+                    if line.strip() == "":
+                        break  # the first processor's block
+            text += "|" + "|".join(f"{k}={v}" for k, v in sorted(seen.items()))
+        except OSError:
+            pass
+        _PROCESSOR.append(text)
+    return _PROCESSOR[0]
+
+
+def _executable(store: Path, key: str, args, traced: Callable[[], Callable]) -> Callable:
+    """The function ``key`` at ``args`` as this machine's executable: loaded from the store, or
+    compiled from ``traced()`` (the stored trace, or a fresh one) and stored. Where executables
+    are not kept, or this one cannot be compiled, loaded or run, ``jax.jit(traced())``: JAX
+    compiles it at the first call (from its persistent cache where it can)."""
+    import jax
+
+    path = _executable_path(store, key, args)
+    if path is None:
+        return jax.jit(traced())
+    loaded = _read_executable(path)
+    if loaded is None:
+        target = traced()
+        if not _write_executable(path, target, args):
+            return jax.jit(target)
+        loaded = _read_executable(path)  # what later processes will load: run it here first
+        if loaded is None:
+            return jax.jit(target)
+    return _FirstCallChecked(loaded, path, lambda: jax.jit(traced()))
+
+
+def _read_executable(path: Path) -> Callable | None:
+    if not path.is_file():
+        return None
+    try:
+        import pickle
+
+        from jax.experimental import serialize_executable
+
+        payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+        return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception:  # unreadable, or from another jaxlib: compiled afresh and stored again
+        return None
+
+
+def _write_executable(path: Path, target: Callable, args) -> bool:
+    """Compile ``target`` for ``args`` afresh and store the executable; False where it fails.
+    Afresh, not from JAX's persistent cache: an executable loaded from there serialises without
+    its kernels (jaxlib 0.10 on the CPU: "Function ... not found" when run), so it is compiled
+    under a name of its own (the cache's key hashes the module, whose name it carries) and not
+    written to that cache (the executable is stored here instead)."""
+    import math
+    import pickle
+    import uuid
+
+    import jax
+    from jax.experimental import serialize_executable
+
+    def fresh(*a):
+        return target(*a)
+
+    fresh.__name__ = fresh.__qualname__ = f"lensfit_{uuid.uuid4().hex}"
+    try:
+        from jax._src import config as jax_config
+
+        with jax_config.persistent_cache_min_compile_time_secs(math.inf):
+            compiled = jax.jit(fresh).lower(*args).compile()
+        data = pickle.dumps(serialize_executable.serialize(compiled))
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.partial")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)  # atomic, as the traces
+        return True
+    except Exception:  # not compilable ahead of time, not serialisable, a read-only store, ...
+        return False
+
+
+class _FirstCallChecked:
+    """A loaded executable whose first call is awaited: if it fails (an executable that does
+    not run here), the stored file is removed and ``fallback()`` (jit) answers instead."""
+
+    def __init__(self, loaded: Callable, path: Path, fallback: Callable[[], Callable]):
+        self.loaded, self.path, self.fallback = loaded, path, fallback
+        self.checked = False
+
+    def __call__(self, *args):
+        if self.checked:
+            return self.loaded(*args)
+        import jax
+
+        try:
+            out = jax.block_until_ready(self.loaded(*args))
+        except Exception:
+            try:
+                self.path.unlink()
+            except OSError:
+                pass
+            self.loaded = self.fallback()
+            out = self.loaded(*args)
+        self.checked = True
+        return out
 
 
 _JITTED: dict[tuple, Callable] = {}
@@ -115,12 +275,13 @@ def _jitted(fn: Callable, static: dict[str, Any]) -> Callable:
 
 
 def _load_or_export(path: Path, fn: Callable, args, static: dict[str, Any]) -> Callable:
-    import jax
+    """The function to compile: the stored trace's ``call``, or ``fn`` traced, exported and
+    stored (``fn`` with ``static`` bound where that fails)."""
     from jax import export
 
     try:
         exported = export.deserialize(bytearray(path.read_bytes()))
-        return jax.jit(exported.call)
+        return exported.call
     except Exception:  # missing, unreadable or from another JAX: trace afresh below
         pass
     try:
@@ -129,6 +290,6 @@ def _load_or_export(path: Path, fn: Callable, args, static: dict[str, Any]) -> C
         tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
         tmp.write_bytes(data)
         os.replace(tmp, path)  # atomic: a concurrent process reads the old file or the new one
-        return jax.jit(exported.call)
+        return exported.call
     except Exception:  # no serialization support (flatbuffers missing), read-only store, ...
-        return _jitted(fn, static)
+        return partial(fn, **static)

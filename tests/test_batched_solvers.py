@@ -1,6 +1,6 @@
 """The batched Levenberg-Marquardt (lensfit.lm) against scipy's independent solver and analytic
-minima, and the trace store (lensfit.aot): same numbers with it, without it, and from a
-corrupted file."""
+minima, and the trace store (lensfit.aot): same numbers with it, without it, from its stored
+executables (in a new process too) and from corrupted files."""
 
 from __future__ import annotations
 
@@ -73,27 +73,82 @@ def _affine(x, scale, shift: float):
     return {"y": scale * x + shift, "sum": jnp.sum(x)}
 
 
-def test_trace_store_gives_the_same_numbers_and_survives_a_broken_file(tmp_path):
+def test_trace_store_gives_the_same_numbers_and_survives_broken_files(tmp_path):
     x = jnp.arange(6.0)
     plain = _affine(x, 2.0, shift=1.0)
+
+    def in_a_new_process(shift=1.0):
+        aot.set_store(tmp_path)  # nothing loaded yet
+        return aot.call("affine", _affine, (x, 2.0), {"shift": shift}, ("tests.test_batched_solvers",))
+
     try:
-        aot.set_store(tmp_path)
-        first = aot.call("affine", _affine, (x, 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
-        files = list(tmp_path.glob("affine-*.jaxexport"))
-        assert len(files) == 1  # traced and stored once
-        aot.set_store(tmp_path)  # a new process: nothing loaded yet
-        again = aot.call("affine", _affine, (x, 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
-        files[0].write_bytes(b"not an export")
-        aot.set_store(tmp_path)
-        broken = aot.call("affine", _affine, (x, 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
+        first = in_a_new_process()
+        traces, executables = list(tmp_path.glob("affine-*.jaxexport")), list(tmp_path.glob("affine-*.jaxexe"))
+        assert len(traces) == 1 and len(executables) == 1  # traced, compiled and stored once
+        loaded = in_a_new_process()  # the executable
+        executables[0].write_bytes(b"not an executable")
+        recompiled = in_a_new_process()  # from the stored trace, the executable stored again
+        assert executables[0].read_bytes() != b"not an executable"
+        executables[0].unlink()
+        traces[0].write_bytes(b"not an export")
+        broken = in_a_new_process()  # traced afresh
         other = aot.call("affine", _affine, (x, 2.0), {"shift": 5.0}, ("tests.test_batched_solvers",))
+        # an executable that loads but does not run with these arguments (one for 3 values, not
+        # 6): its first call fails, the file goes, and the traced function answers
+        before = set(tmp_path.glob("affine-*.jaxexe"))
+        short = aot.call("affine", _affine, (jnp.arange(3.0), 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
+        (short_exe,) = set(tmp_path.glob("affine-*.jaxexe")) - before
+        executables[0].write_bytes(short_exe.read_bytes())
+        mismatched = in_a_new_process()
+        assert not executables[0].exists()  # removed after its first call failed
     finally:
         aot.set_store(None)
-    for got in (first, again, broken):
+    for got in (first, loaded, recompiled, broken, mismatched):
         np.testing.assert_array_equal(np.asarray(got["y"]), np.asarray(plain["y"]))
         assert float(got["sum"]) == float(plain["sum"])
     np.testing.assert_array_equal(np.asarray(other["y"]), 2.0 * np.arange(6.0) + 5.0)  # the static argument keys it
-    assert files[0].read_bytes() != b"not an export"  # the broken file was traced afresh
+    np.testing.assert_array_equal(np.asarray(short["y"]), 2.0 * np.arange(3.0) + 1.0)
+    assert traces[0].read_bytes() != b"not an export"  # the broken file was traced afresh
+
+
+_LAPACK_SCRIPT = """
+import json, sys
+from pathlib import Path
+import jax, jax.numpy as jnp, numpy as np
+from lensfit import aot
+
+def solve(a, b):
+    return {"x": jnp.linalg.solve(a, b), "s": jnp.linalg.svd(a, compute_uv=False), "c": jnp.linalg.cholesky(a @ a.T)}
+
+aot.set_store(Path(sys.argv[1]))
+a = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
+b = np.array([1.0, 2.0, 3.0])
+with jax.enable_x64(True):
+    out = aot.call("lapack", solve, (a, b), {}, ())
+print(json.dumps({k: np.asarray(v).tolist() for k, v in out.items()}))
+"""
+
+
+def test_a_stored_executable_that_calls_lapack_runs_in_a_new_process(tmp_path):
+    """The solvers' linear algebra calls LAPACK's kernels, which a loaded executable finds only
+    once they are prepared (without that, a second process segfaulted): each run is its own
+    process, the first compiling and storing, the second loading the executable."""
+    import json
+    import subprocess
+    import sys
+
+    script = tmp_path / "lapack.py"
+    script.write_text(_LAPACK_SCRIPT)
+    runs = [subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=300)
+            for _ in range(2)]
+    assert len(list(tmp_path.glob("lapack-*.jaxexe"))) == 1
+    a = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
+    for run in runs:
+        assert run.returncode == 0, run.stderr[-2000:]
+        got = json.loads(run.stdout.strip().splitlines()[-1])
+        np.testing.assert_allclose(got["x"], np.linalg.solve(a, [1.0, 2.0, 3.0]), rtol=1e-12)
+        np.testing.assert_allclose(got["s"], np.linalg.svd(a, compute_uv=False), rtol=1e-12)
+        np.testing.assert_allclose(got["c"], np.linalg.cholesky(a @ a.T), rtol=1e-12)
 
 
 def _edge_image(radius_px: float, angle_deg: float, size: int = 96):
