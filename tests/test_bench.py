@@ -331,3 +331,76 @@ def test_copies_of_the_same_intervals_do_not_narrow_the_coverage_interval():
     assert cov["coverage95_ci95"] == pytest.approx(wilson_interval(hits, 30), abs=1e-9)
     lo, hi = cov["coverage95_ci95_if_independent"]
     assert hi - lo < 0.6 * (cov["coverage95_ci95"][1] - cov["coverage95_ci95"][0])
+
+
+def _rows_for(errors, sigmas, z95=1.959963984540054):
+    return [{"quantity": "f_number", "scene": "demo", "render": "r", "seed": k, "effects": "scene",
+             "value": 10.0 + e, "truth": 10.0, "sigma": s, "half95": z95 * s,
+             "in68": abs(e) <= s, "in95": abs(e) <= z95 * s} for k, (e, s) in enumerate(zip(errors, sigmas))]
+
+
+def test_interval_honesty_reads_gaussian_errors_as_right_and_wide_sigmas_as_wide():
+    """Against what a Gaussian gives in closed form: with the right sigmas, RMS error over sigma 1,
+    mean 95 % half-width over mean |error| 1.96 / sqrt(2 / pi) = 2.46, the reliability curve on
+    the diagonal, and the 95 % coverage at a matched 68 % 95 %; sigmas stated twice too large
+    halve the first, double the second, and leave the shape (the matched coverage) alone."""
+    from lensfit.bench.report import GAUSSIAN_HALF_WIDTH_RATIO, interval_honesty
+
+    rng = np.random.default_rng(11)
+    sigma = rng.uniform(0.01, 0.1, size=40000)
+    err = sigma * rng.standard_normal(sigma.size)
+    right = interval_honesty(_rows_for(err, sigma))
+    assert GAUSSIAN_HALF_WIDTH_RATIO == pytest.approx(2.4565, abs=1e-4)
+    assert right["rms_error_over_sigma"] == pytest.approx(1.0, abs=0.01)
+    assert right["z68"] == pytest.approx(1.0, abs=0.02)
+    assert right["coverage95_at_matched_68"] == pytest.approx(0.95, abs=0.005)
+    for point in right["reliability"]:
+        assert point["observed"] == pytest.approx(point["nominal"], abs=0.006)
+    # a sigma-weighted mean |error| against a sigma-weighted mean half-width: 1.96 / E|Z| either way
+    assert right["half_width95_over_mean_error"] == pytest.approx(GAUSSIAN_HALF_WIDTH_RATIO, rel=0.02)
+    wide = interval_honesty(_rows_for(err, 2.0 * sigma))
+    assert wide["rms_error_over_sigma"] == pytest.approx(0.5, abs=0.005)
+    assert wide["half_width95_over_mean_error"] == pytest.approx(2.0 * GAUSSIAN_HALF_WIDTH_RATIO, rel=0.02)
+    assert wide["coverage95_at_matched_68"] == pytest.approx(right["coverage95_at_matched_68"], abs=1e-3)
+    assert all(p["observed"] > p["nominal"] for p in wide["reliability"])
+
+
+def test_interval_honesty_tells_light_and_heavy_tails_from_width():
+    """The 95 % coverage once the intervals are rescaled to cover 68 % exactly: 1 for errors
+    bounded within 1.34 times their 68 % quantile (uniform: |z| uniform, its 68.27 % quantile
+    0.6827 of the bound), and for Student's t with 3 degrees of freedom what its distribution
+    function gives (below 95 %: heavy tails)."""
+    from scipy.stats import t as student
+
+    from lensfit.bench.report import interval_honesty
+
+    rng = np.random.default_rng(12)
+    n = 40000
+    sigma = np.full(n, 0.05)
+    uniform = interval_honesty(_rows_for(rng.uniform(-0.05, 0.05, n), sigma))
+    assert uniform["z68"] == pytest.approx(0.6827, abs=0.01)
+    assert uniform["coverage95_at_matched_68"] == 1.0
+    heavy = interval_honesty(_rows_for(0.05 * rng.standard_t(3, n), sigma))
+    q68 = student.ppf(0.5 + 0.6827 / 2, 3)
+    expected = 2 * student.cdf(1.959963984540054 * q68, 3) - 1
+    assert heavy["z68"] == pytest.approx(q68, rel=0.02)
+    assert heavy["coverage95_at_matched_68"] == pytest.approx(expected, abs=0.005)
+    assert heavy["coverage95_at_matched_68"] < 0.94
+
+
+def test_the_coverage_summary_carries_the_honesty_per_effects_set():
+    from lensfit.bench.report import coverage_summary, interval_honesty
+
+    rng = np.random.default_rng(13)
+    rows = _rows_for(0.05 * rng.standard_normal(300), np.full(300, 0.05))
+    for k, r in enumerate(rows):
+        r["effects"] = "diffraction" if k % 3 == 0 else "scene"
+    cov = coverage_summary(rows)["f_number"]
+    both = interval_honesty(rows)
+    assert cov["rms_error_over_sigma"] == pytest.approx(both["rms_error_over_sigma"])
+    assert set(cov["by_effects"]) == {"diffraction", "scene"}
+    diff = [r for r in rows if r["effects"] == "diffraction"]
+    d = cov["by_effects"]["diffraction"]
+    assert d["errors"] == len(diff) == 100
+    assert d["rms_error_over_sigma"] == pytest.approx(interval_honesty(diff)["rms_error_over_sigma"])
+    assert d["coverage95"] == pytest.approx(np.mean([r["in95"] for r in diff]))

@@ -3,7 +3,8 @@
 Contents: estimated vs true per case with relative errors and pass/fail against the suite's
 tolerances; error distributions and estimated-vs-true scatter; the price of accuracy (error
 against render time and against measure + fit time, Pareto front marked); calibration of the
-uncertainty (coverage of the 68 % and 95 % intervals); efficiency (observed scatter over seeds
+uncertainty (coverage of the 68 % and 95 % intervals, and how honest they are: error over sigma,
+half-width over error, the reliability curve and the tails: :func:`interval_honesty`); efficiency (observed scatter over seeds
 against the Cramer-Rao lower bound of the same capture); provenance.
 """
 
@@ -42,8 +43,11 @@ def _rows(records: list[dict[str, Any]], tolerances: dict[str, float]) -> list[d
                         inside[level] = None
                     else:
                         inside[level] = (ci[0] is None or ci[0] <= t) and (ci[1] is None or t <= ci[1])
+                ci95 = e.get("ci95")
+                half95 = (0.5 * (ci95[1] - ci95[0]) if ci95 is not None and None not in ci95 else None)
                 rows.append({**{k: r[k] for k in CONFIG_KEYS}, "seed": r["seed"], "setting": label, "quantity": q,
                              "truth": e["truth"], "value": e["value"], "sigma": e["sigma"], "crlb": e.get("crlb"),
+                             "half95": half95,
                              "relative_error": err, "in68": inside["ci68"], "in95": inside["ci95"],
                              "passed": None if err is None else abs(err) <= tolerances[q],
                              "refused": e["value"] is None and not e.get("infinite", False)})
@@ -113,8 +117,65 @@ def coverage_summary(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
                                                             if hits else None)
             if level == "95":
                 entry["intervals"], entry["intervals_effective"] = len(hits), n_eff
+        entry.update(interval_honesty(mine))
+        by_effects = {}
+        for fx in sorted({x.get("effects", "scene") for x in mine}):
+            part = interval_honesty([x for x in mine if x.get("effects", "scene") == fx])
+            hits = [x["in95"] for x in mine if x.get("effects", "scene") == fx and x["in95"] is not None]
+            by_effects[fx] = {"coverage95": float(np.mean(hits)) if hits else None, **{
+                k: part[k] for k in ("errors", "rms_error_over_sigma", "half_width95_over_mean_error",
+                                     "coverage95_at_matched_68")}}
+        entry["by_effects"] = by_effects
         coverage[q] = entry
     return coverage
+
+
+#: Nominal levels of the intervals' reliability curve (``interval_honesty``).
+RELIABILITY_LEVELS = (0.5, 0.6827, 0.8, 0.9, 0.95, 0.99)
+#: A Gaussian error with the stated sigma: mean 95 % half-width over mean |error|, 1.96 / sqrt(2 / pi).
+GAUSSIAN_HALF_WIDTH_RATIO = 1.959963984540054 / math.sqrt(2.0 / math.pi)
+
+
+def interval_honesty(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """How honest a set of intervals is, beyond its coverage (rows of one quantity, each with
+    ``value``, ``truth``, ``sigma`` and, where known, ``half95``, its 95 % interval's half-width):
+
+    - ``rms_error_over_sigma``: the RMS of ``z = (value - truth) / sigma``, 1 where the sigmas
+      are right (below 1: wide, above: short);
+    - ``half_width95_over_mean_error``: the mean 95 % half-width over the mean |error|, the
+      issue's "within 3x the actual error on average"; a Gaussian error with the stated sigma
+      gives ``GAUSSIAN_HALF_WIDTH_RATIO`` (2.46);
+    - ``reliability``: per nominal level p of ``RELIABILITY_LEVELS``, the share of |z| within
+      the Gaussian's two-sided p quantile (p where the errors are Gaussian with those sigmas);
+    - ``z68``: the 68.27 % quantile of |z| (1 where the sigmas are right; a sigma would have to
+      be this many times its size for its 68 % interval to cover as nominal), and
+      ``coverage95_at_matched_68``: the share of |z| within 1.96 ``z68``, the 95 % coverage the
+      intervals would have once rescaled to cover 68 % exactly. 95 % for Gaussian errors of any
+      scale; above it the errors have lighter tails than a Gaussian (bounded: a shared bias,
+      say), so that no rescaling brings both levels to nominal, and a 95 % coverage above 95 %
+      says the tails, not the width, where the 68 % coverage is right.
+    """
+    from statistics import NormalDist
+
+    ok = [x for x in rows if x.get("value") is not None and x.get("truth") is not None and x.get("sigma")]
+    out: dict[str, Any] = {"errors": len(ok), "rms_error_over_sigma": None, "half_width95_over_mean_error": None,
+                           "reliability": None, "z68": None, "coverage95_at_matched_68": None}
+    if not ok:
+        return out
+    err = np.array([x["value"] - x["truth"] for x in ok], float)
+    z = np.abs(err / np.array([x["sigma"] for x in ok], float))
+    out["rms_error_over_sigma"] = float(np.sqrt(np.mean(z**2)))
+    with_half = [(h, abs(e)) for x, e in zip(ok, err) if (h := x.get("half95")) is not None]
+    if with_half and sum(e for _, e in with_half) > 0:
+        out["half_width95_over_mean_error"] = float(np.mean([h for h, _ in with_half])
+                                                    / np.mean([e for _, e in with_half]))
+    gauss = NormalDist()
+    out["reliability"] = [{"nominal": p, "observed": float(np.mean(z <= gauss.inv_cdf(0.5 + p / 2)))}
+                          for p in RELIABILITY_LEVELS]
+    z68 = float(np.quantile(z, 0.6827))
+    out["z68"] = z68
+    out["coverage95_at_matched_68"] = float(np.mean(z <= 1.959963984540054 * z68)) if z68 > 0 else None
+    return out
 
 
 #: Seeds a configuration needs before its scatter is estimated (two draws give a standard
@@ -279,7 +340,7 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
     fig.suptitle("The price of accuracy (red: Pareto-optimal, named; grey: dominated)")
     figs["price_of_accuracy"] = fig
 
-    fig, ax = plt.subplots(figsize=(7, 3.8), layout="constrained")
+    fig, (ax, rel) = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained", width_ratios=(1.4, 1))
     cov = summary["coverage"]
     x = np.arange(len(QUANTITIES))
     for shift, level, colour in ((-0.2, "68", "C0"), (0.2, "95", "C1")):
@@ -295,6 +356,19 @@ def _plots(summary: dict[str, Any]) -> dict[str, bytes]:
     ax.set_ylim(0, 105)
     ax.legend(fontsize=8, loc="lower right")
     ax.set_title("Calibration of the uncertainty")
+    rel.plot([0, 100], [0, 100], color="0.6", lw=1, ls="--", label="Gaussian errors, right sigmas")
+    for q, marker in zip(QUANTITIES, "osd^v"):
+        curve = cov[q].get("reliability")
+        if curve:
+            rel.plot([100 * c["nominal"] for c in curve], [100 * c["observed"] for c in curve], marker=marker,
+                     ms=4, lw=1, label=names[q])
+    rel.set_xlabel("nominal level (%)")
+    rel.set_ylabel("errors within that many sigmas (%)")
+    rel.set_xlim(45, 100)
+    rel.set_ylim(45, 101)
+    rel.grid(alpha=0.3)
+    rel.legend(fontsize=7, loc="lower right")
+    rel.set_title("Reliability: above the line, sigmas wide")
     figs["coverage"] = fig
 
     fig, ax = plt.subplots(figsize=(6, 5), layout="constrained")
@@ -368,8 +442,13 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
         return text + (f" ({100 * ci[0]:.0f}-{100 * ci[1]:.0f})" if ci else "")
 
     cov = [[q, with_ci(v, "68"), with_ci(v, "95"), str(v["intervals"]),
-            f"{v.get('intervals_effective', v['intervals']):.0f} ({v.get('clusters', '-')} renders)"]
+            f"{v.get('intervals_effective', v['intervals']):.0f} ({v.get('clusters', '-')} renders)",
+            _num(v.get("rms_error_over_sigma"), ".2f"), _num(v.get("half_width95_over_mean_error"), ".2f"),
+            _pct(v.get("coverage95_at_matched_68"), 0).lstrip("+")]
            for q, v in summary["coverage"].items()]
+    honesty = [[q, fx, str(d["errors"]), _pct(d["coverage95"], 0).lstrip("+"), _num(d["rms_error_over_sigma"], ".2f"),
+                _num(d["half_width95_over_mean_error"], ".2f"), _pct(d["coverage95_at_matched_68"], 0).lstrip("+")]
+               for q, v in summary["coverage"].items() for fx, d in v.get("by_effects", {}).items()]
     tol = ", ".join(f"{q} {100 * v:g}%" for q, v in suite.tolerances.items())
     return [
         ("Estimated versus true, per case", ["scene", "render", "effects", "noise", "estimator", "solver", "seed", "setting",
@@ -384,7 +463,12 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
           "Pareto"], price),
         ("Calibration of the uncertainty (all cases; in brackets the binomial 95 % interval of the coverage, "
          "over the effective number of intervals: those of one render share its errors)",
-         ["quantity", "in 68% interval", "in 95% interval", "intervals", "effectively independent"], cov),
+         ["quantity", "in 68% interval", "in 95% interval", "intervals", "effectively independent",
+          "RMS error / sigma (1 if right)", f"95% half-width / mean error ({GAUSSIAN_HALF_WIDTH_RATIO:.2f} if right)",
+          "95% coverage, intervals rescaled to 68% nominal (95% for Gaussian errors)"], cov),
+        ("Honesty of the intervals per effects set", ["quantity", "effects", "errors", "in 95% interval",
+                                                       "RMS error / sigma", "95% half-width / mean error",
+                                                       "95% at matched 68%"], honesty),
     ]
 
 
