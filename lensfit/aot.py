@@ -4,16 +4,18 @@ Tracing a batched solver with closed-form pixel profiles takes seconds, in every
 (the persistent compilation cache keeps compiled code, not traces). A function wrapped here is
 traced and exported at its first use with a given argument shape and stored beside the
 compilation cache, and on the CPU its compiled executable too (``jax.experimental.
-serialize_executable``): later processes load the executable (20-80 ms a function), or where
-there is none deserialize the trace and compile it from the persistent cache (about 0.17 s a
-function, 0.1 s of it fetching the compiled code by a key that needs the trace lowered again:
-1.9 s of CPU for the eleven functions of a demo fit, against 0.5 s loaded as executables).
+serialize_executable``): later processes load the executable (20-80 ms a function; where
+there is none, the stored trace is compiled afresh once and its executable stored). Before,
+each process deserialized the trace and compiled it from JAX's persistent cache: about 0.17 s
+a function, 0.1 s of it fetching the compiled code by a key that needs the trace lowered
+again, 1.9 s of CPU for the eleven functions of a demo fit against 0.5 s loaded as executables.
 Only where the command-line tools switched the cache on
 (:func:`lensfit.jaxcache.enable_compilation_cache`); otherwise, and on any failure to read or
 write the store, the plain ``jax.jit`` path runs (same results). The file name carries the JAX
 version, the backend and a hash of the source of the modules the function depends on, so a
-change of any of them traces afresh; an executable's also the arguments' tree and the
-processor (its model and instruction-set flags: the code is compiled for this machine's).
+change of any of them traces afresh; an executable's also the arguments' tree, jaxlib's version,
+``XLA_FLAGS`` and the processor (its model and instruction-set flags: the code is compiled for
+this machine's).
 """
 
 from __future__ import annotations
@@ -121,7 +123,8 @@ def _executable_path(store: Path, key: str, args) -> Path | None:
     import jaxlib
 
     tree = str(jax.tree_util.tree_structure(args))
-    tag = hashlib.sha256(f"{tree}|{jaxlib.__version__}|{_processor()}".encode()).hexdigest()[:12]
+    flags = os.environ.get("XLA_FLAGS", "")  # compiled under them (threads, code generation)
+    tag = hashlib.sha256(f"{tree}|{jaxlib.__version__}|{_processor()}|{flags}".encode()).hexdigest()[:12]
     return store / f"{key}-{tag}.jaxexe"
 
 
