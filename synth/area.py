@@ -14,10 +14,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.sparse
 
 
-def overlap_matrix(edges_lo: np.ndarray, width: float, cell_edges: np.ndarray) -> scipy.sparse.csr_matrix:
+def overlap_matrix(edges_lo: np.ndarray, width: float, cell_edges: np.ndarray) -> "scipy.sparse.csr_matrix":
     """Fraction of each interval ``[lo, lo + width]`` covered by each cell ``[e_c, e_{c+1}]``."""
     lo = np.asarray(edges_lo, np.float64)
     hi = lo + width
@@ -37,6 +36,8 @@ def overlap_matrix(edges_lo: np.ndarray, width: float, cell_edges: np.ndarray) -
         rows.append(q[ok])
         cols.append(cc[ok])
         vals.append(ov[ok] / width)
+    import scipy.sparse  # here: 75 ms at import, which a ray-traced render never needs
+
     return scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                    shape=(lo.size, nc))
 
