@@ -32,6 +32,22 @@ energy) to keep the wrap-around out. A pixel-cell-averaged Airy kernel (tried be
 second pixel footprint: on a 1.3 px first ring it widened the blur by a 1 px box on top of
 the Airy pattern. The aperture is taken as circular (a polygon's diffraction spikes are not
 modelled).
+
+Known approximation: the transfer function is applied to the image as sampled, where the
+pixel-integrated irradiance's content above half a cycle per pixel has already folded down
+(aliased) and is attenuated at the folded frequency instead of its own. The pupil passes up to
+``1 / a`` cycles per pixel (``a = lambda N_w / p``: 0.96 at f/11, 0.66 at f/16 on 6 um pixels),
+so the error is largest where the images are sharpest. Measured 2026-11-27 with the edge
+estimator and ``lensfit`` on ``scenes/stopped_down.toml`` (noise-free, 64 spp), against the same
+scene rendered at twice the resolution, filtered there and averaged 2 x 2 (close to exact: the
+filtered image is band-limited below the finer grid's Nyquist frequency): N +0.16, +0.35 and
+-0.42 % at f/11, f/16 and f/22 from these images, -0.03, -0.14 and -0.10 % from the finer ones,
+with sigmas about half as large there. Single exact edges (tests/test_diffraction.py's
+transfer-function product) read within 0.04 % from 4 px of blur either way, and at 2 px +0.12
+to +0.16 % exact against +0.27 to +0.54 % through this filter. So benchmark figures of N under
+diffraction rendered here overstate its bias and scatter at f/11-f/22 by a few tenths of a per
+cent; applying the pupil to the irradiance before the pixels integrate it (a finer geometric
+render, or an Airy-distributed offset per ray sample in the ray tracer) would remove it.
 """
 
 from __future__ import annotations
