@@ -137,6 +137,12 @@ def test_resume_keeps_finished_cases_and_refuses_a_used_folder(quick_report, cap
     assert "--resume" in capsys.readouterr().err
     assert main(["bench", "--suite", "quick", "--out", str(quick_report), "--resume", "--allow-fail"]) == 0
     assert {p: p.stat().st_mtime_ns for p in cases} == before  # nothing recomputed
+    printed = capsys.readouterr().out
+    coverage = json.loads((quick_report / "results.json").read_text())["coverage"]
+    for q, c in coverage.items():  # the intervals' calibration printed as results.json has it
+        line = next(x for x in printed.splitlines() if x.strip().startswith(f"{q}:"))
+        assert f"{100 * c['coverage95']:.0f} % in the 95 % interval" in line
+        assert f"error/sigma RMS {c['rms_error_over_sigma']:.2f}" in line
     prov = json.loads((quick_report / "results.json").read_text())["provenance"]
     assert "--resume" in prov["command"] and "--resume" not in prov["first_run"]["command"]
 

@@ -4,8 +4,9 @@ Contents: estimated vs true per case with relative errors and pass/fail against 
 tolerances; error distributions and estimated-vs-true scatter; the price of accuracy (error
 against render time and against measure + fit time, Pareto front marked); calibration of the
 uncertainty (coverage of the 68 % and 95 % intervals, and how honest they are: error over sigma,
-half-width over error, the reliability curve and the tails: :func:`interval_honesty`); efficiency (observed scatter over seeds
-against the Cramer-Rao lower bound of the same capture); provenance.
+half-width over error, the reliability curve and the tails: ``lensfit.bench.coverage``);
+efficiency (observed scatter over seeds against the Cramer-Rao lower bound of the same capture);
+provenance.
 """
 
 from __future__ import annotations

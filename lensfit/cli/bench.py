@@ -213,12 +213,36 @@ def _bench_command(args: argparse.Namespace) -> int:
         files = write_report(records, suite, prov, out)
     from lensfit.bench.report import summarise
 
+    summary = summarise(records, suite)
     failed = sum(1 for r in records if r.get("error"))
-    missed = sum(1 for r in summarise(records, suite)["rows"] if r["passed"] is False)
+    missed = sum(1 for r in summary["rows"] if r["passed"] is False)
     print(f"{len(records)} cases ({failed} refused by the input checks); wrote "
           + ", ".join(str(f) for f in files.values()))
+    for line in _interval_lines(summary["coverage"]):
+        print(line)
     if missed and not args.allow_fail:
         print(f"lensfit bench: {missed} estimate(s) outside the suite's tolerances (FAIL rows in the report); "
               "exit status 4 (--allow-fail: 0)", file=sys.stderr)
         return EXIT_BENCH_FAILED
     return EXIT_OK
+
+
+def _interval_lines(coverage: dict) -> list[str]:
+    """The intervals' calibration in a few lines (the report's table): per quantity the 95 %
+    coverage with its binomial interval over the effective count, the RMS of error over sigma
+    and the mean 95 % half-width over the mean error (a Gaussian with the right sigmas: 1 and
+    2.46x)."""
+    lines = []
+    for q, c in coverage.items():
+        if c.get("coverage95") is None:
+            continue
+        ci = c.get("coverage95_ci95")
+        rms, ratio = c.get("rms_error_over_sigma"), c.get("half_width95_over_mean_error")
+        lines.append(f"  {q}: {100 * c['coverage95']:.0f} % in the 95 % interval"
+                     + (f" ({100 * ci[0]:.0f}-{100 * ci[1]:.0f} %, {c['intervals_effective']:.0f} effective)"
+                        if ci else "")
+                     + (f", error/sigma RMS {rms:.2f}" if rms is not None else "")
+                     + (f", half-width {ratio:.2f}x the error" if ratio is not None else ""))
+    if lines:
+        lines.insert(0, "intervals (right sigmas: error/sigma RMS 1, half-width 2.46x the error):")
+    return lines
