@@ -129,6 +129,7 @@ def _executable_path(store: Path, key: str, args) -> Path | None:
 
 
 _PREPARED: list[bool] = []
+_PREPARING = threading.Lock()  # not _LOCK: other keys' loading need not wait for SciPy's import
 
 
 def _prepare_custom_calls() -> bool:
@@ -136,7 +137,7 @@ def _prepare_custom_calls() -> bool:
     function that uses them is first lowered; a loaded executable is never lowered, so this is
     done before one is loaded (one that called them without it segfaulted, jaxlib 0.10). False
     where this JAX has no such hook: then no executable is kept or loaded."""
-    with _LOCK:
+    with _PREPARING:
         if not _PREPARED:
             try:
                 from jax._src.lax import linalg
