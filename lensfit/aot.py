@@ -233,10 +233,7 @@ def _write_executable(path: Path, target: Callable, args) -> bool:
 
         with jax_config.persistent_cache_min_compile_time_secs(math.inf):
             compiled = jax.jit(fresh).lower(*args).compile()
-        data = pickle.dumps(serialize_executable.serialize(compiled))
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.partial")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)  # atomic, as the traces
+        _store(path, pickle.dumps(serialize_executable.serialize(compiled)))
         return True
     except Exception:  # not compilable ahead of time, not serialisable, a read-only store, ...
         return False
@@ -290,10 +287,15 @@ def _load_or_export(path: Path, fn: Callable, args, static: dict[str, Any]) -> C
         pass
     try:
         exported = _export(fn, args, static)
-        data = exported.serialize()
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)  # atomic: a concurrent process reads the old file or the new one
+        _store(path, exported.serialize())
         return exported.call
     except Exception:  # no serialization support (flatbuffers missing), read-only store, ...
         return partial(fn, **static)
+
+
+def _store(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically: a concurrent process (or thread) reads the old file
+    or the new one, never a part."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.partial")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)

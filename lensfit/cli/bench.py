@@ -231,7 +231,9 @@ def _interval_lines(coverage: dict) -> list[str]:
     """The intervals' calibration in a few lines (the report's table): per quantity the 95 %
     coverage with its binomial interval over the effective count, the RMS of error over sigma
     and the mean 95 % half-width over the mean error (a Gaussian with the right sigmas: 1 and
-    2.46x)."""
+    ``GAUSSIAN_HALF_WIDTH_RATIO``, 2.46x)."""
+    from lensfit.bench.coverage import GAUSSIAN_HALF_WIDTH_RATIO
+
     lines = []
     for q, c in coverage.items():
         if c.get("coverage95") is None:
@@ -244,5 +246,6 @@ def _interval_lines(coverage: dict) -> list[str]:
                      + (f", error/sigma RMS {rms:.2f}" if rms is not None else "")
                      + (f", half-width {ratio:.2f}x the error" if ratio is not None else ""))
     if lines:
-        lines.insert(0, "intervals (right sigmas: error/sigma RMS 1, half-width 2.46x the error):")
+        lines.insert(0, f"intervals (right sigmas: error/sigma RMS 1, half-width "
+                        f"{GAUSSIAN_HALF_WIDTH_RATIO:.2f}x the error):")
     return lines
