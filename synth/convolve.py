@@ -91,15 +91,22 @@ def convolve_bytes(shot: Shot, supersampling: int, *, camera=None) -> float:
 
 
 def render_convolve(shot: Shot, background: float, supersampling: int, *, camera=None,
-                    aperture=None) -> np.ndarray:
+                    aperture=None, fine: bool = False):
     """Render one shot of fronto-parallel objects; returns linear radiance, float32 (H, W).
 
     ``camera`` replaces the shot's camera (one colour channel's, under chromatic aberration);
     ``aperture`` (``synth.effects.aperture.Aperture``) replaces the disk PSF by its shape.
+    ``fine`` (``supersampling`` even): returns (image, fine image), the fine image at twice the
+    resolution (each quarter pixel the mean of its S/2 x S/2 sub-pixels, objects composited
+    there) and the image its 2 x 2 means; diffraction filters the fine one.
     """
     cam = camera if camera is not None else shot.camera
-    W, H = cam.width_px, cam.height_px
     S = int(supersampling)
+    if fine and S % 2:
+        raise ValueError(f"a fine image needs an even supersampling, not {S}")
+    R = 2 if fine else 1  # output pixels per pixel, along each axis
+    SO = S // R  # sub-pixels per output pixel, along each axis
+    W, H = cam.width_px * R, cam.height_px * R
     cx, cy = cam.principal_point_px
     image = np.full((H, W), background, np.float64)
     for obj in sorted(shot.objects, key=lambda o: -o.pose.t_cam_target[2]):
@@ -118,9 +125,9 @@ def render_convolve(shot: Shot, background: float, supersampling: int, *, camera
         u0, v0, u1, v1 = footprint_px(obj, shot)
         # Sharp region: the object's pixels that can blur into the image.
         a0 = max(int(math.floor(u0)) - 1, -reach_px)
-        a1 = min(int(math.ceil(u1)) + 1, W - 1 + reach_px)
+        a1 = min(int(math.ceil(u1)) + 1, cam.width_px - 1 + reach_px)
         b0 = max(int(math.floor(v0)) - 1, -reach_px)
-        b1 = min(int(math.ceil(v1)) + 1, H - 1 + reach_px)
+        b1 = min(int(math.ceil(v1)) + 1, cam.height_px - 1 + reach_px)
         if a0 > a1 or b0 > b1:
             continue  # entirely outside the view
         mm_per_px = z / cam.focal_length_px
@@ -150,16 +157,16 @@ def render_convolve(shot: Shot, background: float, supersampling: int, *, camera
         else:
             pad = 0
         # Sub-pixel grid now starts `pad` sub-pixels before pixel a0's first sub-pixel; align
-        # to whole pixels so that every output pixel averages exactly its own S x S sub-pixels.
-        lead = int(math.ceil(pad / S)) * S - pad
-        trail_v, trail_u = (-(lead + colour.shape[0])) % S, (-(lead + colour.shape[1])) % S
+        # to whole output pixels so that each averages exactly its own SO x SO sub-pixels.
+        lead = int(math.ceil(pad / SO)) * SO - pad
+        trail_v, trail_u = (-(lead + colour.shape[0])) % SO, (-(lead + colour.shape[1])) % SO
         colour = np.pad(colour, ((lead, trail_v), (lead, trail_u)))
         alpha = np.pad(alpha, ((lead, trail_v), (lead, trail_u)))
-        start_u = a0 - (pad + lead) // S
-        start_v = b0 - (pad + lead) // S
-        nv, nu = colour.shape[0] // S, colour.shape[1] // S
-        colour = colour.reshape(nv, S, nu, S).mean(axis=(1, 3))
-        alpha = alpha.reshape(nv, S, nu, S).mean(axis=(1, 3))
+        start_u = R * a0 - (pad + lead) // SO
+        start_v = R * b0 - (pad + lead) // SO
+        nv, nu = colour.shape[0] // SO, colour.shape[1] // SO
+        colour = colour.reshape(nv, SO, nu, SO).mean(axis=(1, 3))
+        alpha = alpha.reshape(nv, SO, nu, SO).mean(axis=(1, 3))
         # Paste into the image window.
         iu0, iv0 = max(start_u, 0), max(start_v, 0)
         iu1, iv1 = min(start_u + nu, W), min(start_v + nv, H)
@@ -169,5 +176,8 @@ def render_convolve(shot: Shot, background: float, supersampling: int, *, camera
         a = np.clip(alpha[iv0 - start_v:iv1 - start_v, iu0 - start_u:iu1 - start_u], 0.0, 1.0)
         window = image[iv0:iv1, iu0:iu1]
         image[iv0:iv1, iu0:iu1] = window * (1.0 - a) + c
+    if fine:
+        coarse = image.reshape(cam.height_px, 2, cam.width_px, 2).mean(axis=(1, 3))
+        return coarse.astype(np.float32), image.astype(np.float32)
     return image.astype(np.float32)
 

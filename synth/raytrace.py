@@ -148,10 +148,14 @@ def _permute(i, key, mask: int):
     return (i + key) & m
 
 
-@partial(jax.jit, static_argnames=("structure", "width", "rows", "spp", "aperture", "front_stop", "compound"))
+@partial(jax.jit, static_argnames=("structure", "width", "rows", "spp", "aperture", "front_stop", "compound",
+                                   "quadrants"))
 def _render_rows(row0, cam, planes, rasters, background, seed, warp=None, *, structure, width, rows, spp,
-                 aperture=("circle",), front_stop=None, compound=None):
-    """Mean radiance of ``rows`` image rows from ``row0``: array (rows, width).
+                 aperture=("circle",), front_stop=None, compound=None, quadrants=False):
+    """Mean radiance of ``rows`` image rows from ``row0``: array (rows, width); with
+    ``quadrants`` (``spp`` an even square, see :func:`quadrant_spp`) also the mean over each
+    quarter of every pixel, (2 rows, 2 width): the same samples, whose n x n pixel strata fall
+    into the quarters n/2 x n/2 each.
 
     ``aperture`` is ``synth.effects.aperture.Aperture.static``; ``front_stop`` is None or
     (distance_mm, radius_mm) of the stop that clips the pupil off axis (optical vignetting,
@@ -229,7 +233,19 @@ def _render_rows(row0, cam, planes, rasters, background, seed, warp=None, *, str
         value = jnp.where(passed, value, 0.0)
     if lens_passed is not None:  # blocked by a clear aperture of the compound lens: no light
         value = jnp.where(lens_passed, value, 0.0) * cam[9]
-    return value.mean(axis=1).reshape(rows, width)
+    mean = value.mean(axis=1).reshape(rows, width)
+    if not quadrants:
+        return mean
+    h = n // 2  # value[p, sy * n + sx] -> [p, qy, sy', qx, sx'] with sy = qy h + sy'
+    quarter = value.reshape(rows, width, 2, h, 2, h).mean(axis=(3, 5))  # (rows, width, qy, qx)
+    return mean, quarter.transpose(0, 2, 1, 3).reshape(2 * rows, 2 * width)
+
+
+def quadrant_spp(spp: int) -> bool:
+    """Whether ``spp`` samples stratify each quarter of a pixel alike (an even square: 4, 16,
+    64, 256, ...), so that the ray tracer can return the image at twice the resolution."""
+    n = math.isqrt(spp)
+    return n * n == spp and n % 2 == 0
 
 
 def scene_arrays(shot: Shot):
@@ -298,13 +314,18 @@ def raytrace_bytes(width_px: int, spp: int) -> float:
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
                     progress: Callable[[int], None] | None = None, *, camera=None,
                     aperture: tuple = ("circle",), front_stop: tuple[float, float] | None = None,
-                    warp: np.ndarray | None = None) -> np.ndarray:
+                    warp: np.ndarray | None = None, fine: bool = False):
     """Render one shot by ray tracing; returns linear radiance, float32 (height, width).
 
     ``progress(n)`` is called with the number of rows finished after each tile. ``camera``
     replaces the shot's camera (one colour channel's, under chromatic aberration);
     ``aperture``, ``front_stop`` and ``warp`` (here (height, width, 6)) as for ``_render_rows``.
+    ``fine`` (where :func:`quadrant_spp`): returns (image, fine image) with the fine image at
+    twice the resolution, each quarter pixel the mean of its own samples (no extra rays); its
+    2 x 2 means are the image. Diffraction filters that one, before the pixels integrate it.
     """
+    if fine and not quadrant_spp(spp):
+        raise ValueError(f"a fine image needs an even square number of samples per pixel, not {spp}")
     cam = camera if camera is not None else shot.camera
     W, H = cam.width_px, cam.height_px
     rows = max(1, min(H, TILE_SAMPLES // max(1, W * spp)))
@@ -316,6 +337,7 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
 
         compound = reverse(cam.stopped)
     out = np.empty((H, W), np.float32)
+    out_fine = np.empty((2 * H, 2 * W), np.float32) if fine else None
     if warp is not None:  # padded to whole tiles, flattened per pixel
         pad = (-H) % rows
         warp_rows = np.concatenate([warp, np.repeat(warp[-1:], pad, axis=0)]).astype(np.float32).reshape(-1, W, 6)
@@ -324,9 +346,12 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         block = _render_rows(jnp.int32(r0), cam_arr, planes, rasters, jnp.float32(background), jnp.uint32(seed),
                              tile_warp,
                              structure=structure, width=W, rows=rows, spp=spp, aperture=aperture,
-                             front_stop=front_stop, compound=compound)
+                             front_stop=front_stop, compound=compound, quadrants=fine)
         take = min(rows, H - r0)
+        if fine:
+            block, quarter = block
+            out_fine[2 * r0:2 * (r0 + take)] = np.asarray(quarter)[:2 * take]
         out[r0:r0 + take] = np.asarray(block)[:take]
         if progress is not None:
             progress(take)
-    return out
+    return (out, out_fine) if fine else out

@@ -25,7 +25,7 @@ from lensfit.errors import InputError
 from lensfit.outputs import provenance
 from synth.convolve import render_convolve
 from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
-from synth.raytrace import render_raytrace
+from synth.raytrace import quadrant_spp, render_raytrace
 from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
 from synth.effects.stages import ShotState, quantise_16bit, run_stages, working_f_number
@@ -131,6 +131,24 @@ def _geometric_key(*parts) -> str | None:
         return None
 
 
+def fine_render(scene: Scene, sp: ShotPlan) -> bool:
+    """Whether a shot's geometric render comes also at twice the resolution, for diffraction to
+    act on the irradiance before the pixels integrate it (``synth.effects.diffraction``): the
+    ray tracer at an even square number of samples per pixel, the convolution renderer at an
+    even supersampling, within the memory budget. Otherwise diffraction filters the image as
+    sampled (an approximation; the truth says which)."""
+    from lensfit.limits import RENDER_MEMORY_BYTES
+    from synth.effects import diffraction
+
+    r, cam = scene.render, sp.shot.camera
+    if not ((sp.method == "raytrace" and quadrant_spp(r.samples_per_pixel))
+            or (sp.method == "convolve" and r.supersampling % 2 == 0)):
+        return False
+    need = diffraction.bytes_needed(scene.effects.diffraction, working_f_number(cam), 0.5 * cam.pixel_pitch_mm,
+                                    2 * cam.width_px, 2 * cam.height_px)
+    return need <= RENDER_MEMORY_BYTES
+
+
 def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
                 cache: GeometricCache | None = None):
     """One shot through its stages: (linear radiance float32 (H, W) or (H, W, 3), raw DN uint16
@@ -165,27 +183,36 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
 
         kwargs_rt["warp"] = pixel_warp(cam, fx.distortion)
     planes: list[np.ndarray] = []
+    fines: list[np.ndarray | None] = []  # the planes at twice the resolution, for diffraction
+    fine = fx.diffraction is not None and fine_render(scene, sp)
+    # The ray tracer's quarter-pixel means cost no rays: a shared render keeps them for a later
+    # render of the shot with diffraction (the bench's effects sets), whose image they are.
+    quarters = sp.method == "raytrace" and quadrant_spp(r.samples_per_pixel) and (fine or cache is not None)
     distinct = len({id(c) for c in cameras})
     for c, ccam in enumerate(cameras):
         same = next((j for j in range(c) if cameras[j] is ccam), None)
         if same is not None:  # a channel the lens treats like an earlier one: no second render
             planes.append(planes[same])
+            fines.append(fines[same])
             continue
         rows = (lambda n, _d=distinct: tick(n / _d)) if distinct > 1 else tick
         cam_kw = {} if ccam is cam else {"camera": ccam}
         key = None if cache is None else _geometric_key(
             sp.method, shot, ccam, kwargs_rt, r.samples_per_pixel, raytrace_seed(r.seed, k), scene.background_value,
-            r.supersampling, fx.aperture, r.mitsuba_variant)
-        if key is not None and key in cache.entries:
+            r.supersampling, fx.aperture, r.mitsuba_variant, fine and sp.method == "convolve")
+        entry = None if key is None else cache.entries.get(key)
+        if entry is not None and (entry["fine"] is not None or not fine):
             if sp.method == "mitsuba":  # what Mitsuba refuses depends on the effects, which the key leaves out
                 from synth.mitsuba import check
 
                 check(shot, fx)
-            planes.append(cache.entries[key]["image"].copy())
+            planes.append(entry["image"].copy())
+            fines.append(entry["fine"].copy() if fine else None)
             cache.hits.append(key)
             rows(ccam.height_px)
             continue
         started = time.time()
+        img_fine = None
         if sp.method == "mitsuba":
             from synth.mitsuba import render_mitsuba
 
@@ -193,22 +220,30 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
                                  effects=fx, variant=r.mitsuba_variant)
         elif sp.method == "raytrace":
             img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
-                                  **cam_kw, **kwargs_rt)
+                                  **cam_kw, **kwargs_rt, fine=quarters)
+            if quarters:
+                img, img_fine = img
         else:
             img = render_convolve(shot, scene.background_value, r.supersampling, **cam_kw,
-                                  **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}))
+                                  **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}), fine=fine)
+            if fine:
+                img, img_fine = img
             rows(cam.height_px)
         if key is not None:
-            cache.entries[key] = {"image": img.copy(), "window": (started, time.time())}
+            cache.entries[key] = {"image": img.copy(), "fine": None if img_fine is None else img_fine.copy(),
+                                  "window": (started, time.time())}
         planes.append(img)
+        fines.append(img_fine if fine else None)
     if waves:
         from synth.spectral import combine
 
         image = combine(planes, waves, fx.channels)
+        image_fine = combine(fines, waves, fx.channels) if fine else None
     else:
         image = planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
+        image_fine = (fines[0] if len(fines) == 1 else np.stack(fines, axis=-1)) if fine else None
     lap("defocus")
-    state = run_stages(ShotState(image, scene, shot, sp.method, k), lap)
+    state = run_stages(ShotState(image, scene, shot, sp.method, k, fine=image_fine), lap)
     return state.image, state.raw, state.extra, seconds
 
 

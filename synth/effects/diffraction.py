@@ -20,34 +20,37 @@ parameter           unit    meaning                                             
                             is rendered                                          [610, 550, 465]
 ==================  ======  ===================================================  ==========
 
-The image a ray tracer or the convolution renderer makes is already integrated over each
-pixel's area; diffraction acts on the irradiance before that integration. So the Airy pattern
-is applied as what it is in frequency space, the optical transfer function of a circular
-pupil (incoherent light; Goodman sec. 6.3)::
+Diffraction acts on the irradiance before the pixels integrate it. So the geometric render is
+taken at twice the resolution, the transfer function of a circular pupil (incoherent light;
+Goodman sec. 6.3)::
 
     OTF(nu) = (2/pi) (acos(v) - v sqrt(1 - v^2)),   v = nu lambda N_w <= 1, 0 beyond,
 
-multiplied into the image's 2-D FFT (scipy), edges extended by 12 dark rings (99.2 % of the
-energy) to keep the wrap-around out. A pixel-cell-averaged Airy kernel (tried before) adds a
-second pixel footprint: on a 1.3 px first ring it widened the blur by a 1 px box on top of
-the Airy pattern. The aperture is taken as circular (a polygon's diffraction spikes are not
-modelled).
+is multiplied into that image's 2-D FFT (scipy; edges extended by 12 dark rings, 99.2 % of the
+energy, to keep the wrap-around out), and each pixel is the mean of its four quarters. The
+finer render costs no extra rays: the ray tracer's n x n strata per pixel fall n/2 x n/2 into
+each quarter (an even square number of samples per pixel: 4, 16, 64, 256), and the convolution
+renderer averages its S x S sub-pixels per quarter instead of per pixel (an even
+``supersampling``). What this leaves out is small: the quarter pixels' own content above their
+Nyquist frequency (one cycle per pixel) folds down where the pupil passes it, which it does
+only up to ``1 / a`` cycles per pixel (``a = lambda N_w / p``: 0.96 at f/11, 0.66 at f/16 on
+6 um pixels; the folded band is attenuated by the quarter pixels' own footprint). Measured
+2026-11-27 on single straight edges against the exact transfer-function product (disk x pupil
+x pixel, tests/test_synth_effects.py): see that test for the tolerance.
 
-Known approximation: the transfer function is applied to the image as sampled, where the
+Where no finer render is to be had (Mitsuba's images, an odd number of samples per pixel or an
+odd supersampling, or a finer FFT beyond the memory budget) the transfer function is applied to
+the image as sampled, and the truth's ``applied`` says so. That is an approximation: the
 pixel-integrated irradiance's content above half a cycle per pixel has already folded down
-(aliased) and is attenuated at the folded frequency instead of its own. The pupil passes up to
-``1 / a`` cycles per pixel (``a = lambda N_w / p``: 0.96 at f/11, 0.66 at f/16 on 6 um pixels),
-so the error is largest where the images are sharpest. Measured 2026-11-27 with the edge
-estimator and ``lensfit`` on ``scenes/stopped_down.toml`` (noise-free, 64 spp), against the same
-scene rendered at twice the resolution, filtered there and averaged 2 x 2 (close to exact: the
-filtered image is band-limited below the finer grid's Nyquist frequency): N +0.16, +0.35 and
--0.42 % at f/11, f/16 and f/22 from these images, -0.03, -0.14 and -0.10 % from the finer ones,
-with sigmas about half as large there. Single exact edges (tests/test_diffraction.py's
-transfer-function product) read within 0.04 % from 4 px of blur either way, and at 2 px +0.12
-to +0.16 % exact against +0.27 to +0.54 % through this filter. So benchmark figures of N under
-diffraction rendered here overstate its bias and scatter at f/11-f/22 by a few tenths of a per
-cent; applying the pupil to the irradiance before the pixels integrate it (a finer geometric
-render, or an Airy-distributed offset per ray sample in the ray tracer) would remove it.
+(aliased) and is attenuated at the folded frequency instead of its own, an error largest where
+the images are sharpest. Measured 2026-11-27 with the edge estimator and ``lensfit`` on
+``scenes/stopped_down.toml`` (noise-free, 64 spp), against the same scene rendered at twice the
+resolution, filtered there and averaged 2 x 2: N +0.16, +0.35 and -0.42 % at f/11, f/16 and
+f/22 from images filtered as sampled, -0.03, -0.14 and -0.10 % from the finer ones, with sigmas
+about half as large there. (Until 2026-11-27 every render was filtered as sampled.) A
+pixel-cell-averaged Airy kernel (tried earlier) adds a second pixel footprint: on a 1.3 px first
+ring it widened the blur by a 1 px box on top of the Airy pattern. The aperture is taken as
+circular (a polygon's diffraction spikes are not modelled).
 """
 
 from __future__ import annotations
@@ -122,6 +125,21 @@ def apply(image: np.ndarray, params: Diffraction, working_f_number: float, pixel
     return out[..., 0] if image.ndim == 2 else out
 
 
+#: The truth's ``applied`` entry: how the transfer function met the image.
+APPLIED_FINE = "to the irradiance at twice the resolution, then integrated over each pixel (2 x 2 means)"
+APPLIED_SAMPLED = "to the image as sampled (pixel-integrated; an approximation where the image is sharp)"
+
+
+def apply_fine(fine: np.ndarray, params: Diffraction, working_f_number: float, pixel_pitch_mm: float) -> np.ndarray:
+    """The image (H, W) or (H, W, C), float32, from its geometric render at twice the resolution
+    ``fine`` (2H, 2W[, C]): filtered there by each wavelength's transfer function (quarter-pixel
+    pitch ``pixel_pitch_mm / 2``), then each pixel the mean of its 2 x 2 quarters."""
+    filtered = apply(fine, params, working_f_number, 0.5 * pixel_pitch_mm)
+    h, w = fine.shape[0] // 2, fine.shape[1] // 2
+    return filtered.reshape(h, 2, w, 2, *fine.shape[2:]).mean(axis=(1, 3)).astype(np.float32)
+
+
 def seconds(width_px: int, height_px: int, channels: int) -> float:
-    """Rough cost on 2 cores (FFT convolution of the frame; measured ~0.09 s for 1 MP x 3 channels)."""
+    """Rough cost on 2 cores (FFT convolution of the frame; measured ~0.09 s for 1 MP x 3 channels;
+    give it the fine render's pixels where there is one)."""
     return 3e-8 * width_px * height_px * channels + 0.005

@@ -35,6 +35,9 @@ class ShotState:
     raw: np.ndarray | None = None
     exposure: Any = None  # the shot's exposure settings (ExposureStage), read out by ReadoutStage
     extra: dict[str, Any] = field(default_factory=dict)
+    #: the geometric render at twice the resolution (quarter pixels), where the renderer gave
+    #: one for diffraction (``synth.render.fine_render``); its 2 x 2 means are ``image``
+    fine: np.ndarray | None = None
 
     @property
     def effects(self):
@@ -81,17 +84,29 @@ class DiffractionStage(Stage):
     def describe(self, scene, shot, method):
         from synth.effects import diffraction
 
-        cam, fx = shot.camera, scene.effects
+        from synth.raytrace import quadrant_spp
+
+        cam, fx, r = shot.camera, scene.effects, scene.render
         waves = "/".join(f"{w:g}" for w in fx.diffraction.wavelength_nm)
-        return [(f"diffraction (Airy, {waves} nm)", diffraction.seconds(cam.width_px, cam.height_px, fx.channels))]
+        fine = ((method == "raytrace" and quadrant_spp(r.samples_per_pixel))
+                or (method == "convolve" and r.supersampling % 2 == 0))  # synth.render.fine_render
+        k = 2 if fine else 1
+        return [(f"diffraction (Airy, {waves} nm{', on the 2x render' if fine else ''})",
+                 diffraction.seconds(k * cam.width_px, k * cam.height_px, fx.channels))]
 
     def apply(self, state):
         from synth.effects import diffraction
 
         fx, cam = state.effects, state.camera
         Nw = working_f_number(cam)
-        state.image = diffraction.apply(state.image, fx.diffraction, Nw, cam.pixel_pitch_mm).astype(np.float32)
-        state.extra["diffraction"] = fx.diffraction.truth(Nw, cam.pixel_pitch_mm)
+        if state.fine is not None:  # on the irradiance, then integrated over each pixel
+            state.image = diffraction.apply_fine(state.fine, fx.diffraction, Nw, cam.pixel_pitch_mm)
+            state.fine = None
+            applied = diffraction.APPLIED_FINE
+        else:
+            state.image = diffraction.apply(state.image, fx.diffraction, Nw, cam.pixel_pitch_mm).astype(np.float32)
+            applied = diffraction.APPLIED_SAMPLED
+        state.extra["diffraction"] = {**fx.diffraction.truth(Nw, cam.pixel_pitch_mm), "applied": applied}
 
 
 class VignettingStage(Stage):
