@@ -58,9 +58,13 @@ BLUR_SCALE_MIN_PX = 0.5
 #: exact edges no more than the 1/c^2 term bounds; on Mitsuba 3 renders at 32 spp (10 seeds, 90
 #: intervals) N +0.08 % with its RMS error over the sigma without any scale term 0.96-1.05
 #: (demo, bracket), with the 0.1 % term 0.73-0.78 (95 % half-width 3.5x the error). Where the
-#: Airy model or the distortion model is in play (synth's diffraction, camera-raw and
-#: distortion sets: N +0.12 to +0.26 %, RMS error over sigma 1.1-2.0 without the term), and
-#: wherever it is not known (samples without their calibration), BLUR_SCALE_SIGMA.
+#: Airy model or the distortion model is in play, and wherever it is not known (samples without
+#: their calibration), BLUR_SCALE_SIGMA: the Airy model takes the light's effective wavelength
+#: as 550 nm where real channels see a spectrum (synth's camera-raw set, diffracting at 610 /
+#: 550 / 465 nm per channel, reads N +0.04 to +0.12 % high). The N +0.12 to +0.26 % (RMS error
+#: over sigma 1.1-2.0 without the term) that synth's diffraction, camera-raw and distortion sets
+#: showed until 2026-11-27 was mostly synth's diffraction filtering the pixel-integrated image;
+#: rendered at twice the resolution since, its diffraction sets read N +0.04 to +0.13 %.
 BLUR_SCALE_SIGMA_PLAIN = 0.0005
 
 
