@@ -45,11 +45,15 @@ from lensfit.psf import disk_kernel
 
 SUB = 4
 #: Texture samples per sub-pixel, along each axis (see _measure_one). Against the truth maps of
-#: the demo stack (noise-free): one sample per sub-pixel read 3-20 px blurs +0.01 px high with
-#: 31-64 % of them within 1 sigma; four, -0.003 to -0.001 px with 77-100 % (2026-11-27).
+#: the demo stack (noise-free; 2026-11-27): one sample per sub-pixel read 3-20 px blurs +0.01 px
+#: high with 31-64 % of them within 1 sigma and near-focus edges 0.3 px high; four, -0.003 to
+#: -0.001 px with 77-100 % (without CELL_VARIANCE_PX2; with it, below).
 POINTS = 4
-#: The model's own variance per axis (px^2) from its two boxes of 1/SUB px: the sub-pixels'
-#: areas and the area-weighted kernel's cells.
+#: The variance per axis (px^2) taken off the disk for the model's own discretisation, which
+#: adds that of one to two boxes of 1/SUB px (the sub-pixels' areas, the area-weighted kernel's
+#: cells): one box's. On the demo, the bias from 1.5 px of blur up is +0.003 to +0.005 px with
+#: it, -0.016 to -0.001 px with none and +0.007 to +0.025 px with two boxes' (the test's
+#: calibration stack was not used to choose).
 CELL_VARIANCE_PX2 = 1.0 / (12.0 * SUB * SUB)
 MAX_ALONG_PX = 64.0  # patch size caps: enough pixels for a precise fit, bounded cost
 MAX_ACROSS_PX = 48.0
@@ -130,9 +134,8 @@ def _measure_one(image: np.ndarray, task: EdgeTask) -> BlurEstimate:
     max_c = 2.0 * (pad - 1)
 
     def synth(c):
-        # The sub-pixels' areas and the kernel's cells each blur by a box of 1/SUB px (variance
-        # 1/(12 SUB^2) a box, per axis): the disk drawn is the one whose variance, with theirs,
-        # is that of the disk of diameter c (c^2/16 per axis).
+        # The disk drawn is the one whose variance (c^2/16 per axis for diameter c), with the
+        # discretisation's (CELL_VARIANCE_PX2), is that of the disk of diameter c.
         k = disk_kernel(SUB * math.sqrt(max(c * c - CELL_VARIANCE_PX2 * 16.0, 0.0)))
         blurred = scipy.signal.fftconvolve(sharp, k, mode="same") if k.size > 1 else sharp
         px = blurred.reshape(nyp, SUB, nxp, SUB).mean(axis=(1, 3))
