@@ -152,8 +152,11 @@ def test_synth_diffraction_is_the_pupil_transfer_function(method, N):
     # An edge at the focus plane: its image is the step through the Airy pattern and the pixel,
     # the sharpest image diffraction meets (f/11 on 5 um pixels: Airy scale 1.1 px, the pupil
     # passing 0.9 cycles per pixel, beyond the pixels' Nyquist frequency).
+    from lensfit.specs import validate
+
     image, truth, a = focus_plane_edge(method, N)
     assert truth["images"][0]["diffraction"]["applied"].startswith("to the irradiance")
+    validate(truth, "truth", "truth.json")  # data_specs/schemas/truth.schema.json describes the entry
     resid, wrong = misfit(image, truth, a)
     rms = float(np.sqrt(np.mean(resid**2)))
     assert rms < 0.0025 and np.max(np.abs(resid)) < 0.015, (rms, np.max(np.abs(resid)))
