@@ -28,7 +28,7 @@ from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
 from synth.raytrace import quadrant_spp, render_raytrace
 from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
-from synth.effects.stages import ShotState, quantise_16bit, run_stages, working_f_number
+from synth.effects.stages import ShotState, fine_possible, quantise_16bit, run_stages, working_f_number
 from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan
 from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
 
@@ -141,8 +141,7 @@ def fine_render(scene: Scene, sp: ShotPlan) -> bool:
     from synth.effects import diffraction
 
     r, cam = scene.render, sp.shot.camera
-    if not ((sp.method == "raytrace" and quadrant_spp(r.samples_per_pixel))
-            or (sp.method == "convolve" and r.supersampling % 2 == 0)):
+    if not fine_possible(sp.method, r.samples_per_pixel, r.supersampling):
         return False
     need = diffraction.bytes_needed(scene.effects.diffraction, working_f_number(cam), 0.5 * cam.pixel_pitch_mm,
                                     2 * cam.width_px, 2 * cam.height_px)

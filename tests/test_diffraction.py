@@ -150,8 +150,8 @@ def misfit(image, truth, a):
 @pytest.mark.parametrize("method, N", [("raytrace", 22.0), ("raytrace", 11.0), ("convolve", 11.0)])
 def test_synth_diffraction_is_the_pupil_transfer_function(method, N):
     # An edge at the focus plane: its image is the step through the Airy pattern and the pixel,
-    # the sharpest image diffraction meets (f/11 on 5 um pixels: Airy scale 1.1 px, the pupil
-    # passing 0.9 cycles per pixel, beyond the pixels' Nyquist frequency).
+    # the sharpest image diffraction meets (f/11 on 5 um pixels: Airy scale 1.24 px, the pupil
+    # passing up to 0.81 cycles per pixel, beyond the pixels' Nyquist frequency of 0.5).
     from lensfit.specs import validate
 
     image, truth, a = focus_plane_edge(method, N)
@@ -167,7 +167,7 @@ def test_synth_diffraction_is_the_pupil_transfer_function(method, N):
 def test_diffraction_filtering_the_sampled_image_misses_what_folded_down():
     # What the finer render is for: the transfer function applied to the pixel-integrated image
     # (the approximation synth takes where it has no finer render) misfits the same profile at
-    # f/11 about four times worse (0.0066 of the contrast RMS; the finer render 0.0017).
+    # f/11 about four times worse (0.0066 of the contrast RMS; the finer render 0.0015-0.0016).
     from synth.effects.diffraction import Diffraction, apply
 
     geometric, truth, a = focus_plane_edge("convolve", 11.0, effects=("defocus",))

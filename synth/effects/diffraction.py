@@ -33,12 +33,12 @@ each quarter (an even square number of samples per pixel: 4, 16, 64, 256), and t
 renderer averages its S x S sub-pixels per quarter instead of per pixel (an even
 ``supersampling``). What this leaves out is small: the quarter pixels' own content above their
 Nyquist frequency (one cycle per pixel) folds down where the pupil passes it, which it does
-only up to ``1 / a`` cycles per pixel (``a = lambda N_w / p``: 0.96 at f/11, 0.66 at f/16 on
-6 um pixels; the folded band is attenuated by the quarter pixels' own footprint). Measured
-2026-11-27 on an edge at the focus plane at f/11 on 5 um pixels (Airy scale 1.1 px, the
+only up to ``1 / a`` cycles per pixel (``a = lambda N_w / p``; ``1 / a`` 0.96 at f/11, 0.66 at f/16
+on 6 um pixels; the folded band is attenuated by the quarter pixels' own footprint). Measured
+2026-11-27 on an edge at the focus plane at f/11 on 5 um pixels (Airy scale 1.24 px, the
 sharpest image diffraction meets) against the exact transfer-function product (disk x pupil x
-pixel, tests/test_diffraction.py): 0.17 % of the contrast RMS, 1.2 % at most, ray traced or
-convolved; the image filtered as sampled misfits by 0.66 % RMS, 3.5 % at most.
+pixel, tests/test_diffraction.py): 0.15-0.16 % of the contrast RMS, under 1 % at most, ray
+traced or convolved; the image filtered as sampled misfits by 0.66 % RMS, 3.5 % at most.
 
 Where no finer render is to be had (Mitsuba's images, an odd number of samples per pixel or an
 odd supersampling, or a finer FFT beyond the memory budget) the transfer function is applied to

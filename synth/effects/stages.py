@@ -53,6 +53,17 @@ def working_f_number(camera) -> float:
     return camera.sensor_distance_mm / camera.aperture_diameter_mm
 
 
+def fine_possible(method: str, samples_per_pixel: int, supersampling: int) -> bool:
+    """Whether a render method gives the geometric render at twice the resolution at no extra
+    cost: the ray tracer at an even square number of samples per pixel, the convolution
+    renderer at an even supersampling (``synth.render.fine_render`` adds the memory budget;
+    diffraction acts on it, ``synth.effects.diffraction``)."""
+    from synth.raytrace import quadrant_spp
+
+    return ((method == "raytrace" and quadrant_spp(samples_per_pixel))
+            or (method == "convolve" and supersampling % 2 == 0))
+
+
 def quantise_16bit(image: np.ndarray) -> np.ndarray:
     """Linear radiance -> uint16: round(65535 * clip(v, 0, 1))."""
     return np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
@@ -84,12 +95,9 @@ class DiffractionStage(Stage):
     def describe(self, scene, shot, method):
         from synth.effects import diffraction
 
-        from synth.raytrace import quadrant_spp
-
         cam, fx, r = shot.camera, scene.effects, scene.render
         waves = "/".join(f"{w:g}" for w in fx.diffraction.wavelength_nm)
-        fine = ((method == "raytrace" and quadrant_spp(r.samples_per_pixel))
-                or (method == "convolve" and r.supersampling % 2 == 0))  # synth.render.fine_render
+        fine = fine_possible(method, r.samples_per_pixel, r.supersampling)
         k = 2 if fine else 1
         return [(f"diffraction (Airy, {waves} nm{', on the 2x render' if fine else ''})",
                  diffraction.seconds(k * cam.width_px, k * cam.height_px, fx.channels))]
