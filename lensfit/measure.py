@@ -92,6 +92,10 @@ class SampleTable:
     #: per image (index in the stack), the targets as detected, before refinement; in memory for
     #: a later :func:`measure` of the same stack (``detected``), never written
     detections: dict[int, list[Any]] = field(default_factory=dict)
+    #: the edge estimator's profiles of the first pass over the edges as detected (where asked
+    #: for, ``keep_profiles``); in memory for a later :func:`measure` of the same stack with the
+    #: Airy pattern, which solves them again instead of gathering them (``lensfit.pipeline``)
+    profiles: dict[str, Any] | None = None
 
     COLUMNS = SAMPLES_CSV_COLUMNS
 
@@ -253,7 +257,7 @@ def in_background(load: Callable[[], None], name: str) -> threading.Thread:
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
             progress: Callable[[str, int, int], None] | None = None,
             airy_px: dict[str, float] | None = None, detected: SampleTable | None = None,
-            on_edges: Callable[[int, int], None] | None = None) -> SampleTable:
+            on_edges: Callable[[int, int], None] | None = None, keep_profiles: bool = False) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
 
     Parameters
@@ -268,10 +272,13 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         ``diffraction_modelled``; ``lensfit.diffraction``, ``lensfit.pipeline``)
     detected : a table this process measured of the same stack: its targets as detected are
         taken instead of detecting them again (the diffraction rounds of ``lensfit.pipeline``;
-        the corners are refined, the intrinsics calibrated and the blur read afresh)
+        the corners are refined, the intrinsics calibrated and the blur read afresh: from its
+        edge profiles where it kept them and its edges are these, ``keep_profiles``)
     on_edges : called with the number of settings and of edges once the edges are known, before
         they are measured (``lensfit.pipeline`` starts loading the fit's compiled functions for
         them there, in the background)
+    keep_profiles : keep the edge estimator's profiles in the table (``SampleTable.profiles``)
+        for a later measure with the Airy pattern (``detected``); memory: a few kB an edge
 
     Returns
     -------
@@ -298,9 +305,10 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
                         "(kind, squares, square_mm, ...) so that they can be found")
     warming = _prewarm(estimator, airy_px is not None)
     try:
+        same = detected is not None and len(detected.detections) == len(stack.images)
         return _measure(stack, estimator, fn, refine, progress, airy_px,
-                        None if detected is None or len(detected.detections) != len(stack.images)
-                        else detected.detections, on_edges)
+                        detected.detections if same else None, on_edges,
+                        {} if keep_profiles else detected.profiles if same else None)
     finally:
         if warming is not None:
             warming.join()
@@ -327,10 +335,13 @@ def remeasure(stack: Stack, table: SampleTable, which: list[int], airy_px: dict[
 def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
              progress: Callable[[str, int, int], None] | None, airy_px: dict[str, float] | None,
              detected: dict[int, list[Detection]] | None = None,
-             on_edges: Callable[[int, int], None] | None = None) -> SampleTable:
+             on_edges: Callable[[int, int], None] | None = None,
+             profiles: dict[str, Any] | None = None) -> SampleTable:
     """:func:`measure` once its arguments are checked (the edge estimator's compiled fits loading
     in the background meanwhile, :func:`_prewarm`); ``detected``: the targets of each image as an
-    earlier measure of the stack detected them; ``on_edges``: see :func:`measure`."""
+    earlier measure of the stack detected them; ``on_edges``: see :func:`measure`; ``profiles``:
+    an empty dict to keep the first pass's edge profiles in, or those an earlier measure kept
+    (``SampleTable.profiles``), carried on to this table."""
     def airy(i):
         return None if airy_px is None else float(airy_px[stack.images[i].setting])
     targets = [Target(spec) for spec in stack.targets]
@@ -425,7 +436,10 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         with clock.stage("measure"):
             per_image = edge_estimator.measure_images([(partial(read, i), work[i][0]) for i in range(n)],
                                                       progress=lambda k: tick("edges"),
-                                                      airy_px=None if airy_px is None else [airy(i) for i in range(n)])
+                                                      airy_px=None if airy_px is None else [airy(i) for i in range(n)],
+                                                      keep_profiles=profiles if profiles == {} else None,
+                                                      profiles=profiles or None)
+        table.profiles = profiles if profiles else None
         for i in range(n):
             first[i] = (work[i][0], work[i][1], per_image[i])
     if refine:

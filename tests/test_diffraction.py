@@ -299,3 +299,68 @@ def test_the_rounds_decode_each_image_once(diffraction_stack, monkeypatch):
     assert [(s.coc_diameter_px, s.sigma_px) for s in again.samples] == [(s.coc_diameter_px, s.sigma_px)
                                                                         for s in table.samples]
     assert result_again.settings == result.settings
+
+
+def test_a_round_solves_the_kept_profiles_again_and_reads_what_gathering_them_anew_reads(diffraction_stack,
+                                                                                        monkeypatch):
+    """The diffraction rounds re-read a stack's edges at a new Airy scale from the profiles its
+    first measure kept (``keep_profiles``): no profile is gathered again, and every sample, its
+    sigma and distance, come out as a measure that gathers them anew, bit for bit."""
+    import lensfit.estimators.edge as edge_module
+    import lensfit.measure as measure_module
+
+    plain = measure_module.measure(diffraction_stack, keep_profiles=True)
+    assert plain.profiles and len(plain.profiles["state"][-1]) > 0.9 * len(plain.samples)
+    airy = {"a": 1.4}
+    fresh = measure_module.measure(diffraction_stack, airy_px=airy, detected=measure_module.measure(diffraction_stack))
+    gathered = []
+    original = edge_module._select
+    monkeypatch.setattr(edge_module, "_select", lambda *a, **k: gathered.append(1) or original(*a, **k))
+    again = measure_module.measure(diffraction_stack, airy_px=airy, detected=plain)
+    assert len(gathered) < 0.05 * len(plain.samples)  # only edges the refined corners added, if any
+    assert again.profiles is plain.profiles  # carried on to the next round
+    key = [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in again.samples]
+    assert key == [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in fresh.samples]
+    assert all("diffraction_modelled" in s.flags for s in again.samples)
+    # Profiles of other edges are not taken: a stack measured from other detections gathers its own.
+    other = dict(plain.profiles, key=plain.profiles["key"][1:])
+    gathered.clear()
+    edge_module.measure_images([(np.zeros((8, 8)), [])], profiles=other)
+    assert not gathered
+
+
+def test_the_rounds_stop_where_the_next_would_move_no_f_number_by_the_tolerance():
+    """The stopping rule against a map whose f-number responds linearly to the Airy scale it is
+    read with (slope kappa in log-log, the fixed point where a = c N): it stops exactly where the
+    round it saves would have changed N by less than SETTLED_REL, with a margin of 2 for kappa."""
+    from lensfit.pipeline import SETTLED_REL, _settled_next
+
+    def n_of(a, kappa, n_star=11.0, a_star=1.03):
+        return n_star * (a / a_star) ** (-kappa)
+
+    for kappa in (0.01, 0.03, 0.1, 0.3, 0.6):
+        a = [0.95]
+        n = [n_of(a[0], kappa)]
+        stopped = False
+        while True:  # a[k], n[k]: round k+1's Airy scale and f-number
+            a.append(1.03 * n[-1] / 11.0)
+            n.append(n_of(a[-1], kappa))
+            change = {"s": abs(n[-1] / n[-2] - 1.0)}
+            following = 1.03 * n[-1] / 11.0
+            next_change = abs(n_of(following, kappa) / n[-1] - 1.0)
+            if change["s"] < SETTLED_REL:
+                break
+            if len(a) >= 2:
+                stop = _settled_next({"s": a[-2]}, {"s": a[-1]}, {"s": following}, change)
+                assert stop == (2.0 * next_change < SETTLED_REL * (1 + 1e-6)) or \
+                    abs(2.0 * next_change / SETTLED_REL - 1.0) < 0.05  # kappa measured from a secant
+                if stop:
+                    assert next_change < SETTLED_REL / 2
+                    stopped = True
+                    break
+            assert len(a) < 20
+        # kappa 0.03 (the standard suite's stacks): the round the observed change would run is
+        # saved; from 0.1 on, the rule never stops before the observed change does.
+        assert stopped == (kappa == 0.03)
+    # A setting whose Airy scale did not move gives no slope to go by.
+    assert not _settled_next({"s": 1.0}, {"s": 1.0}, {"s": 1.01}, {"s": 0.002})
