@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from lensfit.fit import FitResult
-from lensfit.measure import SampleTable
+from lensfit.sample_table import SampleTable
 
 #: Overlays wider than this (px) are drawn downscaled (the picture, not the measurement).
 OVERLAY_WIDTH_PX = 1400

@@ -206,7 +206,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
                        "or a stack folder")
     if source.is_file() and source.suffix.lower() in (".csv", ".json"):
         from lensfit.jaxcache import enable_compilation_cache
-        from lensfit.measure import SampleTable
+        from lensfit.sample_table import SampleTable
 
         if forced:
             raise CliError("--diffraction measures the images again; give the stack folder, not a samples file")

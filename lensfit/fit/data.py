@@ -86,7 +86,7 @@ def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray
 
 def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Sample rows and context (pixel pitch, intrinsics) from any accepted input."""
-    from lensfit.measure import SampleTable
+    from lensfit.sample_table import SampleTable
 
     if isinstance(samples, (str, Path)):
         samples = SampleTable.read(samples)
