@@ -100,7 +100,7 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         they are measured (``lensfit.pipeline`` starts loading the fit's compiled functions for
         them there, in the background)
     keep_profiles : keep the edge estimator's profiles in the table (``SampleTable.profiles``)
-        for a later measure with the Airy pattern (``detected``); memory: a few kB an edge
+        for a later measure with the Airy pattern (``detected``); memory: about 4 kB an edge
 
     Returns
     -------

@@ -126,10 +126,12 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     # The fits with the Airy pattern are loaded while the first fit runs (0.2-0.4 s of a process).
     warming = in_background(_prewarm_airy, "lensfit-prewarm-airy") if auto or wavelength_nm else None
     try:
-        return _fit_rounds(stack, table, estimator, wavelength_nm, options, progress, auto, warming)
+        out = _fit_rounds(stack, table, estimator, wavelength_nm, options, progress, auto, warming)
     finally:
         if warming is not None:
             warming.join()
+    out[0].profiles = table.profiles = None  # the rounds' kept profiles: not held by the caller
+    return out
 
 
 def _fit_ahead(settings: int, edges: int) -> Any:

@@ -56,23 +56,25 @@ class SampleTable:
     #: image file name -> (target id, detected corner positions (N, 2) px) of every target found
     #: (after refinement); kept in memory for the fit report's overlays, not written to files
     corners_px: dict[str, list[tuple[str, np.ndarray]]] = field(default_factory=dict)
-    #: seconds spent per stage (read, detect, calibrate, measure) by :func:`measure`; kept in
-    #: memory for ``lensfit bench-stages``, never written (files stay reproducible)
+    #: seconds spent per stage (read, detect, calibrate, measure) by
+    #: :func:`lensfit.measure.measure`; kept in memory for ``lensfit bench-stages``, never
+    #: written (files stay reproducible)
     stage_seconds: dict[str, float] = field(default_factory=dict)
     #: per sample, the blur estimator's RMS residual in units of the noise (None where it gives
     #: none); kept in memory for the diffraction test of ``lensfit.pipeline``, never written
     fit_rms: list[float | None] = field(default_factory=list)
     #: per sample, the edge geometry its blur was read with (an ``EdgeTask`` with only the edge
-    #: estimator's context, ``EDGE_CONTEXT``), in memory for :func:`remeasure`
+    #: estimator's context, ``EDGE_CONTEXT``), in memory for :func:`lensfit.measure.remeasure`
     edge_tasks: list[Any] = field(default_factory=list)
     #: what ``lensfit.pipeline``'s diffraction test found (None where it did not run)
     diffraction: dict[str, Any] | None = None
     #: per image (index in the stack), the targets as detected, before refinement; in memory for
-    #: a later :func:`measure` of the same stack (``detected``), never written
+    #: a later :func:`lensfit.measure.measure` of the same stack (``detected``), never written
     detections: dict[int, list[Any]] = field(default_factory=dict)
     #: the edge estimator's profiles of the first pass over the edges as detected (where asked
-    #: for, ``keep_profiles``); in memory for a later :func:`measure` of the same stack with the
-    #: Airy pattern, which solves them again instead of gathering them (``lensfit.pipeline``)
+    #: for, ``keep_profiles``: about 4 kB an edge); in memory for a later
+    #: :func:`lensfit.measure.measure` of the same stack with the Airy pattern, which solves them
+    #: again instead of gathering them (``lensfit.pipeline``, which lets them go when it returns)
     profiles: dict[str, Any] | None = None
 
     COLUMNS = SAMPLES_CSV_COLUMNS

@@ -291,6 +291,7 @@ def test_the_rounds_decode_each_image_once(diffraction_stack, monkeypatch):
     monkeypatch.setattr(stack_module, "read_image", lambda *a, **k: decoded.append(a[0]) or original(*a, **k))
     table, result, rounds = measure_and_fit(diffraction_stack, auto_diffraction=True)
     assert rounds  # the stack was measured again through the Airy model
+    assert table.profiles is None  # the rounds' kept profiles are not left with the caller
     assert len(decoded) == len(set(decoded)) == len(load_stack(diffraction_stack).images)
     decoded.clear()
     monkeypatch.setattr(measure_module, "HOLD_BYTES", 0)
