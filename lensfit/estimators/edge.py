@@ -215,7 +215,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
     gathered anew. The first pass and the profiles do not depend on the Airy scale (the first
     pass reads a uniform disk), so the estimates are those of a call without ``profiles``; a
     dict from other edges is ignored. ``lensfit.pipeline``'s diffraction rounds re-read the
-    same edges at a new Airy scale each (0.2-0.3 s of a 12-image stack's 0.6-0.7 s a round)."""
+    same edges at a new Airy scale each (0.15 s of a 10-shot bracket's 0.6 s a round, warm)."""
     items = list(items)
     if airy_px is not None:
         if len(airy_px) != len(items) or not all(math.isfinite(a) and 0.0 <= a <= MAX_AIRY_PX for a in airy_px):
