@@ -323,11 +323,12 @@ def test_a_round_solves_the_kept_profiles_again_and_reads_what_gathering_them_an
     key = [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in again.samples]
     assert key == [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in fresh.samples]
     assert all("diffraction_modelled" in s.flags for s in again.samples)
-    # Profiles of other edges are not taken: a stack measured from other detections gathers its own.
-    other = dict(plain.profiles, key=plain.profiles["key"][1:])
+    # Profiles of other edges are not taken: these edges' own are gathered and read as without.
+    im, task = edge_image(4.0, 1.4)
     gathered.clear()
-    edge_module.measure_images([(np.zeros((8, 8)), [])], profiles=other)
-    assert not gathered
+    got = edge_module.measure_images([(im, [task])], airy_px=[1.4], profiles=plain.profiles)
+    assert gathered
+    assert got[0][0].coc_diameter_px == edge_module.measure_images([(im, [task])], airy_px=[1.4])[0][0].coc_diameter_px
 
 
 def test_the_rounds_stop_where_the_next_would_move_no_f_number_by_the_tolerance():
