@@ -190,8 +190,8 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
                                        "--diffraction forces it")
     if wavelength_nm is None:
         return table, result, rounds
+    airy = airy_per_setting(result, wavelength_nm)  # each round's scales, from the fit before it
     for _ in range(MAX_ROUNDS):
-        airy = airy_per_setting(result, wavelength_nm)
         if not any(airy.values()):
             result.warnings.append("diffraction not modelled: no setting's aperture was determined")
             break
@@ -203,8 +203,9 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
         new = fit(new_table, **options)
         changes = _changes(new, result)
         table, result = new_table, new
+        airy = airy_per_setting(new, wavelength_nm)
         if max(changes.values(), default=0.0) < SETTLED_REL or (len(rounds) >= 2 and _settled_next(
-                rounds[-2], rounds[-1], airy_per_setting(new, wavelength_nm), changes)):
+                rounds[-2], rounds[-1], airy, changes)):
             break
     return table, result, rounds
 
