@@ -74,7 +74,9 @@ BLUR_SCALE_MIN_PX = 0.5
 #: its noise-free readings; the standard suite's ISO 1600 diffraction cases read N +0.09 to
 #: +0.24 % (set means). BLUR_SCALE_SIGMA, the constant of such readings, covers that (their 95 %
 #: intervals hold N in every case); it is not modelled. A prior five times wider reads -0.07 %
-#: at 8 px but scatters 25 % more.
+#: at 8 px but scatters 25 % more. On exact 2-D checkerboards (README, "Benchmarks") the
+#: neighbours are not most of the noisy bias: modelled exactly, they moved noisy readings by
+#: +0.01 to +0.07 % of readings +0.48, -0.04 and -0.33 % off.
 BLUR_SCALE_SIGMA_PLAIN = 0.0005
 
 
