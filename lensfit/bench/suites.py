@@ -141,9 +141,16 @@ def _key(*parts: Any) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+#: What a ray-traced render's samples are, in its cache key: a run resumed over renders of another
+#: sampler would mix them (since 2026-11-27 digitally shifted Sobol points, synth.raytrace).
+RAYTRACE_SAMPLER = "sobol-digital-shift"
+
+
 def _render_parts(task: dict[str, Any]) -> tuple:
     fx = task.get("effects", {"name": "scene"})
     parts = (Path(task["scene"]).read_text(), task["render"], task["seed"])
+    if task["render"].get("method", "auto") in ("raytrace", "auto"):
+        parts += (RAYTRACE_SAMPLER,)
     return parts if fx == {"name": "scene"} else parts + (fx,)  # runs without effects keep their ids
 
 
