@@ -328,8 +328,10 @@ BYTES_PER_SAMPLE = 96
 
 
 def raytrace_bytes(width_px: int, spp: int) -> float:
-    """Peak memory (bytes) of one ray-tracing tile: at least one image row of ``spp`` samples."""
-    return float(BYTES_PER_SAMPLE) * max(TILE_SAMPLES, width_px * spp)
+    """Peak memory (bytes) of ray tracing: two tiles in flight (:func:`render_raytrace`), or one
+    image row of ``spp`` samples where that is more than a tile."""
+    row = width_px * spp
+    return float(BYTES_PER_SAMPLE) * (2 * TILE_SAMPLES if row <= TILE_SAMPLES else row)
 
 
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
@@ -362,12 +364,24 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
     if warp is not None:  # padded to whole tiles, flattened per pixel
         pad = (-H) % rows
         warp_rows = np.concatenate([warp, np.repeat(warp[-1:], pad, axis=0)]).astype(np.float32).reshape(-1, W, 6)
-    for r0 in range(0, H, rows):
+
+    def dispatch(r0):
         tile_warp = None if warp is None else jnp.asarray(warp_rows[r0:r0 + rows].reshape(-1, 6))
-        block = _render_rows(jnp.int32(r0), cam_arr, planes, rasters, jnp.float32(background), jnp.uint32(seed),
-                             tile_warp,
-                             structure=structure, width=W, rows=rows, spp=spp, aperture=aperture,
-                             front_stop=front_stop, compound=compound, quadrants=fine)
+        # numpy scalars: a jnp scalar is an operation of its own (0.2 ms each, three per tile)
+        return _render_rows(np.int32(r0), cam_arr, planes, rasters, np.float32(background), np.uint32(seed),
+                            tile_warp, structure=structure, width=W, rows=rows, spp=spp, aperture=aperture,
+                            front_stop=front_stop, compound=compound, quadrants=fine)
+
+    # The next tile is dispatched before this one's result is waited for, so that the Python work
+    # between tiles overlaps the tracing (demo at 16 / 64 spp: 1.45 -> 1.12 s, 3.30 -> 2.95 s a
+    # stack, with the numpy scalars); two tiles' memory at most, and one where a row is more
+    # than a tile (raytrace_bytes).
+    starts = list(range(0, H, rows))
+    ahead = W * spp <= TILE_SAMPLES
+    pending = dispatch(starts[0])
+    for k, r0 in enumerate(starts):
+        block = pending if pending is not None else dispatch(r0)
+        pending = dispatch(starts[k + 1]) if ahead and k + 1 < len(starts) else None
         take = min(rows, H - r0)
         if fine:
             block, quarter = block

@@ -326,3 +326,22 @@ def test_randomised_quasi_monte_carlo_beats_independent_samples():
     rms_64 = math.sqrt(np.mean((runs - reference) ** 2))
     assert rms_64 < 0.4 * independent_rms_64  # (0.32; hashed jitter with permuted lens strata: 0.41)
     assert abs(np.mean(runs - reference)) < 2e-4
+
+
+def test_raytrace_is_independent_of_tiling(monkeypatch):
+    # The same image whatever the tiles (each pixel's samples depend on the seed and the pixel
+    # alone): a tile of many rows, tiles of one row dispatched ahead, and rows wider than a tile,
+    # which are traced one at a time.
+    import synth.raytrace as rt
+
+    board = {"target": "checkerboard", "squares": [4, 3], "square_mm": 10.0, "distance_mm": 900.0,
+             "tilt_deg": [10.0, 0.0]}
+    shot = make_scene([board], N=2.0, D=1500.0, w=64, h=48, background=0.3).shots[0]
+    images = []
+    for tile in (1 << 20, 64 * 16, 256):
+        monkeypatch.setattr(rt, "TILE_SAMPLES", tile)
+        images.append(rt.render_raytrace(shot, 0.3, 16, 3, fine=True))
+    for image, fine in images[1:]:
+        assert np.array_equal(image, images[0][0])
+        # (the quarter pixels' means are summed in another order in another tile shape: float32)
+        assert np.allclose(fine, images[0][1], rtol=0.0, atol=1e-6)
