@@ -418,3 +418,19 @@ def test_the_coverage_summary_carries_the_honesty_per_effects_set():
     assert d["errors"] == len(diff) == 100
     assert d["rms_error_over_sigma"] == pytest.approx(interval_honesty(diff)["rms_error_over_sigma"])
     assert d["coverage95"] == pytest.approx(np.mean([r["in95"] for r in diff]))
+
+
+def test_parallel_workers_get_the_costliest_groups_first():
+    # Every group of the standard suite handed out once, the most samples per pixel first, the
+    # suite's order kept among equals (the records come back in suite order whatever the order
+    # of the work).
+    from lensfit.bench.runs import costliest_first, groups
+
+    suite_groups = groups(load_suite("standard").tasks())
+    ordered = costliest_first(suite_groups)
+    assert sorted(map(id, ordered)) == sorted(map(id, suite_groups))
+    spp = [g[0]["render"]["samples_per_pixel"] for g in ordered]
+    assert spp == sorted(spp, reverse=True) and spp[0] > spp[-1]
+    for value in set(spp):
+        same = [g for g in suite_groups if g[0]["render"]["samples_per_pixel"] == value]
+        assert [g for g in ordered if g[0]["render"]["samples_per_pixel"] == value] == same
