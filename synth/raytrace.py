@@ -173,6 +173,7 @@ def sample_table(spp: int) -> np.ndarray:
         pts = pts[np.argsort(cell, kind="stable")]
         low = np.uint32((1 << shift) - 1)
         pts[:, :2] = (pts[:, :2] & low) << np.uint32(16 - shift)
+    pts.setflags(write=False)  # cached: shared by every call
     return pts
 
 
