@@ -90,10 +90,13 @@ def jax_jit(fn: Callable, static: dict[str, Any]):
 
 
 def call(name: str, fn: Callable, args: tuple, static: dict[str, Any] | None = None,
-         modules: tuple[str, ...] = ()) -> Any:
+         modules: tuple[str, ...] = (), kernels: bool = True) -> Any:
     """``fn(*args, **static)`` through the store (see the module docstring). ``fn`` must be pure
     and its result a pytree of arrays; ``modules``: the names of the modules whose source defines
-    it (their change invalidates the stored trace)."""
+    it (their change invalidates the stored trace). ``kernels=False``: ``fn`` calls none of
+    LAPACK's kernels (no linear solve), so loading its executable needs no preparing of them
+    (0.2 s: it imports ``scipy.linalg``); checked when the executable is compiled (one that
+    calls them is then not kept)."""
     static = static or {}
     store = _DIR[0]
     if store is None:
@@ -107,18 +110,18 @@ def call(name: str, fn: Callable, args: tuple, static: dict[str, Any] | None = N
             runner = _LOADED.get(key)
             if runner is None:
                 runner = _executable(store, key, args, lambda: _load_or_export(store / f"{key}.jaxexport", fn,
-                                                                                args, static))
+                                                                                args, static), kernels)
                 _LOADED[key] = runner
     return runner(*args)
 
 
-def _executable_path(store: Path, key: str, args) -> Path | None:
+def _executable_path(store: Path, key: str, args, kernels: bool = True) -> Path | None:
     """Where the compiled executable of ``key`` for these arguments is kept; None where
     executables are not kept (a backend other than the CPU, or a JAX without the hook that
     prepares LAPACK's kernels, without which a loaded executable that calls them crashes)."""
     import jax
 
-    if jax.default_backend() != "cpu" or not _prepare_custom_calls():
+    if jax.default_backend() != "cpu" or (kernels and not _prepare_custom_calls()):
         return None
     import jaxlib
 
@@ -176,20 +179,20 @@ def _processor() -> str:
     return _PROCESSOR[0]
 
 
-def _executable(store: Path, key: str, args, traced: Callable[[], Callable]) -> Callable:
+def _executable(store: Path, key: str, args, traced: Callable[[], Callable], kernels: bool = True) -> Callable:
     """The function ``key`` at ``args`` as this machine's executable: loaded from the store, or
     compiled from ``traced()`` (the stored trace, or a fresh one) and stored. Where executables
     are not kept, or this one cannot be compiled, loaded or run, ``jax.jit(traced())``: JAX
     compiles it at the first call (from its persistent cache where it can)."""
     import jax
 
-    path = _executable_path(store, key, args)
+    path = _executable_path(store, key, args, kernels)
     if path is None:
         return jax.jit(traced())
     loaded = _read_executable(path)
     if loaded is None:
         target = traced()
-        if not _write_executable(path, target, args):
+        if not _write_executable(path, target, args, kernels):
             return jax.jit(target)
         loaded = _read_executable(path)  # what later processes will load: run it here first
         if loaded is None:
@@ -211,7 +214,7 @@ def _read_executable(path: Path) -> Callable | None:
         return None
 
 
-def _write_executable(path: Path, target: Callable, args) -> bool:
+def _write_executable(path: Path, target: Callable, args, kernels: bool = True) -> bool:
     """Compile ``target`` for ``args`` afresh and store the executable; False where it fails.
     Afresh, not from JAX's persistent cache: an executable loaded from there serialises without
     its kernels (jaxlib 0.10 on the CPU: "Function ... not found" when run), so it is compiled
@@ -232,7 +235,10 @@ def _write_executable(path: Path, target: Callable, args) -> bool:
         from jax._src import config as jax_config
 
         with jax_config.persistent_cache_min_compile_time_secs(math.inf):
-            compiled = jax.jit(fresh).lower(*args).compile()
+            lowered = jax.jit(fresh).lower(*args)
+            if not kernels and "lapack" in lowered.as_text().lower():
+                return False  # it does call them: not kept, so never loaded unprepared
+            compiled = lowered.compile()
         _store(path, pickle.dumps(serialize_executable.serialize(compiled)))
         return True
     except Exception:  # not compilable ahead of time, not serialisable, a read-only store, ...

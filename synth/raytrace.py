@@ -22,9 +22,10 @@ O'Neill 2014) of (seed, pixel): deterministic for a seed, independent of tiling 
 count. Against per-sample hashed jitter with the lens strata randomly permuted per pixel (the
 method before 2026-11-27), measured on the demo's fronto-parallel shot: RMS error 21-24 % lower
 at 4-256 spp (2.7x lower at 32 spp), and 1.5x the samples per second (1.2-1.6x on a tilted
-board; the hashes were most of the per-sample arithmetic, which XLA repeats in each fused loop). Computation runs in float32
-(the geometry in pixel and millimetre units stays well within its precision); compiled once per
-scene structure (target kinds) and image width.
+board; the hashes were most of the per-sample arithmetic, which XLA repeats in each fused
+loop). Computation runs in float32 (the geometry in pixel and millimetre units stays well within
+its precision); compiled once per scene structure (target kinds) and image width, and kept as
+an executable (``lensfit.aot``) where the command-line tools keep a store.
 
 Cost: proportional to pixels x samples per pixel x objects; see ``synth bench`` figures in the
 README (million lens samples per second).
@@ -40,11 +41,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lensfit import aot
 from synth import textures
 from synth.effects.aperture import sample as aperture_sample
 from synth.scene import Shot
 
 TILE_SAMPLES = 1 << 20  # lens samples per compiled call: measured fastest on 2 cores (synth bench)
+#: The modules whose source defines the compiled tracer of a thin lens (a change traces it afresh;
+#: lensfit.aot keeps its executable where the command-line tools switched the store on: a new
+#: process then loads it instead of tracing and lowering it for JAX's persistent cache).
+AOT_MODULES = ("synth.raytrace", "synth.textures", "synth.effects.aperture")
 
 
 def _pcg(v):
@@ -366,12 +372,16 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         pad = (-H) % rows
         warp_rows = np.concatenate([warp, np.repeat(warp[-1:], pad, axis=0)]).astype(np.float32).reshape(-1, W, 6)
 
+    static = {"structure": structure, "width": W, "rows": rows, "spp": spp, "aperture": aperture,
+              "front_stop": front_stop, "compound": compound, "quadrants": fine}
+
     def dispatch(r0):
         tile_warp = None if warp is None else jnp.asarray(warp_rows[r0:r0 + rows].reshape(-1, 6))
         # numpy scalars: a jnp scalar is an operation of its own (0.2 ms each, three per tile)
-        return _render_rows(np.int32(r0), cam_arr, planes, rasters, np.float32(background), np.uint32(seed),
-                            tile_warp, structure=structure, width=W, rows=rows, spp=spp, aperture=aperture,
-                            front_stop=front_stop, compound=compound, quadrants=fine)
+        args = (np.int32(r0), cam_arr, planes, rasters, np.float32(background), np.uint32(seed), tile_warp)
+        if compound is None:  # kept compiled (lensfit.aot) where the command-line tools keep a store
+            return aot.call("raytrace", _render_rows, args, static, AOT_MODULES, kernels=False)
+        return _render_rows(*args, **static)  # (a lens prescription is no file name's part)
 
     # The next tile is dispatched before this one's result is waited for, so that the Python work
     # between tiles overlaps the tracing (demo at 16 / 64 spp: 1.45 -> 1.12 s, 3.30 -> 2.95 s a

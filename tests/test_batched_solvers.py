@@ -151,6 +151,54 @@ def test_a_stored_executable_that_calls_lapack_runs_in_a_new_process(tmp_path):
         np.testing.assert_allclose(got["c"], np.linalg.cholesky(a @ a.T), rtol=1e-12)
 
 
+_NO_KERNELS_SCRIPT = """
+import json, sys
+from pathlib import Path
+import jax.numpy as jnp, numpy as np
+from lensfit import aot
+
+def scale(x):
+    return {"y": 3.0 * x}
+
+def solve(a, b):
+    return {"y": jnp.linalg.solve(a, b)}
+
+aot.set_store(Path(sys.argv[1]))
+a = np.array([[4.0, 1.0], [1.0, 3.0]], np.float32)
+b = np.array([1.0, 2.0], np.float32)
+out = {"scale": np.asarray(aot.call("scale", scale, (b,), {}, (), kernels=False)["y"]).tolist()}
+linalg_for_scale = "scipy.linalg" in sys.modules
+if sys.argv[2] == "both":
+    out["solve"] = np.asarray(aot.call("solve", solve, (a, b), {}, (), kernels=False)["y"]).tolist()
+print(json.dumps({**out, "scipy_linalg": linalg_for_scale}))
+"""
+
+
+def test_an_executable_declared_without_lapack_loads_without_preparing_it(tmp_path):
+    """``kernels=False`` (the ray tracer): the executable is kept and a new process loads it without
+    importing SciPy's linear algebra; a function so declared that does solve a linear system is
+    not kept as an executable (a loaded one would find no LAPACK) and still answers right."""
+    import json
+    import subprocess
+    import sys
+
+    script = tmp_path / "no_kernels.py"
+    script.write_text(_NO_KERNELS_SCRIPT)
+    store = tmp_path / "store"
+    store.mkdir()
+    runs = [subprocess.run([sys.executable, str(script), str(store), mode], capture_output=True, text=True,
+                           timeout=300) for mode in ("both", "both", "scale")]
+    assert len(list(store.glob("scale-*.jaxexe"))) == 1 and not list(store.glob("solve-*.jaxexe"))
+    for run in runs:
+        assert run.returncode == 0, run.stderr[-2000:]
+    got = [json.loads(run.stdout.strip().splitlines()[-1]) for run in runs]
+    for g in got:
+        np.testing.assert_allclose(g["scale"], [3.0, 6.0])
+    for g in got[:2]:
+        np.testing.assert_allclose(g["solve"], np.linalg.solve([[4.0, 1.0], [1.0, 3.0]], [1.0, 2.0]), rtol=1e-6)
+    assert got[2]["scipy_linalg"] is False  # the stored executable loaded, LAPACK never prepared
+
+
 def _edge_image(radius_px: float, angle_deg: float, size: int = 96):
     """A step edge through the image centre blurred by a disk, from brute-force sub-pixel
     sampling of the disk's edge-spread function (independent of lensfit.psf)."""
