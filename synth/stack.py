@@ -97,8 +97,9 @@ def _write_maps(path: Path, maps: dict[str, np.ndarray]) -> None:
 
 def _run_all(jobs: list) -> None:
     """Run the file writes on a few threads (OpenCV's PNG encoder and zlib's deflate release the
-    GIL: the demo's 12 images and maps 0.33 -> 0.18 s, the same bytes); the first failure is raised once all
-    have ended (the caller's temporary folder is then discarded)."""
+    GIL: the demo's 12 images and maps 0.33 -> 0.18 s, the same bytes). The first failure (or a
+    stop) cancels the writes not yet begun and is raised once those under way have ended, so that
+    the caller can discard its temporary folder with nothing still writing into it."""
     pool = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1))
     futures = []
     try:
