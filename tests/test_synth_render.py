@@ -304,11 +304,10 @@ def test_a_pixels_samples_are_the_sobol_points_one_per_cell(spp):
         table[:, 0] = (k % n + table[:, 0]) / n
         table[:, 1] = (k // n + table[:, 1]) / n
         assert sorted(map(tuple, np.round(table * 65536))) == sorted(map(tuple, np.floor(sobol * 65536)))
+        cells = np.floor(table[:, 0] * n) + n * np.floor(table[:, 1] * n)
+        assert np.array_equal(np.sort(cells), np.arange(spp))
     else:  # the samples as they are (a square spp not a power of 2 only jitters them within their cells)
         assert np.array_equal(table, np.floor(sobol * 65536) / 65536.0)
-    if n * n == spp:
-        cells = np.floor(table[:, 0] * n) + n * np.floor(table[:, 1] * n) if spp & (spp - 1) == 0 else None
-        assert cells is None or np.array_equal(np.sort(cells), np.arange(spp))
 
 
 def test_randomised_quasi_monte_carlo_beats_independent_samples():
