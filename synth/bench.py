@@ -57,12 +57,15 @@ def run_bench(repeats: int = 3, spp_list=(4, 16, 64, 256, 1024), include_compile
 
     Returns
     -------
-    dict with ``raytrace`` rows (spp, seconds per 1-MP shot, million lens samples per second,
-    RMS error against a converged reference), ``convolve`` rows (supersampling, seconds, RMS
-    error against the same reference), compile times and the machine description.
+    dict with ``raytrace`` rows (spp, seconds per 1-MP shot with every pixel traced, million lens
+    samples per second, seconds with the constant regions taken without samples, RMS error
+    against a converged reference), the fraction of each shot's pixels traced, ``convolve`` rows
+    (supersampling, seconds, RMS error against the same reference), compile times and the
+    machine description.
     """
     from synth.convolve import render_convolve
-    from synth.raytrace import render_raytrace
+    from synth.flat import constant_pixels
+    from synth.raytrace import camera_array, render_raytrace, scene_arrays
     from synth.scene import load_scene
 
     path = specs_dir() / "scenes" / "demo.toml"
@@ -83,14 +86,23 @@ def run_bench(repeats: int = 3, spp_list=(4, 16, 64, 256, 1024), include_compile
     step("reference (convolve, 8 x 8 sub-pixels)")
     reference = render_convolve(flat, bg, 8).astype(np.float64)
     rows_rt = []
+    traced = {}
+    for name, shot in (("flat", flat), ("tilted", tilted)):
+        cam = shot.camera
+        known = constant_pixels(*scene_arrays(shot), camera_array(cam), cam.width_px, cam.height_px, bg)
+        traced[name] = float(np.isnan(known).mean())
     for spp in spp_list:
         step(f"raytrace {spp} spp")
+        # The kernel's speed with every pixel traced; then as a render runs, with the pixels of
+        # constant regions taken without samples (synth.flat), the same image.
         render_raytrace(flat, bg, spp, 0)  # compile
-        seconds = _best(lambda: render_raytrace(flat, bg, spp, 1), repeats)
+        seconds = _best(lambda: render_raytrace(flat, bg, spp, 1, constant_regions=False), repeats)
         err = float(np.sqrt(np.mean((render_raytrace(flat, bg, spp, 2) - reference) ** 2)))
-        tilted_s = _best(lambda: render_raytrace(tilted, bg, spp, 1), repeats)
+        tilted_s = _best(lambda: render_raytrace(tilted, bg, spp, 1, constant_regions=False), repeats)
         rows_rt.append({"samples_per_pixel": spp, "seconds": seconds, "seconds_tilted_charuco": tilted_s,
                         "mega_lens_samples_per_s": pixels * spp / seconds / 1e6,
+                        "seconds_constant_regions": _best(lambda: render_raytrace(flat, bg, spp, 1), repeats),
+                        "seconds_tilted_constant_regions": _best(lambda: render_raytrace(tilted, bg, spp, 1), repeats),
                         "rms_error": err})
     rows_cv = []
     for ss in (1, 2, 4):
@@ -103,7 +115,7 @@ def run_bench(repeats: int = 3, spp_list=(4, 16, 64, 256, 1024), include_compile
         "scene": str(path.name), "flat_shot": flat.name, "tilted_shot": tilted.name,
         "image_px": [flat.camera.width_px, flat.camera.height_px],
         "coc_diameter_px_flat": float(flat.camera.coc_diameter_px(flat.objects[0].pose.t_cam_target[2])),
-        "raytrace": rows_rt, "convolve": rows_cv,
+        "raytrace": rows_rt, "convolve": rows_cv, "traced_fraction": traced,
         "machine": {"cores": os.cpu_count(), "python": sys.version.split()[0]},
         "error_note": "RMS error of linear intensity (full scale 1) against convolve at 8 x 8 sub-pixels",
     }

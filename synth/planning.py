@@ -154,9 +154,9 @@ def _check_memory(shot: Shot, method: str, spp: int, supersampling: int, effects
     if method == "raytrace":
         need = raytrace_bytes(shot.camera.width_px, spp)
         if need > RENDER_MEMORY_BYTES:
-            most = int(RENDER_MEMORY_BYTES // (BYTES_PER_SAMPLE * shot.camera.width_px))
-            raise InputError("samples_per_pixel", spp, f"at most {most} for a {shot.camera.width_px} px wide image",
-                             f"one image row of ray-tracing samples would need {format_bytes(need)} (budget {budget})")
+            most = int(RENDER_MEMORY_BYTES // (2 * BYTES_PER_SAMPLE))
+            raise InputError("samples_per_pixel", spp, f"at most {most}",
+                             f"two pixels' ray-tracing samples would need {format_bytes(need)} (budget {budget})")
     else:
         need = convolve_bytes(shot, supersampling)
         if need > RENDER_MEMORY_BYTES:

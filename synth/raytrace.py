@@ -183,28 +183,25 @@ def sample_table(spp: int) -> np.ndarray:
     return pts
 
 
-@partial(jax.jit, static_argnames=("structure", "width", "rows", "spp", "aperture", "front_stop", "compound",
-                                   "quadrants"))
-def _render_rows(row0, cam, planes, rasters, background, seed, warp=None, *, structure, width, rows, spp,
-                 aperture=("circle",), front_stop=None, compound=None, quadrants=False):
-    """Mean radiance of ``rows`` image rows from ``row0``: array (rows, width); with
-    ``quadrants`` (``spp`` an even square, see :func:`quadrant_spp`) also the mean over each
-    quarter of every pixel, (2 rows, 2 width): the same samples, whose n x n pixel strata fall
-    into the quarters n/2 x n/2 each.
+@partial(jax.jit, static_argnames=("structure", "width", "spp", "aperture", "front_stop", "compound", "quadrants"))
+def _render_pixels(pixels, cam, planes, rasters, background, seed, warp=None, *, structure, width, spp,
+                   aperture=("circle",), front_stop=None, compound=None, quadrants=False):
+    """Mean radiance of the pixels ``pixels`` (uint32 indices ``row * width + column``): array
+    (count,); with ``quadrants`` (``spp`` an even square, see :func:`quadrant_spp`) also the
+    mean over each quarter of every pixel, (count, 2, 2) (quarter row, quarter column): the same
+    samples, whose n x n pixel strata fall into the quarters n/2 x n/2 each.
 
     ``aperture`` is ``synth.effects.aperture.Aperture.static``; ``front_stop`` is None or
     (distance_mm, radius_mm) of the stop that clips the pupil off axis (optical vignetting,
-    ``synth.effects.vignetting``): rays it blocks carry no light. ``warp`` is None or, per pixel
-    of these rows, (u, v, du/dx, du/dy, dv/dx, dv/dy): the pinhole position whose image a lens
-    distortion moves to the pixel centre and the local derivatives, so that each sample of the
-    distorted pixel traces its own undistorted ray (exact distortion, ``synth.effects.distortion``).
+    ``synth.effects.vignetting``): rays it blocks carry no light. ``warp`` is None or, per pixel,
+    (u, v, du/dx, du/dy, dv/dx, dv/dy): the pinhole position whose image a lens distortion moves
+    to the pixel centre and the local derivatives, so that each sample of the distorted pixel
+    traces its own undistorted ray (exact distortion, ``synth.effects.distortion``).
     """
-    n_pix = rows * width
-    pix = jnp.arange(n_pix, dtype=jnp.uint32)
     sample = jnp.arange(spp, dtype=jnp.uint32)
-    py_i = (pix // jnp.uint32(width)).astype(jnp.float32) + row0.astype(jnp.float32)
-    px_i = (pix % jnp.uint32(width)).astype(jnp.float32)
-    global_pix = pix + row0.astype(jnp.uint32) * jnp.uint32(width)
+    global_pix = pixels.astype(jnp.uint32)
+    py_i = (global_pix // jnp.uint32(width)).astype(jnp.float32)
+    px_i = (global_pix % jnp.uint32(width)).astype(jnp.float32)
     key = _pcg(global_pix ^ _pcg(seed.astype(jnp.uint32) + jnp.uint32(0x9E3779B9)))[:, None]
     # The pixel's digital shift: four 16-bit masks from two hashes per pixel (sample_table).
     key_b = _pcg(key ^ jnp.uint32(0x68E31DA4))
@@ -261,12 +258,11 @@ def _render_rows(row0, cam, planes, rasters, background, seed, warp=None, *, str
         value = jnp.where(passed, value, 0.0)
     if lens_passed is not None:  # blocked by a clear aperture of the compound lens: no light
         value = jnp.where(lens_passed, value, 0.0) * cam[9]
-    mean = value.mean(axis=1).reshape(rows, width)
+    mean = value.mean(axis=1)
     if not quadrants:
         return mean
     h = n // 2  # value[p, sy * n + sx] -> [p, qy, sy', qx, sx'] with sy = qy h + sy'
-    quarter = value.reshape(rows, width, 2, h, 2, h).mean(axis=(3, 5))  # (rows, width, qy, qx)
-    return mean, quarter.transpose(0, 2, 1, 3).reshape(2 * rows, 2 * width)
+    return mean, value.reshape(-1, 2, h, 2, h).mean(axis=(2, 4))  # (count, qy, qx)
 
 
 def quadrant_spp(spp: int) -> bool:
@@ -334,31 +330,39 @@ def compound_camera_values(cam) -> list[float]:
 BYTES_PER_SAMPLE = 96
 
 
+def tile_pixels(width_px: int, height_px: int, spp: int) -> int:
+    """Pixels per compiled call: ``TILE_SAMPLES`` lens samples (at least one pixel), no more
+    than the image holds."""
+    return max(1, min(width_px * height_px, TILE_SAMPLES // max(1, spp)))
+
+
 def raytrace_bytes(width_px: int, spp: int) -> float:
-    """Peak memory (bytes) of ray tracing: two tiles in flight (:func:`render_raytrace`), or one
-    image row of ``spp`` samples where that is more than a tile."""
-    row = width_px * spp
-    return float(BYTES_PER_SAMPLE) * (2 * TILE_SAMPLES if row <= TILE_SAMPLES else row)
+    """Peak memory (bytes) of ray tracing: two tiles in flight (:func:`render_raytrace`), a tile
+    being ``TILE_SAMPLES`` lens samples or one pixel's ``spp`` where that is more."""
+    return float(BYTES_PER_SAMPLE) * 2 * max(TILE_SAMPLES, spp)
 
 
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
                     progress: Callable[[int], None] | None = None, *, camera=None,
                     aperture: tuple = ("circle",), front_stop: tuple[float, float] | None = None,
-                    warp: np.ndarray | None = None, fine: bool = False):
+                    warp: np.ndarray | None = None, fine: bool = False, constant_regions: bool = True):
     """Render one shot by ray tracing; returns linear radiance, float32 (height, width).
 
-    ``progress(n)`` is called with the number of rows finished after each tile. ``camera``
-    replaces the shot's camera (one colour channel's, under chromatic aberration);
-    ``aperture``, ``front_stop`` and ``warp`` (here (height, width, 6)) as for ``_render_rows``.
-    ``fine`` (where :func:`quadrant_spp`): returns (image, fine image) with the fine image at
-    twice the resolution, each quarter pixel the mean of its own samples (no extra rays); its
-    2 x 2 means are the image. Diffraction filters that one, before the pixels integrate it.
+    ``progress(n)`` is called with the number of rows finished (in proportion to the pixels
+    traced) after each tile. ``camera`` replaces the shot's camera (one colour channel's, under
+    chromatic aberration); ``aperture``, ``front_stop`` and ``warp`` (here (height, width, 6)) as
+    for ``_render_pixels``. ``fine`` (where :func:`quadrant_spp`): returns (image, fine image)
+    with the fine image at twice the resolution, each quarter pixel the mean of its own samples
+    (no extra rays); its 2 x 2 means are the image. Diffraction filters that one, before the
+    pixels integrate it. ``constant_regions``: pixels whose every ray meets one region of
+    constant reflectance (or nothing) take that value without being sampled
+    (:mod:`synth.flat`; a thin lens without front stop or distortion, from ``flat.MIN_SPP``
+    samples per pixel); the traced pixels are the same either way.
     """
     if fine and not quadrant_spp(spp):
         raise ValueError(f"a fine image needs an even square number of samples per pixel, not {spp}")
     cam = camera if camera is not None else shot.camera
     W, H = cam.width_px, cam.height_px
-    rows = max(1, min(H, TILE_SAMPLES // max(1, W * spp)))
     structure, rasters, planes = scene_arrays(shot)
     cam_arr = camera_array(cam)
     compound = None
@@ -366,38 +370,61 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         from synth.lens import reverse
 
         compound = reverse(cam.stopped)
-    out = np.empty((H, W), np.float32)
-    out_fine = np.empty((2 * H, 2 * W), np.float32) if fine else None
-    if warp is not None:  # padded to whole tiles, flattened per pixel
-        pad = (-H) % rows
-        warp_rows = np.concatenate([warp, np.repeat(warp[-1:], pad, axis=0)]).astype(np.float32).reshape(-1, W, 6)
+    out = np.full((H, W), np.nan, np.float32)
+    if constant_regions and compound is None and front_stop is None and warp is None:
+        from synth import flat
 
-    static = {"structure": structure, "width": W, "rows": rows, "spp": spp, "aperture": aperture,
+        if spp >= flat.MIN_SPP:
+            out = flat.constant_pixels(structure, rasters, planes, cam_arr, W, H, background, aperture)
+    everything = bool(np.isnan(out[0, 0])) and np.isnan(out).all()
+    todo = None if everything else np.flatnonzero(np.isnan(out)).astype(np.uint32)
+    total = H * W if everything else len(todo)
+    out_fine = np.repeat(np.repeat(out, 2, axis=0), 2, axis=1) if fine else None
+    count = tile_pixels(W, H, spp)
+    warp_flat = None if warp is None else np.ascontiguousarray(warp, np.float32).reshape(-1, 6)
+    static = {"structure": structure, "width": W, "spp": spp, "aperture": aperture,
               "front_stop": front_stop, "compound": compound, "quadrants": fine}
 
-    def dispatch(r0):
-        tile_warp = None if warp is None else jnp.asarray(warp_rows[r0:r0 + rows].reshape(-1, 6))
+    def tile(k0):
+        """The pixels of the tile from the ``k0``-th to trace."""
+        if todo is None:
+            return np.arange(k0, min(k0 + count, total), dtype=np.uint32)
+        return todo[k0:k0 + count]
+
+    def dispatch(k0):
+        pixels = tile(k0)
+        if len(pixels) < count:  # the last tile padded with its last pixel (traced, not kept)
+            pixels = np.concatenate([pixels, np.full(count - len(pixels), pixels[-1], np.uint32)])
+        tile_warp = None if warp_flat is None else warp_flat[pixels]
         # numpy scalars: a jnp scalar is an operation of its own (0.2 ms each, three per tile)
-        args = (np.int32(r0), cam_arr, planes, rasters, np.float32(background), np.uint32(seed), tile_warp)
+        args = (pixels, cam_arr, planes, rasters, np.float32(background), np.uint32(seed), tile_warp)
         if compound is None:  # kept compiled (lensfit.aot) where the command-line tools keep a store
-            return aot.call("raytrace", _render_rows, args, static, AOT_MODULES, kernels=False)
-        return _render_rows(*args, **static)  # (a lens prescription is no file name's part)
+            return aot.call("raytrace", _render_pixels, args, static, AOT_MODULES, kernels=False)
+        return _render_pixels(*args, **static)  # (a lens prescription is no file name's part)
 
     # The next tile is dispatched before this one's result is waited for, so that the Python work
     # between tiles overlaps the tracing (demo at 16 / 64 spp: 1.45 -> 1.12 s, 3.30 -> 2.95 s a
-    # stack, with the numpy scalars); two tiles' memory at most, and one where a row is more
-    # than a tile (raytrace_bytes).
-    starts = list(range(0, H, rows))
-    ahead = W * spp <= TILE_SAMPLES
-    pending = dispatch(starts[0])
-    for k, r0 in enumerate(starts):
-        block = pending if pending is not None else dispatch(r0)
-        pending = dispatch(starts[k + 1]) if ahead and k + 1 < len(starts) else None
-        take = min(rows, H - r0)
+    # stack, with the numpy scalars); two tiles' memory at most (raytrace_bytes).
+    starts = list(range(0, total, count))
+    out = np.ascontiguousarray(out)
+    flat_out = out.reshape(-1)  # a view (contiguous): the tiles write into out
+    fine_view = out_fine.reshape(H, 2, W, 2) if fine else None
+    reported = 0
+    pending = dispatch(starts[0]) if starts else None
+    for k, k0 in enumerate(starts):
+        block = pending
+        pending = dispatch(starts[k + 1]) if k + 1 < len(starts) else None
+        pixels = tile(k0)
+        take = len(pixels)
+        where = slice(k0, k0 + take) if todo is None else pixels
         if fine:
             block, quarter = block
-            out_fine[2 * r0:2 * (r0 + take)] = np.asarray(quarter)[:2 * take]
-        out[r0:r0 + take] = np.asarray(block)[:take]
+            fine_view[pixels // W, :, pixels % W, :] = np.asarray(quarter)[:take]
+        flat_out[where] = np.asarray(block)[:take]
         if progress is not None:
-            progress(take)
+            done = (H * (k0 + take)) // total
+            progress(done - reported)
+            reported = done
+    if progress is not None and reported < H:
+        progress(H - reported)
     return (out, out_fine) if fine else out
