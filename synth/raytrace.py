@@ -27,8 +27,16 @@ loop). Computation runs in float32 (the geometry in pixel and millimetre units s
 its precision); compiled once per scene structure (target kinds) and image width, and kept as
 an executable (``lensfit.aot``) where the command-line tools keep a store.
 
-Cost: proportional to pixels x samples per pixel x objects; see ``synth bench`` figures in the
-README (million lens samples per second).
+Cost: proportional to the pixels traced x samples per pixel x objects. A pixel whose every ray
+meets one region of constant reflectance (inside a board's square, its margin, a uniform patch,
+the background) has that value as its exact mean and is not sampled (``synth.flat``, decided
+per 4 px block from the block's corners and the aperture; a thin lens without front stop or
+distortion, from 4 samples per pixel): 5-35 % of a demo shot's pixels are traced, and the
+images are the same (to the byte on the demo's 16-bit PNGs at 16, 64 and 256 spp; where the
+quarter-pixel image feeds diffraction, a constant quarter is its exact value where the traced
+one was a float32 mean: 1 DN in 0.2 % of a 256-spp stack's pixels). Tiles are lists of the
+pixels to trace. See ``synth bench`` figures in the README (million lens samples
+per second with every pixel traced, and seconds as rendered).
 """
 
 from __future__ import annotations

@@ -129,4 +129,4 @@ def test_unsupported_cases_trace_every_pixel():
     warp[..., 0], warp[..., 1] = np.meshgrid(np.arange(97), np.arange(71))
     warp[..., 2] = warp[..., 5] = 1.0  # the identity warp: the same image, every pixel traced
     assert np.array_equal(render_raytrace(shot, 0.3, 16, 1, warp=warp), full)
-    assert flat.aperture_radius(("no-such-shape",)) is None
+    assert flat.shape_reach(("no-such-shape",)) is None

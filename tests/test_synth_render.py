@@ -329,8 +329,7 @@ def test_randomised_quasi_monte_carlo_beats_independent_samples():
 
 def test_raytrace_is_independent_of_tiling(monkeypatch):
     # The same image whatever the tiles (each pixel's samples depend on the seed and the pixel
-    # alone): a tile of many rows, tiles of one row dispatched ahead, and rows wider than a tile,
-    # which are traced one at a time.
+    # alone): one tile of the whole image, tiles of 64 and of 16 pixels, each dispatched ahead.
     import synth.raytrace as rt
 
     board = {"target": "checkerboard", "squares": [4, 3], "square_mm": 10.0, "distance_mm": 900.0,
