@@ -22,8 +22,9 @@ A block is constant where every object is missed (the background) or exactly one
 it with one value and every other is missed; its pixels take that value. Blocks are 4 px
 squares whose corners are shared with their neighbours (one grid of corner rays per lens
 vertex and object). Textures of other kinds (slanted edges, Siemens stars, image files) are
-never declared constant where a block touches them. Not used (every pixel traced) with a
-compound lens, a front stop (optical vignetting) or lens distortion.
+never declared constant where a block touches them. Under lens distortion a block's corners are
+those of a box holding its pixels' samples in the undistorted image (their own per block, not
+shared). Not used (every pixel traced) with a compound lens or a front stop (optical vignetting).
 
 The values are exact where the tracer's are Monte-Carlo means of identical samples (equal to
 float32 rounding of that mean; tested on tilted, macro, infinity-focus, occluding and
@@ -65,10 +66,11 @@ def shape_reach(aperture: tuple) -> float | None:
 
 
 def constant_pixels(structure: tuple, rasters, planes: np.ndarray, cam: np.ndarray, width: int, height: int,
-                    background: float, aperture: tuple = ("circle",)) -> np.ndarray:
+                    background: float, aperture: tuple = ("circle",), warp: np.ndarray | None = None) -> np.ndarray:
     """(height, width) float32: each pixel's exact value where every ray of it meets one constant
     region (or nothing), NaN where it must be traced. ``structure``, ``rasters``, ``planes`` and
-    ``cam`` are the tracer's (``synth.raytrace.scene_arrays``, ``camera_array``: a thin lens)."""
+    ``cam`` are the tracer's (``synth.raytrace.scene_arrays``, ``camera_array``: a thin lens);
+    ``warp`` its lens distortion (``synth.effects.distortion.pixel_warp``), if any."""
     reach = shape_reach(aperture)
     if reach is None:
         return np.full((height, width), np.nan, np.float32)
@@ -76,14 +78,17 @@ def constant_pixels(structure: tuple, rasters, planes: np.ndarray, cam: np.ndarr
     lens = 0.5 * float(cam[4]) * reach * _LENS
     planes = np.asarray(planes, np.float64)
     nby, nbx = -(-height // BLOCK), -(-width // BLOCK)
-    # The blocks' corners (pixel coordinates of the pixels' outer edges), shared by neighbours.
-    qx = (np.arange(nbx + 1) * BLOCK - 0.5)[None, :]
-    qy = (np.arange(nby + 1) * BLOCK - 0.5)[:, None]
+    if warp is None:
+        # The blocks' corners (pixel coordinates of the pixels' outer edges), shared by neighbours.
+        qx = (np.arange(nbx + 1) * BLOCK - 0.5)[None, :]
+        qy = (np.arange(nby + 1) * BLOCK - 0.5)[:, None]
+    else:
+        qx, qy = _warped_corners(np.asarray(warp, np.float64), nby, nbx)
     mixed = np.zeros((nby, nbx), bool)
     touched = np.zeros((nby, nbx), np.int32)
     value = np.full((nby, nbx), float(background))
     for k, static in enumerate(structure):
-        ahead, u0, u1, v0, v1 = _hull(qx, qy, planes[k], cam, lens)
+        ahead, u0, u1, v0, v1 = _hull(qx, qy, planes[k], cam, lens, per_block=warp is not None)
         half_w, half_h = 0.5 * static[1], 0.5 * static[2]
         missed = (u1 < -half_w) | (u0 > half_w) | (v1 < -half_h) | (v0 > half_h)
         inside = (u0 > -half_w) & (u1 < half_w) & (v0 > -half_h) & (v1 < half_h)
@@ -99,13 +104,31 @@ def constant_pixels(structure: tuple, rasters, planes: np.ndarray, cam: np.ndarr
     return np.ascontiguousarray(np.repeat(np.repeat(blocks, BLOCK, axis=0), BLOCK, axis=1)[:height, :width])
 
 
-def _hull(qx: np.ndarray, qy: np.ndarray, plane: np.ndarray, cam: np.ndarray, lens: np.ndarray):
-    """Per block of the corner grid (qx, qy): whether every corner ray meets the plane ahead of the
-    lens, and the bounding box (u0, u1, v0, v1) of their hits in the target frame, grown by the
-    tolerance."""
+def _warped_corners(warp: np.ndarray, nby: int, nbx: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per block, the corners (nby, nbx, 4) of a box in pinhole pixel coordinates that holds every
+    sample of its pixels under the distortion: a pixel's samples lie in the parallelogram of its
+    warp (``synth.raytrace._render_pixels``: centre plus the derivatives times offsets of at
+    most half a pixel)."""
+    u, v = warp[..., 0], warp[..., 1]
+    eu = 0.5 * (np.abs(warp[..., 2]) + np.abs(warp[..., 3]))
+    ev = 0.5 * (np.abs(warp[..., 4]) + np.abs(warp[..., 5]))
+    pad = ((0, nby * BLOCK - u.shape[0]), (0, nbx * BLOCK - u.shape[1]))
+
+    def per_block(a, reduce):  # the edge pixels stand in for the padding (a block's box only grows)
+        return reduce(np.pad(a, pad, mode="edge").reshape(nby, BLOCK, nbx, BLOCK), axis=(1, 3))
+    u0, u1 = per_block(u - eu, np.min), per_block(u + eu, np.max)
+    v0, v1 = per_block(v - ev, np.min), per_block(v + ev, np.max)
+    return np.stack([u0, u1, u0, u1], axis=-1), np.stack([v0, v0, v1, v1], axis=-1)
+
+
+def _hull(qx: np.ndarray, qy: np.ndarray, plane: np.ndarray, cam: np.ndarray, lens: np.ndarray, per_block: bool):
+    """Per block: whether every corner ray meets the plane ahead of the lens, and the bounding box
+    (u0, u1, v0, v1) of their hits in the target frame, grown by the tolerance. The corners are a
+    grid shared by neighbouring blocks (qx a row, qy a column), or ``per_block`` each block's own
+    four (the last axis)."""
     cx, cy, scale, inverse_focus = cam[0], cam[1], cam[2], cam[3]
     c, ex, ey, nrm = plane[0:3], plane[3:6], plane[6:9], plane[9:12]
-    shape = (qy.shape[0], qx.shape[1])
+    shape = np.broadcast_shapes(qx.shape, qy.shape)
     lo_u, lo_v = np.full(shape, np.inf), np.full(shape, np.inf)
     hi_u, hi_v = np.full(shape, -np.inf), np.full(shape, -np.inf)
     size = np.zeros(shape)
@@ -127,6 +150,8 @@ def _hull(qx: np.ndarray, qy: np.ndarray, plane: np.ndarray, cam: np.ndarray, le
         np.maximum(size, np.abs(z) + np.abs(u) + np.abs(v), out=size)
 
     def corners(a, reduce):  # over each block's four corners
+        if per_block:
+            return reduce.reduce(a, axis=-1)
         return reduce(reduce(a[:-1, :-1], a[:-1, 1:]), reduce(a[1:, :-1], a[1:, 1:]))
     tol = _TOLERANCE * corners(size, np.maximum) + 1e-6
     return (corners(ahead, np.logical_and), corners(lo_u, np.minimum) - tol, corners(hi_u, np.maximum) + tol,

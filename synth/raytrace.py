@@ -30,8 +30,8 @@ an executable (``lensfit.aot``) where the command-line tools keep a store.
 Cost: proportional to the pixels traced x samples per pixel x objects. A pixel whose every ray
 meets one region of constant reflectance (inside a board's square, its margin, a uniform patch,
 the background) has that value as its exact mean and is not sampled (``synth.flat``, decided
-per 4 px block from the block's corners and the aperture; a thin lens without front stop or
-distortion, from 4 samples per pixel): 5-35 % of a demo shot's pixels are traced, and the
+per 4 px block from the block's corners and the aperture; a thin lens without front stop, from
+4 samples per pixel): 5-35 % of a demo shot's pixels are traced, and the
 images are the same (to the byte on the demo's 16-bit PNGs at 16, 64 and 256 spp; where the
 quarter-pixel image feeds diffraction, a constant quarter is its exact value where the traced
 one was a float32 mean: 1 DN in 0.2 % of a 256-spp stack's pixels). Tiles are lists of the
@@ -364,8 +364,8 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
     (no extra rays); its 2 x 2 means are the image. Diffraction filters that one, before the
     pixels integrate it. ``constant_regions``: pixels whose every ray meets one region of
     constant reflectance (or nothing) take that value without being sampled
-    (:mod:`synth.flat`; a thin lens without front stop or distortion, from ``flat.MIN_SPP``
-    samples per pixel); the traced pixels are the same either way.
+    (:mod:`synth.flat`; a thin lens without front stop, from ``flat.MIN_SPP`` samples per
+    pixel); the traced pixels are the same either way.
     """
     if fine and not quadrant_spp(spp):
         raise ValueError(f"a fine image needs an even square number of samples per pixel, not {spp}")
@@ -379,11 +379,11 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
 
         compound = reverse(cam.stopped)
     out = np.full((H, W), np.nan, np.float32)
-    if constant_regions and compound is None and front_stop is None and warp is None:
+    if constant_regions and compound is None and front_stop is None:
         from synth import flat
 
         if spp >= flat.MIN_SPP:
-            out = flat.constant_pixels(structure, rasters, planes, cam_arr, W, H, background, aperture)
+            out = flat.constant_pixels(structure, rasters, planes, cam_arr, W, H, background, aperture, warp)
     everything = bool(np.isnan(out[0, 0])) and np.isnan(out).all()
     todo = None if everything else np.flatnonzero(np.isnan(out)).astype(np.uint32)
     total = H * W if everything else len(todo)

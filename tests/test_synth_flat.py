@@ -121,12 +121,36 @@ def test_constant_pixels_follow_the_blur_disk():
     assert far.any() and np.all(constant[far] == np.float32(0.3))  # the background beside the board
 
 
+@pytest.mark.parametrize("k1", [-0.3, 0.25])
+def test_constant_pixels_under_lens_distortion(k1):
+    # Barrel and pincushion distortion strong enough to bend a board's edges by pixels: each
+    # traced sample follows its own undistorted ray (the warp), and the blocks' boxes hold them.
+    from synth.effects.distortion import Distortion, pixel_warp
+
+    shot = make_shot([charuco(230.0, tilt_deg=[20.0, 0.0], offset_mm=[30.0, 20.0])], f=6.0, N=2.8, D=200.0,
+                     w=161, h=121, pitch=0.02)
+    warp = pixel_warp(shot.camera, Distortion(k1=k1))
+    corner = np.hypot(*(warp[0, 0, :2] - np.array([80.0, 60.0]))) - np.hypot(80.0, 60.0)
+    assert abs(corner) > 2.0  # the corners moved by pixels
+    structure, rasters, planes = scene_arrays(shot)
+    constant = flat.constant_pixels(structure, rasters, planes, camera_array(shot.camera), 161, 121, 0.3,
+                                    warp=warp)
+    known = np.isfinite(constant)
+    assert 0.05 < known.mean() < 1.0
+    full = render_raytrace(shot, 0.3, 16, 4, warp=warp, constant_regions=False)
+    fast = render_raytrace(shot, 0.3, 16, 4, warp=warp)
+    assert np.array_equal(fast[~known], full[~known])
+    assert np.allclose(fast[known], full[known], rtol=0.0, atol=1e-6)
+
+
 def test_unsupported_cases_trace_every_pixel():
-    # A compound lens, a front stop and distortion are not decided here: every pixel is traced.
-    shot = make_shot([charuco(1300.0)], N=2.0, D=900.0)
-    full = render_raytrace(shot, 0.3, 16, 1, constant_regions=False)
-    warp = np.zeros((71, 97, 6), np.float32)
-    warp[..., 0], warp[..., 1] = np.meshgrid(np.arange(97), np.arange(71))
-    warp[..., 2] = warp[..., 5] = 1.0  # the identity warp: the same image, every pixel traced
-    assert np.array_equal(render_raytrace(shot, 0.3, 16, 1, warp=warp), full)
+    # A front stop (optical vignetting) and unknown aperture shapes are not decided here: every
+    # pixel is traced, the image the same as with constant regions off.
+    shot = make_shot([charuco(1300.0)], N=8.0, D=900.0)
+    stop = (30.0, 5.0)
+    full = render_raytrace(shot, 0.3, 16, 1, front_stop=stop, constant_regions=False)
+    assert np.array_equal(render_raytrace(shot, 0.3, 16, 1, front_stop=stop), full)
     assert flat.shape_reach(("no-such-shape",)) is None
+    structure, rasters, planes = scene_arrays(shot)
+    assert np.isnan(flat.constant_pixels(structure, rasters, planes, camera_array(shot.camera), 97, 71, 0.3,
+                                         ("no-such-shape",))).all()
