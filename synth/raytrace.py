@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lensfit import aot
-from synth import textures
+from synth import flat, textures
 from synth.effects.aperture import sample as aperture_sample
 from synth.scene import Shot
 
@@ -378,12 +378,10 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         from synth.lens import reverse
 
         compound = reverse(cam.stopped)
-    out = np.full((H, W), np.nan, np.float32)
-    if constant_regions and compound is None and front_stop is None:
-        from synth import flat
-
-        if spp >= flat.MIN_SPP:
-            out = flat.constant_pixels(structure, rasters, planes, cam_arr, W, H, background, aperture, warp)
+    if constant_regions and compound is None and front_stop is None and spp >= flat.MIN_SPP:
+        out = flat.constant_pixels(structure, rasters, planes, cam_arr, W, H, background, aperture, warp)
+    else:
+        out = np.full((H, W), np.nan, np.float32)
     everything = bool(np.isnan(out[0, 0])) and np.isnan(out).all()
     todo = None if everything else np.flatnonzero(np.isnan(out)).astype(np.uint32)
     total = H * W if everything else len(todo)
