@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from lensfit.errors import InputError
 from lensfit.limits import RENDER_MEMORY_BYTES, format_bytes
 from synth.convolve import blurred_footprint_px, convolve_bytes
-from synth.raytrace import BYTES_PER_SAMPLE, raytrace_bytes
 from synth.effects import Effects
 from synth.effects.stages import wanted_stages, working_f_number
 from synth.scene import Scene, Shot
@@ -89,7 +88,7 @@ def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[fl
     return sub / CONVOLVE_SUBPIXELS_PER_S + 0.05, f"{sub / 1e6:.1f} M sub-pixels convolved"
 
 
-def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *, samples_per_pixel: int = 1,
+def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *,
                   supersampling: int = 4) -> tuple[str, bool, str]:
     """(method, exact, reason) for one shot. ``auto`` picks the cheapest exact method that fits
     the memory budget (``lensfit.limits.RENDER_MEMORY_BYTES``); a method that does not fit is
@@ -97,7 +96,7 @@ def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *,
     if requested not in METHODS:
         raise InputError("method", requested, "one of " + ", ".join(METHODS))
     method, exact, why = _choose(shot, requested, effects, supersampling)
-    _check_memory(shot, method, samples_per_pixel, supersampling, effects)
+    _check_memory(shot, method, supersampling, effects)
     return method, exact, why
 
 
@@ -132,7 +131,7 @@ def _choose(shot: Shot, requested: str, effects: Effects | None, supersampling: 
 IMAGE_BYTES_PER_PIXEL = 32
 
 
-def _check_memory(shot: Shot, method: str, spp: int, supersampling: int, effects: Effects | None) -> None:
+def _check_memory(shot: Shot, method: str, supersampling: int, effects: Effects | None) -> None:
     """Refuse a shot whose render would take more than the memory budget, naming the option."""
     budget = format_bytes(RENDER_MEMORY_BYTES)
     cam = shot.camera
@@ -154,19 +153,14 @@ def _check_memory(shot: Shot, method: str, spp: int, supersampling: int, effects
     if method == "mitsuba":
         return  # a band of rows at a time; its film and a target's raster are small
     if method == "raytrace":
-        need = raytrace_bytes(shot.camera.width_px, spp)
-        if need > RENDER_MEMORY_BYTES:
-            most = int(RENDER_MEMORY_BYTES // (2 * BYTES_PER_SAMPLE))
-            raise InputError("samples_per_pixel", spp, f"at most {most}",
-                             f"two pixels' ray-tracing samples would need {format_bytes(need)} (budget {budget})")
-    else:
-        need = convolve_bytes(shot, supersampling)
-        if need > RENDER_MEMORY_BYTES:
-            raise InputError("method", "convolve", "raytrace or auto for this shot",
-                             f"{shot.name}'s blur kernel and FFT grid would need {format_bytes(need)} (budget "
-                             f"{budget}): its blur ({shot.camera.coc_diameter_px(min(o.pose.t_cam_target[2] for o in shot.objects)):.3g} "
-                             "px or more) is too large to convolve; is the focus distance meant to be so close to the "
-                             "focal length?")
+        return  # two tiles of pixels in flight, 0.2 GB at most (synth.raytrace.tile_pixels)
+    need = convolve_bytes(shot, supersampling)
+    if need > RENDER_MEMORY_BYTES:
+        raise InputError("method", "convolve", "raytrace or auto for this shot",
+                         f"{shot.name}'s blur kernel and FFT grid would need {format_bytes(need)} (budget "
+                         f"{budget}): its blur ({shot.camera.coc_diameter_px(min(o.pose.t_cam_target[2] for o in shot.objects)):.3g} "
+                         "px or more) is too large to convolve; is the focus distance meant to be so close to the "
+                         "focal length?")
 
 
 def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[tuple[str, float]]:
@@ -201,8 +195,7 @@ def plan(scene: Scene) -> list[ShotPlan]:
     out = []
     r = scene.render
     for shot in scene.shots:
-        method, exact, reason = choose_method(shot, r.method, scene.effects, samples_per_pixel=r.samples_per_pixel,
-                                              supersampling=r.supersampling)
+        method, exact, reason = choose_method(shot, r.method, scene.effects, supersampling=r.supersampling)
         seconds, work = _estimate(shot, method, r.samples_per_pixel, r.supersampling)
         stages = _stages(scene, shot, method, seconds)
         out.append(ShotPlan(shot, method, exact, reason, tuple(n for n, _ in stages), sum(t for _, t in stages), work,

@@ -334,20 +334,12 @@ def compound_camera_values(cam) -> list[float]:
             cam.scene_origin_z_mm, para.exit_pupil_z_mm, r_s, scale, z_last]
 
 
-#: Working memory per lens sample inside one compiled tile (rays, weights, hits; float32).
-BYTES_PER_SAMPLE = 96
-
-
 def tile_pixels(width_px: int, height_px: int, spp: int) -> int:
     """Pixels per compiled call: ``TILE_SAMPLES`` lens samples (at least one pixel), no more
-    than the image holds."""
+    than the image holds. Two tiles are in flight (:func:`render_raytrace`), each about 96
+    bytes a lens sample (rays, weights, hits; float32): 0.2 GB at most, at 65 536 spp (the
+    sampler's limit), whatever the image's size."""
     return max(1, min(width_px * height_px, TILE_SAMPLES // max(1, spp)))
-
-
-def raytrace_bytes(width_px: int, spp: int) -> float:
-    """Peak memory (bytes) of ray tracing: two tiles in flight (:func:`render_raytrace`), a tile
-    being ``TILE_SAMPLES`` lens samples or one pixel's ``spp`` where that is more."""
-    return float(BYTES_PER_SAMPLE) * 2 * max(TILE_SAMPLES, spp)
 
 
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
@@ -380,11 +372,10 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         compound = reverse(cam.stopped)
     if constant_regions and compound is None and front_stop is None and spp >= flat.MIN_SPP:
         out = flat.constant_pixels(structure, rasters, planes, cam_arr, W, H, background, aperture, warp)
+        todo = np.flatnonzero(np.isnan(out)).astype(np.uint32)  # the pixels to trace
     else:
-        out = np.full((H, W), np.nan, np.float32)
-    everything = bool(np.isnan(out[0, 0])) and np.isnan(out).all()
-    todo = None if everything else np.flatnonzero(np.isnan(out)).astype(np.uint32)
-    total = H * W if everything else len(todo)
+        out, todo = np.full((H, W), np.nan, np.float32), None  # every pixel, in order
+    total = H * W if todo is None else len(todo)
     out_fine = np.repeat(np.repeat(out, 2, axis=0), 2, axis=1) if fine else None
     count = tile_pixels(W, H, spp)
     warp_flat = None if warp is None else np.ascontiguousarray(warp, np.float32).reshape(-1, 6)
@@ -410,7 +401,7 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
 
     # The next tile is dispatched before this one's result is waited for, so that the Python work
     # between tiles overlaps the tracing (demo at 16 / 64 spp: 1.45 -> 1.12 s, 3.30 -> 2.95 s a
-    # stack, with the numpy scalars); two tiles' memory at most (raytrace_bytes).
+    # stack, with the numpy scalars); two tiles' memory at most (tile_pixels).
     starts = list(range(0, total, count))
     out = np.ascontiguousarray(out)
     flat_out = out.reshape(-1)  # a view (contiguous): the tiles write into out
