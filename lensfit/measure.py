@@ -10,6 +10,8 @@ middle from the lens plane -> a blur estimator on each edge.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import threading
 from functools import partial
 from pathlib import Path
@@ -315,6 +317,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
                 z = np.full(3, float(entry.distance_mm))
                 source = "manifest"
             middle = 0.5 * (np.asarray(task.start_px, float) + task.end_px)
+            est = _undistorted_blur(est, task.context.get("distortion_scale", 1.0) if estimator != "target" else 1.0,
+                                    flags)
             table.samples.append(Sample(
                 image=entry.file.name, setting=entry.setting, target=tid, edge=seg.id,
                 distance_mm=float(z[1]), distance_start_mm=float(z[0]), distance_end_mm=float(z[2]),
@@ -330,3 +334,27 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         tick("measure")
     table.stage_seconds = dict(clock.seconds)
     return table
+
+
+#: The distortion scales (lensfit.edge_geometry.distortion_scale) a blur reading is taken through:
+#: beyond them the calibrated model is folding or far outside what it was fitted on.
+DISTORTION_SCALE_RANGE = (0.2, 5.0)
+
+
+def _undistorted_blur(est: Any, scale: float, flags: list[str]) -> Any:
+    """An edge's blur reading in the undistorted image's pixels, where the CoC model lives: the
+    image's reading over the distortion's ``scale`` across the edge (its sigma and the uniform
+    disk's reading with it; flag ``distortion_scaled``); none where the scale is out of
+    ``DISTORTION_SCALE_RANGE`` (flag ``distortion_extreme``). ``flags`` is extended in place."""
+    if scale == 1.0 or est.coc_diameter_px is None:
+        return est
+    if not (math.isfinite(scale) and DISTORTION_SCALE_RANGE[0] <= scale <= DISTORTION_SCALE_RANGE[1]):
+        flags.append("distortion_extreme")
+        return dataclasses.replace(est, coc_diameter_px=None, sigma_px=None)
+    flags.append("distortion_scaled")
+
+    def over(v):
+        return None if v is None else v / scale
+
+    return dataclasses.replace(est, coc_diameter_px=over(est.coc_diameter_px), sigma_px=over(est.sigma_px),
+                               disk_diameter_px=over(est.disk_diameter_px), disk_sigma_px=over(est.disk_sigma_px))
