@@ -360,8 +360,13 @@ def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
         if n == 0 or not all(np.all(np.isfinite(v)) for v in (*rvecs, *tvecs)):
             # IPPE in float64 returns NaN for some near fronto-parallel squares (seen with
-            # OpenCV 5.0 on a 4-corner target); SQPnP has no such degeneracy (one solution).
-            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+            # OpenCV 5.0 on a 4-corner target); SQPnP has no such degeneracy (one solution), but
+            # refuses, with an assertion, a target too small in the image (its normalised points'
+            # variance under 1e-5 or so: a 4-corner square some metres away): no pose then.
+            try:
+                n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+            except cv2.error:
+                return None
     if n == 0 or not all(np.all(np.isfinite(v)) for v in (*rvecs, *tvecs)):
         return None
     errs = np.asarray(errs).ravel()

@@ -629,3 +629,17 @@ def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command():
                           preexec_fn=_default_sigint)
     assert proc.returncode == 130, (proc.returncode, proc.stderr)
     assert "interrupted" in proc.stderr
+
+
+def test_a_target_too_small_to_pose_is_skipped_not_an_opencv_assertion():
+    """A 4-corner square a thousandth of a pixel across (thousands of metres away): IPPE gives no
+    finite pose, and the SQPnP fallback refuses the points with an assertion (cv2.error, seen on a
+    slanted-edge stack with the target 2 m away at 15 mm); the pose is None, so the image's
+    target is skipped instead of the run crashing."""
+    from lensfit.calibration import Intrinsics, estimate_pose
+    from lensfit.targets import Detection
+
+    obj = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0]], float)
+    img = 320.0 + np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * 1e-3
+    intr = Intrinsics(3000.0, (320.0, 240.0), (0.0,) * 5, 0.0, 0, "manifest")
+    assert estimate_pose(Detection("square", obj, img, np.arange(4)), intr) is None
