@@ -264,9 +264,11 @@ def test_each_quantity_takes_its_own_degrees_of_freedom():
 
 def test_plain_readings_take_the_smaller_scale_constant(tmp_path):
     """The estimator's shared scale constant is BLUR_SCALE_SIGMA_PLAIN only where no approximate
-    model is in play: a setting whose calibration fitted no lens distortion, samples not read
-    through the Airy model; BLUR_SCALE_SIGMA where the calibration found distortion, where the
-    Airy model was used, and where the samples do not say (intrinsics given, or none)."""
+    model is in play: a setting whose calibration fitted no lens distortion, or fitted it and the
+    readings were taken through it (flag distortion_scaled), samples not read through the Airy
+    model; BLUR_SCALE_SIGMA where the calibration found distortion the readings were not taken
+    through, where the Airy model was used, and where the samples do not say (intrinsics given,
+    or none)."""
     from lensfit.fit.constants import BLUR_SCALE_BIAS_PX2, BLUR_SCALE_SIGMA_PLAIN
     from lensfit.fit.data import prepare
     from lensfit.measure import SampleTable
@@ -292,6 +294,14 @@ def test_plain_readings_take_the_smaller_scale_constant(tmp_path):
     assert np.all(got[in_a & ~airy] == BLUR_SCALE_SIGMA_PLAIN)
     assert np.all(got[~in_a | airy] == BLUR_SCALE_SIGMA)
     assert airy[in_a].sum() == 0 and airy.any()  # (the Airy rows fall in setting b: its own check below)
+    # Readings taken through the distortion (lensfit.measure: flag distortion_scaled) are plain
+    # again, but for the Airy model's.
+    plain_rows = rows
+    rows = [{**r, "flags": ";".join(filter(None, (r["flags"], "distortion_scaled")))} for r in rows]
+    got = scale_constants({"a": {**calibration, "distortion": [0.0] * 5, "source": "calibrated"},
+                           "b": {**calibration, "distortion": [-0.1, 0.02, 0, 0, 0], "source": "calibrated"}})
+    assert np.all(got[~airy] == BLUR_SCALE_SIGMA_PLAIN) and np.all(got[airy] == BLUR_SCALE_SIGMA)
+    rows = plain_rows
     rows = [{**r, "setting": "a"} for r in rows]
     in_a = np.ones(len(rows), bool)
     got = scale_constants({"a": {**calibration, "distortion": [0.0] * 5, "source": "calibrated"}})

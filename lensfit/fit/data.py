@@ -96,10 +96,13 @@ def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
                "focal_length_sigma_px": {k: v.focal_length_sigma_px for k, v in samples.intrinsics.items()},
                "focal_length_dof": {k: float(max(v.views - 1, 1)) if v.focal_length_sigma_method == "jackknife"
                                     else math.inf for k, v in samples.intrinsics.items()},
-               # settings whose calibration fitted no lens distortion (lensfit.fit.constants:
+               # settings whose calibration fitted no lens distortion, and those whose did (their
+               # readings taken through it where flagged distortion_scaled; lensfit.fit.constants:
                # BLUR_SCALE_SIGMA_PLAIN); intrinsics given or read back from a CSV do not say
                "undistorted": {k for k, v in samples.intrinsics.items()
-                               if v.source == "calibrated" and not any(v.distortion[:2])}}
+                               if v.source == "calibrated" and not any(v.distortion)},
+               "distorted": {k for k, v in samples.intrinsics.items()
+                             if v.source == "calibrated" and any(v.distortion)}}
         return samples.rows(), ctx
     rows = []
     for s in samples:
@@ -194,7 +197,8 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
-                   np.array([_scale_sigma(r, ctx.get("undistorted", frozenset())) for r in used]), truncated,
+                   np.array([_scale_sigma(r, ctx.get("undistorted", frozenset()), ctx.get("distorted", frozenset()))
+                             for r in used]), truncated,
                    _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
                    np.array([i in kept for i in used_rows], bool),
                    any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows), fdof)
@@ -220,15 +224,19 @@ def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> n
     return out
 
 
-def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset()) -> float:
+def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), distorted: set[str] = frozenset()) -> float:
     """The estimator's shared scale error for one reading: the uniform disk's, and for a shaped
     spot's reading ``SHAPE_SCALE_SHARE`` of its relative difference from the uniform disk's on top
     (``BLUR_SCALE_SIGMA_SHAPED`` where samples from before 2026-11-25 do not give that). The
     constant is ``BLUR_SCALE_SIGMA_PLAIN`` where the reading is plain: not through the Airy
-    model, in a setting of ``undistorted`` (calibrated, no lens distortion found)."""
+    model, in a setting of ``undistorted`` (calibrated, no lens distortion found), or of
+    ``distorted`` (calibrated with lens distortion) and taken through it (flag
+    ``distortion_scaled``: ``lensfit.measure``)."""
     c = float(row["coc_diameter_px"])
-    plain = str(row.get("setting")) in undistorted and "diffraction_modelled" not in _flags(row)
-    if "shaped_spot" not in _flags(row):
+    flags, setting = _flags(row), str(row.get("setting"))
+    plain = "diffraction_modelled" not in flags and (
+        setting in undistorted or (setting in distorted and "distortion_scaled" in flags))
+    if "shaped_spot" not in flags:
         return disk_scale_sigma(c, plain)
     disk = row.get("disk_diameter_px")
     if disk is None or not math.isfinite(float(disk)) or c <= 0:
