@@ -361,3 +361,35 @@ def test_a_brackets_settings_take_their_own_images_degrees_of_freedom():
                / s["inverse_focus_distance_per_m"].sigma)
         r = sh["blur"] + sh["images"]
         assert got == pytest.approx(student_z(4 / r**2)[1], rel=2e-3), (setting, got, student_z(9 / r**2)[1])
+
+
+def test_a_jackknife_refit_leaves_a_floor_stuck_at_zero():
+    """The model takes the blur floor squared, so a floor of exactly 0 is a stationary point
+    whatever the data: a solve started there stays there. Readings with a 0.6 px floor, solved
+    from the fit's other parameters with the floor at 0: one solve ends at 0 (the saddle), the
+    jackknife's refit (lensfit.fit.uncertainty._refit) at the floor the data show, at a lower
+    cost."""
+    import jax
+
+    from lensfit.fit.data import prepare
+    from lensfit.fit.model import Layout
+    from lensfit.fit.solve import _solver, _solver_args
+    from lensfit.fit.uncertainty import _refit
+
+    rng = np.random.default_rng(5)
+    rows, fpx, fsg = capture(rng, pose_rel_sigma=0.0, noise_px=0.02)
+    rows = [{**r, "coc_diameter_px": math.hypot(r["coc_diameter_px"], 0.6)} for r in rows]
+    data = prepare(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    at = Layout(1)
+    s = 1.0 / (1.0 / F - 1.0 / X)
+    theta = np.zeros(at.size)
+    theta[at.LOG_F], theta[at.inv_focus_per_m(0)], theta[at.log_n(0)] = math.log(F), 1000.0 / X, math.log(N)
+    free_idx = np.array([at.LOG_F, at.inv_focus_per_m(0), at.log_n(0), at.floor(0)])
+    args = _solver_args(theta, free_idx, data, 1.0 / data.sigma_px, [fpx], [1.0 / fsg], [1.0])
+    assert abs(s / PITCH / fpx - 1) < 0.01
+    with jax.enable_x64(True):
+        stuck = np.asarray(_solver(1)[0](theta[free_idx], args)[0])
+        refit = _refit(theta, free_idx, args, 1)
+        cost = [float(np.sum(np.asarray(_solver(1)[1](t, args)[0]) ** 2)) for t in (stuck, refit)]
+    assert stuck[3] == 0.0
+    assert abs(abs(refit[3]) - 0.6) < 0.05 and cost[1] < cost[0] - 10.0
