@@ -57,14 +57,15 @@ BLUR_SCALE_MIN_PX = 0.5
 #: not given), or found it and the reading was taken through it (flag ``distortion_scaled``:
 #: ``lensfit.measure`` divides the distortion's stretch across the edge out of the reading; since
 #: 2026-11-27, when that took the coverage suite's barrel-distortion set from N +0.11 % to
-#: -0.006 %, RMS 0.141 -> 0.076 %, 120 intervals). Such readings are biased by what exact edges and independent renders show: on
-#: exact edges no more than the 1/c^2 term bounds; on Mitsuba 3 renders at 32 spp (10 seeds, 90
-#: intervals) N +0.08 % with its RMS error over the sigma without any scale term 0.96-1.05
-#: (demo, bracket), with the 0.1 % term 0.73-0.78 (95 % half-width 3.5x the error). Where the
-#: Airy model is in play, or a distortion the reading was not taken through, and wherever it is
-#: not known (samples without their calibration), BLUR_SCALE_SIGMA: the Airy model takes the light's effective wavelength
-#: as 550 nm where real channels see a spectrum (synth's camera-raw set, diffracting at 610 /
-#: 550 / 465 nm per channel, reads N +0.04 to +0.12 % high). The N +0.12 to +0.26 % (RMS error
+#: -0.006 %, RMS 0.141 -> 0.076 %, 120 intervals). Such readings are biased by what exact edges
+#: and independent renders show: on exact edges no more than the 1/c^2 term bounds; on Mitsuba 3
+#: renders at 32 spp (10 seeds, 90 intervals) N +0.08 % with its RMS error over the sigma without
+#: any scale term 0.96-1.05 (demo, bracket), with the 0.1 % term 0.73-0.78 (95 % half-width 3.5x
+#: the error). Where the Airy model is in play, or a distortion the reading was not taken
+#: through, and wherever it is not known (samples without their calibration), BLUR_SCALE_SIGMA:
+#: the Airy model takes the light's effective wavelength as 550 nm where real channels see a
+#: spectrum (synth's camera-raw set, diffracting at 610 / 550 / 465 nm per channel, reads N +0.04
+#: to +0.12 % high). The N +0.12 to +0.26 % (RMS error
 #: over sigma 1.1-2.0 without the term) that synth's diffraction, camera-raw and distortion sets
 #: showed until 2026-11-27 was mostly synth's diffraction filtering the pixel-integrated image;
 #: rendered at twice the resolution since, its diffraction sets read N +0.04 to +0.13 %. Under
