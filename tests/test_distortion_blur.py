@@ -4,6 +4,8 @@ across the edge (lensfit.edge_geometry.distortion_scale), and measure divides th
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -145,3 +147,62 @@ def test_measure_reads_a_distorted_stack_in_undistorted_pixels(tmp_path):
     # uncorrected, the radial profiles would fall as 1 + 3 k1 r^2: a slope near -0.75
     assert abs(slope) < 0.08, slope
     assert abs(np.median(ratio) - 1) < 0.01
+
+
+def test_a_real_telephotos_spot_stretches_as_its_distortion_maps_the_plane_in_focus():
+    """Through a real compound lens (the shipped telephoto-250 prescription, f/11, pincushion), a
+    defocused point's real-ray spot off axis, against the same point on axis: across radial and
+    tangential directions it is stretched as the lens's own mapping of the plane in focus (chief
+    rays) says, and as lensfit.edge_geometry.distortion_scale says from OpenCV coefficients
+    fitted to that mapping. Field curvature also scales an off-axis spot, oppositely in front of
+    and behind focus, so each ratio is the geometric mean over two depths about as far in front
+    of focus as behind (0.7 X and 1.7 X: the curvature cancels to first order). Measured 0.06 and
+    0.10 off axis (in tan), radial / tangential: the stretch 1.0067 / 1.0022 and 1.0191 / 1.0063,
+    the spots 1.0065 / 1.0021 and 1.0156 / 1.0059: within a quarter of the stretch, where a spot
+    that ignored the distortion would sit at 1."""
+    from lensfit.calibration import Intrinsics
+    from synth.geometry import CompoundLensCamera
+    from synth.lens import load_prescription, paraxial, trace
+    from synth.lens.focus import disk_grid
+
+    rx = load_prescription("telephoto-250")
+    efl = paraxial(rx).efl_mm
+    pitch, X = 0.006 * efl / 25.0, 40.0 * efl
+    cam = CompoundLensCamera(focal_length_mm=efl, f_number=11.0, focus_distance_mm=X, pixel_pitch_mm=pitch,
+                             width_px=1200, height_px=800, prescription=rx)
+    fpx = cam.sensor_distance_mm / pitch
+    reach = 0.75 * cam.paraxial.entrance_pupil_diameter_mm + 0.1 * efl
+
+    def spot(depth, tan_field):
+        """The real rays' landing points (px) of a point at ``depth`` and field ``tan_field`` (x)."""
+        u, v = disk_grid(201)
+        ox, oz = tan_field * depth, cam.scene_origin_z_mm - depth
+        d = np.stack([reach * u - ox, reach * v, np.full_like(u, cam.scene_origin_z_mm - oz)])
+        d /= np.linalg.norm(d, axis=0)
+        (x, y, z), (dx, dy, dz), ok, _ = trace(cam.stopped, (np.full_like(u, ox), 0 * u, np.full_like(u, oz)),
+                                               tuple(d))
+        ok &= dz > 1e-9
+        t = (cam.sensor_z_mm - z[ok]) / dz[ok]
+        return (x[ok] + t * dx[ok]) / pitch, (y[ok] + t * dy[ok]) / pitch
+
+    def height(tan_field):  # the mapping of the plane in focus: where the point at X lands, / f_px
+        return abs(np.mean(spot(X, tan_field)[0])) / fpx
+
+    # OpenCV's k1, k2 fitted to the mapping (r_d / r - 1 = k1 r^2 + k2 r^4), as a calibration finds
+    fields = np.linspace(0.02, 0.16, 8)
+    k1, k2 = np.linalg.lstsq(np.column_stack([fields**2, fields**4]), [height(r) / r - 1 for r in fields],
+                             rcond=None)[0]
+    intr = Intrinsics(fpx, (599.5, 399.5), (k1, k2, 0.0, 0.0, 0.0), 0.0, 0, "manifest")
+    on_axis = {depth: spot(depth, 0.0) for depth in (0.7 * X, 1.7 * X)}
+    for r in (0.06, 0.10):
+        h = 1e-4
+        stretch = {"radial": (height(r + h) - height(r - h)) / (2 * h), "tangential": height(r) / r}
+        point = np.array([r * X, 0.0, X])
+        model = {"radial": distortion_scale(intr, point, np.array([0.0, 1.0, 0.0])),  # edge along y: normal radial
+                 "tangential": distortion_scale(intr, point, np.array([1.0, 0.0, 0.0]))}
+        for axis, j in (("radial", 0), ("tangential", 1)):
+            ratio = math.sqrt(np.prod([np.std(spot(depth, r)[j]) / np.std(on_axis[depth][j]) for depth in on_axis]))
+            assert stretch[axis] > 1.0 + 0.5 * r**2  # pincushion, enough to tell apart from 1
+            # (what field curvature leaves at second order grows as r^4: 0.0035 of 0.019 at 0.10)
+            assert abs(ratio - stretch[axis]) < 0.25 * (stretch[axis] - 1.0), (r, axis, ratio, stretch[axis])
+            assert model[axis] == pytest.approx(stretch[axis], abs=0.002), (r, axis)
