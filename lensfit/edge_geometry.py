@@ -43,7 +43,8 @@ def distortion_scale(intr: Intrinsics, point_cam: np.ndarray, along_cam: np.ndar
     """The factor by which the lens distortion scales a blur across an edge, at ``point_cam`` (camera
     frame, mm) on an edge running along ``along_cam``: ``|det J| |t| / |J t|``, ``J`` the Jacobian
     of the distortion (distorted image point over undistorted, OpenCV's model as calibrated) and
-    ``t`` the edge's direction in the undistorted image; 1 without distortion.
+    ``t`` the edge's direction in the undistorted image; 1 without distortion, NaN where the model
+    folds the image (``det J <= 0``: a barrel model far beyond the field it was fitted on).
 
     Why: a defocused point's rays cross the plane in focus in a disk (the circle of confusion
     carried out into the scene), and the lens images every point of that plane sharply, through
@@ -68,8 +69,9 @@ def distortion_scale(intr: Intrinsics, point_cam: np.ndarray, along_cam: np.ndar
     pts = np.array([[u + h, v, 1.0], [u - h, v, 1.0], [u, v + h, 1.0], [u, v - h, 1.0]])
     out = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), np.eye(3), dist)[0].reshape(4, 2)
     J = np.column_stack([(out[0] - out[1]) / (2 * h), (out[2] - out[3]) / (2 * h)])
-    stretch = float(np.linalg.norm(J @ t))
-    g = abs(float(np.linalg.det(J))) * float(np.linalg.norm(t)) / stretch if stretch > 0 else float("nan")
+    stretch, det = float(np.linalg.norm(J @ t)), float(np.linalg.det(J))
+    # det J <= 0: the model folds the image over itself here (beyond where it was fitted): no scale
+    g = det * float(np.linalg.norm(t)) / stretch if stretch > 0 and det > 0 else float("nan")
     return g if np.isfinite(g) else float("nan")
 
 

@@ -206,3 +206,29 @@ def test_a_real_telephotos_spot_stretches_as_its_distortion_maps_the_plane_in_fo
             # (what field curvature leaves at second order grows as r^4: 0.0035 of 0.019 at 0.10)
             assert abs(ratio - stretch[axis]) < 0.25 * (stretch[axis] - 1.0), (r, axis, ratio, stretch[axis])
             assert model[axis] == pytest.approx(stretch[axis], abs=0.002), (r, axis)
+
+
+def test_where_the_model_folds_the_image_there_is_no_scale():
+    """k1 = -0.5 folds the image over itself beyond r^2 = 2/3 (d r_d / d r = 1 + 3 k1 r^2 < 0): no
+    scale there (NaN, which measure turns into no reading, flag distortion_extreme), a scale inside."""
+    intr = intrinsics([-0.5, 0.0, 0.0, 0.0, 0.0])
+    assert math.isnan(distortion_scale(intr, np.array([1000.0, 0.0, 1000.0]), np.array([0.0, 1.0, 0.0])))
+    assert distortion_scale(intr, np.array([300.0, 0.0, 1000.0]), np.array([0.0, 1.0, 0.0])) == pytest.approx(
+        1 - 1.5 * 0.09, rel=1e-8)
+
+
+def test_readings_are_divided_by_the_scale_or_dropped_beyond_its_range():
+    from lensfit.estimators.base import BlurEstimate
+    from lensfit.measure import _undistorted_blur
+
+    est = BlurEstimate(4.0, 0.2, ("shaped_spot",), disk_diameter_px=3.8, disk_sigma_px=0.1)
+    flags: list[str] = []
+    got = _undistorted_blur(est, 0.8, flags)
+    assert (got.coc_diameter_px, got.sigma_px, got.disk_diameter_px, got.disk_sigma_px) == pytest.approx(
+        (5.0, 0.25, 4.75, 0.125)) and flags == ["distortion_scaled"]
+    for bad in (float("nan"), 0.1, 6.0):
+        flags = []
+        got = _undistorted_blur(est, bad, flags)
+        assert got.coc_diameter_px is None and got.sigma_px is None and flags == ["distortion_extreme"]
+    flags = []
+    assert _undistorted_blur(est, 1.0, flags) is est and flags == []
