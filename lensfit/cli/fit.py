@@ -126,6 +126,10 @@ def _print_fit(result, document) -> None:
             how = cal.get("focal_length_sigma_method") or "sigma"
             print(f"calibration: focal length {cal['focal_length_px']:.1f} ± {cal['focal_length_sigma_px']:.2g} px "
                   f"({how}, {cal['views']} views, reprojection RMS {cal['rms_px']:.3g} px)")
+            dist = cal.get("distortion_opencv") or []
+            if any(dist):
+                print(f"lens distortion k1 {dist[0]:+.3g}, k2 {dist[1]:+.3g}: each edge's blur is read through it "
+                      "(the spot is stretched with the image; flag distortion_scaled in the samples)")
         fc = qs.get("field_curvature_per_m")
         if fc is not None and fc.value is not None:
             print(f"field curvature {fc.value:.3g} ± {fc.sigma:.2g} /m: the in-focus inverse distance at field angle "
