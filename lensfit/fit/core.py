@@ -12,15 +12,15 @@ import numpy as np
 
 from lensfit.errors import InputError
 from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD,
-                                   FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX, FLOOR_SADDLE_PX,
+                                   FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX,
                                    FLOOR_START_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _second_vertex)
 from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
-from lensfit.fit.solve import (_image_scatter, _padded_size, _predict_all, _robust_scale, _robust_weights,
-                               _shared_sigma, _solver, _solver_args, _solver_residual_fn)
+from lensfit.fit.solve import (_floor_escape, _image_scatter, _padded_size, _predict_all, _robust_scale,
+                               _robust_weights, _shared_sigma, _solver, _solver_args, _solver_residual_fn)
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
 from lensfit.fit.start import _vertex_search
 from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _images_part,
@@ -280,19 +280,14 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         the model takes it squared, so 0 is a minimum of its own whatever the data, and the
         reweighting may settle there beside a fit with a floor. Where the floor fits better, the
         reweighting goes on from there (:func:`irls`)."""
-        lo = at.floor(0)
-        near = [j for j in free_idx if lo <= j < lo + m and abs(theta[j]) < FLOOR_SADDLE_PX]
-        if not near:
-            return theta, weights, converged
         args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
                             p_prior)
-        alt = theta.copy()
-        alt[near] = FLOOR_START_PX
-        alt[free_idx] = np.asarray(_solver(m)[0](alt[free_idx], args)[0])
-        if not np.all(np.isfinite(alt)):
+        better = _floor_escape(theta[free_idx], free_idx, args, m)
+        if better is None:
             return theta, weights, converged
-        cost = [float(np.sum(np.asarray(_solver(m)[1](t[free_idx], args)[0]) ** 2)) for t in (theta, alt)]
-        return irls(alt, rows, weights) if cost[1] < cost[0] * (1.0 - 1e-9) else (theta, weights, converged)
+        alt = theta.copy()
+        alt[free_idx] = better
+        return irls(alt, rows, weights)
 
     def irls(theta, rows, weights):
         """Levenberg-Marquardt inside iteratively reweighted least squares over the blur rows

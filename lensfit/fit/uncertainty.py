@@ -6,11 +6,10 @@ import math
 
 import numpy as np
 
-from lensfit.fit.constants import (FLOOR_SADDLE_PX, FLOOR_START_PX, MAX_CLUSTERS, MAX_RELATIVE_SIGMA, MIN_CLUSTERS,
-                                   QUANTITIES, _Z95)
+from lensfit.fit.constants import MAX_CLUSTERS, MAX_RELATIVE_SIGMA, MIN_CLUSTERS, QUANTITIES, _Z95
 from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult
-from lensfit.fit.solve import _solver, _solver_args
+from lensfit.fit.solve import _floor_escape, _solver, _solver_args
 from lensfit.fit.start import _side_hint
 
 
@@ -119,26 +118,17 @@ class StrataDof:
 
 def _refit(theta, free_idx, args, m: int) -> np.ndarray:
     """One jackknife refit's free parameters: solved from the fit's ``theta``, and where a free
-    floor ends within ``FLOOR_SADDLE_PX`` of 0, from ``FLOOR_START_PX`` too, keeping the lower
-    cost (as the fit itself does: lensfit.fit.core). The model takes each floor squared, so a
-    floor at 0 is a stationary point whatever the data, and a refit started there stayed there
-    where dropping the image made a floor fit better: on a standard-suite bracket (ISO 100, with
-    diffraction) one of ten refits stayed at 0 with a cost 0.23 above its minimum at 0.12 px,
-    and whether it left depended on the solver's tolerance at the rounding level (the setting's
-    focus-distance sigma 0.53 or 0.78 mm)."""
-    solve, evaluate = _solver(m)[0], _solver(m)[1]
-    sol = np.asarray(solve(theta[free_idx], args)[0])
-    lo = Layout(m).floor(0)
-    near = [k for k, j in enumerate(free_idx) if lo <= j < lo + m and abs(sol[k]) < FLOOR_SADDLE_PX]
-    if not near or not np.all(np.isfinite(sol)):
+    floor ends at 0, from a floor off it too, the better kept (``lensfit.fit.solve._floor_escape``,
+    as the fit itself does). A refit started at a floor of 0 had stayed there where dropping the
+    image made a floor fit better: on a standard-suite bracket (ISO 100, with diffraction) one of
+    ten refits stayed at 0 with a cost 0.23 above its minimum at 0.12 px, and whether it left
+    depended on the solver's tolerance at the rounding level (the setting's focus-distance sigma
+    0.53 or 0.78 mm)."""
+    sol = np.asarray(_solver(m)[0](theta[free_idx], args)[0])
+    if not np.all(np.isfinite(sol)):
         return sol
-    start = sol.copy()
-    start[near] = FLOOR_START_PX
-    alt = np.asarray(solve(start, args)[0])
-    if not np.all(np.isfinite(alt)):
-        return sol
-    cost = [float(np.sum(np.asarray(evaluate(t, args)[0]) ** 2)) for t in (sol, alt)]
-    return alt if cost[1] < cost[0] * (1.0 - 1e-9) else sol
+    better = _floor_escape(sol, free_idx, args, m)
+    return sol if better is None else better
 
 
 def _jackknife(cov, blur_cov, theta, free_idx, data, used, row_on, weights, fpx, fpx_w, floor_w, p_prior,
