@@ -202,6 +202,31 @@ def test_five_percent_outliers(loss):
     assert err_robust < err_plain
 
 
+@pytest.mark.parametrize("loss", ["huber", "cauchy"])
+def test_robust_fit_is_the_fixed_point_of_reweighting(loss):
+    """The robust fit minimises the loss itself (lensfit.fit.solve._robust_rows) where it had
+    reweighted a dozen times; either way its estimates must be the reweighting's fixed point:
+    least squares with the final weights held gives them back. Held weights are the same as
+    sigmas over sqrt(weight), so a plain fit of those rows is an independent check. The stated
+    sigmas are half the noise and there are gross outliers, so that the residuals' robust scale
+    (2) and the weights' thresholds matter."""
+    f, N, D = 50.0, 2.8, 2000.0
+    rng = np.random.default_rng(21)
+    rows, fpx, fpx_sigma = simulate(f, N, D, spread(800, 6000, 80), rng, noise_px=0.1, rel_noise=0.01)
+    for r in rows:
+        r["sigma_px"] *= 0.5
+    for i in rng.choice(len(rows), 6, replace=False):
+        rows[i]["coc_diameter_px"] = rows[i]["coc_diameter_px"] * rng.uniform(1.5, 3.0) + 3.0
+    robust = run_fit(rows, fpx, fpx_sigma, loss=loss)
+    assert robust.ok and len(robust.weights) == len(rows)
+    assert robust.n_outliers >= 6 and np.sum(robust.weights < 0.999) > 10  # the thresholds bite
+    held = [dict(r, sigma_px=r["sigma_px"] / math.sqrt(w)) for r, w in zip(rows, robust.weights)]
+    plain = run_fit(held, fpx, fpx_sigma, loss="linear")
+    for name in ("f_number", "focus_distance_mm", "focal_length_mm"):
+        a, b = robust.settings["a"][name].value, plain.settings["a"][name].value
+        assert abs(a / b - 1) < 1e-7, (name, a, b)
+
+
 def test_heavy_noise_is_honest():
     f, N, D = 50.0, 2.8, 2000.0
     rng = np.random.default_rng(12)
@@ -446,6 +471,9 @@ def test_a_floor_left_at_zero_by_an_earlier_solve_is_tried_again(loss, monkeypat
     class FirstSolveZeroesTheFloor:
         def __init__(self, m):
             self.inner, self.m = real(m), m
+
+        def __getattr__(self, name):  # the robust solve (the rounds after the first) as it is
+            return getattr(self.inner, name)
 
         def __getitem__(self, k):
             if k != 0:

@@ -290,13 +290,23 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         return irls(alt, rows, weights)
 
     def irls(theta, rows, weights):
-        """Levenberg-Marquardt inside iteratively reweighted least squares over the blur rows
-        ``rows`` (0/1 per sample); returns (theta, weights, converged)."""
-        theta, converged = theta.copy(), True
+        """The robust fit over the blur rows ``rows`` (0/1 per sample), started with ``weights``;
+        returns (theta, weights, converged). The first solve weights the residuals by
+        ``weights``; each one after it minimises the robust loss itself (:func:`_robust_rows` of
+        lensfit.fit.solve), with each residual's scale (its sigma with its image's shared error,
+        times the residuals' robust scale) taken from the solve before, until the estimates and
+        the weights those scales give settle. That is the fixed point of iteratively reweighted
+        least squares, reached in a few solves instead of a dozen: reweighting alone converges
+        by a factor of about 7 a round and ran out its 12 rounds on the standard suite's stacks."""
+        theta, converged, q = theta.copy(), True, None
+        base = rows / data.sigma_px
         for it in range(rounds):
-            args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
-                                p_prior)
-            sol, ok = _solver(m)[0](theta[free_idx], args)
+            if q is None:
+                args = _solver_args(theta, free_idx, data, np.sqrt(weights) * base, fpx, fpx_w, floor_w, p_prior)
+                sol, ok = _solver(m)[0](theta[free_idx], args)
+            else:
+                args = _solver_args(theta, free_idx, data, base, fpx, fpx_w, floor_w, p_prior)
+                sol, ok = _solver(m).solve_robust(theta[free_idx], args, np.concatenate([q, np.ones(npad - n)]), loss)
             sol = np.asarray(sol)
             if not np.all(np.isfinite(sol)):
                 return theta, weights, False
@@ -311,11 +321,13 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
             # against the readings' sigma alone those images, the focus distance's best, were
             # down-weighted as outliers while the jackknife, holding the weights, missed the cost
             # (1 % pose errors: 95 % intervals held the focus distance in 77 % of captures).
-            u = (data.coc_px - _predict_all(theta, m, data)) / _shared_sigma(theta, m, data, rows)
-            new = _robust_weights(u / _robust_scale(u[rows > 0]), loss)
+            shared = _shared_sigma(theta, m, data, rows)
+            u = (data.coc_px - _predict_all(theta, m, data)) / shared
+            scale = _robust_scale(u[rows > 0])
+            new = _robust_weights(u / scale, loss)
             if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
                 break
-            weights = new
+            weights, q = new, shared * scale / data.sigma_px
         return theta, weights, converged
 
     def evaluate(theta, weights):

@@ -52,6 +52,40 @@ def _optx_solve(theta0, args, m: int):
     return sol.value, sol.result == optx.RESULTS.successful
 
 
+def _robust_rows(r, q, loss: str):
+    """Blur residuals ``r`` (in their sigmas) under the robust loss: ``sign(r) sqrt(2 rho_q(r))``
+    with ``rho_q(r) = q^2 rho(r / q)`` (``q``: each row's scale, in its sigmas), so that their
+    sum of squares is the robust objective and its stationary point is the reweighting's fixed
+    point (weights ``psi(u) / u``, :func:`_robust_weights`). Huber: ``r`` within ``k q``, beyond
+    it ``sqrt(2 t |r| - t^2)``, ``t = k q``; Cauchy: ``a sqrt(log(1 + (r / a)^2))``, ``a = c q``.
+    Both branches kept finite, so that the unused one's derivative is no NaN."""
+    import jax.numpy as jnp
+
+    if loss == "huber":
+        t = _HUBER_K * q
+        inside = jnp.abs(r) <= t
+        a = jnp.where(inside, t, jnp.abs(r))
+        return jnp.where(inside, r, jnp.sign(r) * jnp.sqrt(2.0 * t * a - t * t))
+    a = _CAUCHY_C * q
+    x = r / a
+    small = jnp.abs(x) < 1e-4
+    xs = jnp.where(small, 1.0, x)
+    return jnp.where(small, r * (1.0 - 0.25 * x * x), jnp.sign(r) * a * jnp.sqrt(jnp.log1p(xs * xs)))
+
+
+def _optx_solve_robust(theta0, args, q, m: int, loss: str):
+    import optimistix as optx
+
+    def fn(theta_free, a):
+        res = _residuals(theta_free, (*a[0][:2], m, *a[0][2:]))
+        n = a[1].shape[0]
+        return res.at[:n].set(_robust_rows(res[:n], a[1], loss))
+
+    solver = optx.LevenbergMarquardt(rtol=SOLVE_RTOL, atol=SOLVE_ATOL)
+    sol = optx.least_squares(fn, solver, theta0, args=(args, q), max_steps=400, throw=False)
+    return sol.value, sol.result == optx.RESULTS.successful
+
+
 def _evaluate(theta, args, m: int):
     from lensfit.lm import residuals_and_jacobian
 
@@ -93,6 +127,14 @@ class _Solver:
 
     def solve(self, theta0, args):
         return self._call("solve", _optx_solve, theta0, args)
+
+    def solve_robust(self, theta0, args, q, loss: str):
+        """``solve`` under the robust ``loss`` with each blur row's scale ``q`` (in its sigmas,
+        padded as the rows; :func:`_robust_rows`): the weights of ``args`` are ``rows / sigma``."""
+        from lensfit import aot
+
+        return aot.call("fit-solve-robust", _optx_solve_robust, (theta0, args, q), {"m": self.m, "loss": loss},
+                        AOT_MODULES)
 
     def evaluate(self, theta, args):
         return self._call("evaluate", _evaluate, theta, args)
@@ -140,12 +182,13 @@ def likely_free_counts(m: int) -> tuple[int, ...]:
 
 
 def prewarm(m: int, n: int) -> None:
-    """Load (or trace and compile) the fit's compiled functions for ``m`` settings and ``n``
-    samples (padded as the fit pads them) on data with nothing to fit, so that the caller can
-    overlap their loading with other work: ``lensfit.pipeline`` runs it in a background thread
-    once the stack's edges are known, while they are measured (a fresh process spent 0.3-0.5 s
-    of the fit loading them; ``lensfit.aot``). Which functions the fit then calls depends on its
-    data (:func:`likely_free_counts` guesses); one it did not load here loads at its first call.
+    """Load (or trace and compile) the fit's compiled functions (the robust solve for the
+    default loss, Huber's) for ``m`` settings and ``n`` samples (padded as the fit pads them) on
+    data with nothing to fit, so that the caller can overlap their loading with other work:
+    ``lensfit.pipeline`` runs it in a background thread once the stack's edges are known, while
+    they are measured (a fresh process spent 0.3-0.5 s of the fit loading them;
+    ``lensfit.aot``). Which functions the fit then calls depends on its data
+    (:func:`likely_free_counts` guesses); one it did not load here loads at its first call.
     SciPy's special functions, which the intervals take, are imported here too."""
     import jax
 
@@ -165,6 +208,7 @@ def prewarm(m: int, n: int) -> None:
             free_idx = np.arange(min(k, theta.size), dtype=np.int64)
             full = _solver_args(theta, free_idx, data, np.zeros(n), np.zeros(m), np.zeros(m), np.zeros(m))
             jax.block_until_ready(solver.solve(theta[free_idx], full))
+            jax.block_until_ready(solver.solve_robust(theta[free_idx], full, np.ones(_padded_size(n)), "huber"))
             jax.block_until_ready(solver.evaluate(theta[free_idx], full))
         jax.block_until_ready(solver.derived(theta))
     import scipy.special  # noqa: F401 - the intervals' Student-t quantiles (0.07 s of a fresh fit)
