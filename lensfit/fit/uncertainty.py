@@ -123,8 +123,8 @@ def _refit(theta, free_idx, args, m: int) -> np.ndarray:
     image made a floor fit better: on a standard-suite bracket (ISO 100, with diffraction) one of
     ten refits stayed at 0 with a cost 0.23 above its minimum at 0.12 px, and whether it left
     depended on the solver's tolerance at the rounding level (the setting's focus-distance sigma
-    0.53 or 0.78 mm)."""
-    sol = np.asarray(_solver(m)[0](theta[free_idx], args)[0])
+    0.53 or 0.78 mm). Solved to the refits' tolerances (``lensfit.fit.solve.REFIT_RTOL``)."""
+    sol = np.asarray(_solver(m).solve_refit(theta[free_idx], args)[0])
     if not np.all(np.isfinite(sol)):
         return sol
     better = _floor_escape(sol, free_idx, args, m)
