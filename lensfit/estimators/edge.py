@@ -214,7 +214,10 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
     images and edges, whose profiles are then solved again (with ``airy_px``) instead of being
     gathered anew. The first pass and the profiles do not depend on the Airy scale (the first
     pass reads a uniform disk), so the estimates are those of a call without ``profiles``; a
-    dict from other edges is ignored. ``lensfit.pipeline``'s diffraction rounds re-read the
+    dict from other edges is ignored. Such a call keeps its solutions with the Airy pattern in
+    the dict, and the next one starts its fits from them instead of from a grid over the first
+    pass's radius (the same minima: readings within 1e-7, but for sub-pixel blurs on a flat
+    cost, within 0.0003 px; the fits a third faster). ``lensfit.pipeline``'s diffraction rounds re-read the
     same edges at a new Airy scale each (0.15 s of a 10-shot bracket's 0.6 s a round, warm)."""
     items = list(items)
     if airy_px is not None:
@@ -242,16 +245,24 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         # its radius bounds the start of the fit with the pattern. Each full chunk is solved
         # while the next profiles are gathered.
         with_airy = airy_px is not None and attempt == 1
-        queue = FitQueue(False, with_airy)
+        # An earlier call's solutions with the Airy pattern (at the last round's scale, a nearby
+        # one) start these: a third less time than the grid from the first pass's radius.
+        earlier = reuse.get("airy_theta") if with_airy and reuse is not None else None
+        if reuse is not None:
+            results, radius, flags, npixels, lines, expected, banded, batch, index = (
+                list(v) for v in reuse["state"])
+            if earlier is not None and not all(i in earlier for i in index):
+                earlier = None
+        queue = FitQueue(False, with_airy, warm=earlier is not None)
 
         def enqueue(i, profile):
-            if with_airy:  # started from the first pass's radius
+            if earlier is not None:
+                queue.add(profile, earlier[i], float(airy_px[owner[i]]))
+            elif with_airy:  # started from the first pass's radius
                 queue.add(profile, np.array([0.0, radius[i] ** 2, 0.0, 1.0, 0.0]), float(airy_px[owner[i]]))
             else:
                 queue.add(profile)
         if reuse is not None:
-            results, radius, flags, npixels, lines, expected, banded, batch, index = (
-                list(v) for v in reuse["state"])
             for i, profile in zip(index, batch):
                 enqueue(i, profile)
         else:
@@ -289,6 +300,8 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 progress(k)
         airy = [float(airy_px[owner[i]]) for i in index] if with_airy else None
         fits = queue.results()
+        if with_airy and reuse is not None:  # for the next round's start
+            reuse["airy_theta"] = {i: np.asarray(fits[j][0][:5], np.float64) for j, i in enumerate(index) if fits[j][3]}
         shaped: list[int] = []
         disk: dict[int, tuple[float, float, float]] = {}  # the disk's (diameter, RMS, sigma) where shaped
         if second_moment and attempt == 1 and airy is None:

@@ -50,7 +50,7 @@ NPIX = STRIPS * NBINS_ACROSS
 NPIX_CLASSES = (64, NPIX)
 
 
-def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: bool = False):
+def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: bool = False, warm: bool = False):
     # airy: per problem the Airy kernel (knots, slope changes, tail); dummies without diffraction
     from lensfit import lm
 
@@ -65,6 +65,8 @@ def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: 
         # interval, where the full grid's 24 were most of the solve's cost with the pattern.
         if shaped:
             start = shape_start(theta_disk, args)
+        elif diffraction and warm:  # from the solution at a nearby Airy scale (an earlier round), its ramp 0
+            start = jnp.concatenate([theta_disk, jnp.zeros(1)])
         elif diffraction:
             radius = jnp.sqrt(squared_radius(jnp, theta_disk[1]))
             start = jnp.concatenate([grid_start(d, s, v, w, nx, ny, airy, radius * jnp.asarray(AIRY_START_SHARES)),
@@ -111,8 +113,10 @@ class FitQueue:
     class to whole chunks of ``CHUNK`` (``SMALL_CHUNK`` for two disks and the Airy pattern): a few
     compiled shapes per kind of fit for any stack."""
 
-    def __init__(self, shaped: bool, diffraction: bool):
+    def __init__(self, shaped: bool, diffraction: bool, warm: bool = False):
         self.static = {"shaped": shaped, "diffraction": diffraction}
+        if warm:  # (only then in the key: the stored fits without it keep theirs)
+            self.static["warm"] = True
         self.chunk = SMALL_CHUNK if shaped or diffraction else CHUNK
         self.items: list[tuple] = []  # (sample, disk, airy)
         self.classes: dict[int, list[int]] = {c: [] for c in NPIX_CLASSES}
@@ -166,15 +170,16 @@ class FitQueue:
 
 
 def fit_profiles(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], shaped: bool = True,
-                 disk: list[np.ndarray] | None = None, airy: list[float] | None = None):
+                 disk: list[np.ndarray] | None = None, airy: list[float] | None = None, warm: bool = False):
     """Fit a list of (d, s, values, standard errors, normal); returns theta, cov, rms, ok and the
     chi-square cost of a 1 px blur (``probe``) per item (:class:`FitQueue`).
     The two-disk fit (``shaped``) and the fit with the Airy pattern start from each item's
     uniform-disk solution, ``disk``; ``airy``: each item's Airy scale in px (diffraction
-    modelled; None: not)."""
+    modelled; None: not); ``warm``: the fits with the pattern start at ``disk`` itself (a
+    solution with the pattern at a nearby scale; its ramp at 0) instead of a grid over its radius."""
     if airy is not None and (disk is None or len(disk) != len(samples)):
         raise ValueError("a fit with the Airy pattern starts from each item's uniform-disk solution: give disk")
-    queue = FitQueue(shaped, airy is not None)
+    queue = FitQueue(shaped, airy is not None, warm)
     for k, smp in enumerate(samples):
         queue.add(smp, None if disk is None else disk[k], None if airy is None else airy[k])
     return queue.results()
@@ -210,3 +215,5 @@ def prewarm_airy() -> None:
     edge_kernel(1.0, 1.0, 0.0)
     for npix in NPIX_CLASSES:
         fit_profiles(_dummy(npix), False, _DISK, airy=[1.0])
+    for npix in NPIX_CLASSES:  # the later rounds', started from the round before
+        fit_profiles(_dummy(npix), False, _DISK, airy=[1.0], warm=True)
