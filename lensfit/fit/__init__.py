@@ -65,12 +65,14 @@ every blur moves ``A``, ``N``, the slope and the floor alike, and nothing else) 
 
 Solver: a closed-form start (for each candidate vertex on a grid spanning the data, linear
 least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix
-Levenberg-Marquardt, inside iteratively reweighted least squares for a robust loss (Huber by
-default, Cauchy for heavy contamination) that judges each residual against its sigma with its
-image's shared distance error added (the images' scatter along the blur's slope beyond what their
-readings explain: a pose error is not an outlier). A floor that ends at 0 (the model takes it
-squared: 0 is a minimum of its own) is solved once more from ``FLOOR_START_PX`` with the final
-weights, and the reweighting goes on from there where that fits better. The covariance is
+Levenberg-Marquardt for a robust loss (Huber by default, Cauchy for heavy contamination) that
+judges each residual against its sigma with its image's shared distance error added (the images'
+scatter along the blur's slope beyond what their readings explain: a pose error is not an
+outlier): least squares first, then the loss itself with each residual's scale from the solve
+before, until estimates and weights settle (the fixed point of iteratively reweighted least
+squares, in a few solves). A floor that ends at 0 (the model takes it squared: 0 is a minimum
+of its own) is solved once more from ``FLOOR_START_PX`` with the final weights, and the robust
+solves go on from there where that fits better. The covariance is
 ``(J^T W J)^-1`` at the solution,
 the blur rows' part scaled by their reduced chi-square (up or down: their own scatter about the
 fit, from the samples less the free parameters as degrees of freedom), the calibration's and the

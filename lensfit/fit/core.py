@@ -55,7 +55,8 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     loss : "huber" (default), "cauchy" (many outliers) or "linear"
     blur_floor_px : fix the blur floor (px) instead of fitting it per setting
     floor_prior_sigma_px : width of the weak prior on a fitted floor (about 0)
-    max_irls : reweighting rounds for the robust loss
+    max_irls : robust solves at most (least squares, then the loss itself with the residuals'
+        scales of the solve before, until they settle)
     pupil_magnification : how P is treated. None (default): fitted where two or more calibrated
         settings focus at different distances (unit focusing: they share f and P), otherwise
         assumed 1 (the thin lens) with a warning that says so and what it costs. A number:
@@ -278,8 +279,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     def floor_retried(theta, rows, weights, converged):
         """A free floor that ends at 0 tried again from ``FLOOR_START_PX`` with the same weights:
         the model takes it squared, so 0 is a minimum of its own whatever the data, and the
-        reweighting may settle there beside a fit with a floor. Where the floor fits better, the
-        reweighting goes on from there (:func:`irls`)."""
+        robust solves may settle there beside a fit with a floor. Where the floor fits better, they
+        go on from there (:func:`irls`)."""
         args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
                             p_prior)
         better = _floor_escape(theta[free_idx], free_idx, args, m)
