@@ -74,7 +74,9 @@ class SampleTable:
     #: the edge estimator's profiles of the first pass over the edges as detected (where asked
     #: for, ``keep_profiles``: about 4 kB an edge); in memory for a later
     #: :func:`lensfit.measure.measure` of the same stack with the Airy pattern, which solves them
-    #: again instead of gathering them (``lensfit.pipeline``, which lets them go when it returns)
+    #: again instead of gathering them (``lensfit.pipeline``, which lets them go when it returns);
+    #: beside them the calibration from the corners as detected and the edges it gives, which
+    #: that measure takes too where its detections are these very objects
     profiles: dict[str, Any] | None = None
 
     COLUMNS = SAMPLES_CSV_COLUMNS

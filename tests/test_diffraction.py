@@ -305,8 +305,9 @@ def test_the_rounds_decode_each_image_once(diffraction_stack, monkeypatch):
 def test_a_round_solves_the_kept_profiles_again_and_reads_what_gathering_them_anew_reads(diffraction_stack,
                                                                                         monkeypatch):
     """The diffraction rounds re-read a stack's edges at a new Airy scale from the profiles its
-    first measure kept (``keep_profiles``): no profile is gathered again, and every sample, its
-    sigma and distance, come out as a measure that gathers them anew, bit for bit."""
+    first measure kept (``keep_profiles``): no profile is gathered again, nor the corners as
+    detected calibrated again, and every sample, its sigma and distance, come out as a measure
+    that gathers them anew, bit for bit."""
     import lensfit.estimators.edge as edge_module
     import lensfit.measure as measure_module
 
@@ -314,11 +315,15 @@ def test_a_round_solves_the_kept_profiles_again_and_reads_what_gathering_them_an
     assert plain.profiles and len(plain.profiles["state"][-1]) > 0.9 * len(plain.samples)
     airy = {"a": 1.4}
     fresh = measure_module.measure(diffraction_stack, airy_px=airy, detected=measure_module.measure(diffraction_stack))
-    gathered = []
+    gathered, calibrated = [], []
     original = edge_module._select
     monkeypatch.setattr(edge_module, "_select", lambda *a, **k: gathered.append(1) or original(*a, **k))
+    calibrate = measure_module.calibrate
+    monkeypatch.setattr(measure_module, "calibrate", lambda *a, **k: calibrated.append(k) or calibrate(*a, **k))
     again = measure_module.measure(diffraction_stack, airy_px=airy, detected=plain)
     assert len(gathered) < 0.05 * len(plain.samples)  # only edges the refined corners added, if any
+    # the corners as detected were calibrated by the first measure: only the refined ones again
+    assert calibrated == [{"jackknife": True}]
     assert again.profiles is plain.profiles  # carried on to the next round
     key = [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in again.samples]
     assert key == [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in fresh.samples]
