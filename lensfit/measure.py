@@ -251,20 +251,20 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
     # objects), kept beside the profiles: each round had calibrated them again (0.1 s a round).
     keeping = profiles == {}
     inputs = [list(detections[i]) for i in range(n)]  # held in the entry: compared by identity
-    earlier = profiles.get("unrefined") if profiles and refine else None
-    if earlier is not None and _same_objects(earlier[0], inputs):
-        _, kept, notes, intrinsics, work = earlier
+    entry = profiles.get("unrefined") if profiles and refine else None
+    if entry is not None and _same_objects(entry[0], inputs):
+        _, kept, notes, intrinsics, work = entry
         detections.update({i: list(v) for i, v in kept.items()})
         table.warnings.extend(notes)
         table.intrinsics = dict(intrinsics)
     else:
-        before, work = len(table.warnings), None
+        before, entry, work = len(table.warnings), None, None
         with clock.stage("calibrate"):
             # (the uncertainty of a calibration that the refined corners replace is not needed)
             table.intrinsics = calibrate_all(final=not refine)
         if profiles is not None and refine:
-            profiles["unrefined"] = [inputs, {i: list(v) for i, v in detections.items()}, table.warnings[before:],
-                                     dict(table.intrinsics), None]
+            entry = profiles["unrefined"] = [inputs, {i: list(v) for i, v in detections.items()},
+                                             table.warnings[before:], dict(table.intrinsics), None]
     # The fits loading in the background (:func:`_prewarm`) are not waited for here: each compiled fit
     # waits for its own loading (lensfit.aot's lock per function), so that the first pass starts
     # once its two fits are in and the shaped fits load while it runs (on the demo the process
@@ -277,8 +277,8 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         if work is None:
             with clock.stage("calibrate"):
                 work = {i: tasks_for(i, table.intrinsics) for i in range(n)}
-            if profiles is not None and "unrefined" in profiles and _same_objects(profiles["unrefined"][0], inputs):
-                profiles["unrefined"][4] = work
+            if entry is not None:  # kept with the calibration it comes from
+                entry[4] = work
         if on_edges is not None:
             on_edges(len({e.setting for e in stack.images}), sum(len(w[0]) for w in work.values()))
         with clock.stage("measure"):

@@ -217,8 +217,9 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
     dict from other edges is ignored. Such a call keeps its solutions with the Airy pattern in
     the dict, and the next one starts its fits from them instead of from a grid over the first
     pass's radius (the same minima: readings within 1e-7, but for sub-pixel blurs on a flat
-    cost, within 0.0003 px; the fits a third faster). ``lensfit.pipeline``'s diffraction rounds re-read the
-    same edges at a new Airy scale each (0.15 s of a 10-shot bracket's 0.6 s a round, warm)."""
+    cost, within 0.0003 px; the fits a third faster). ``lensfit.pipeline``'s diffraction rounds
+    re-read the same edges at a new Airy scale each (0.15 s of a 10-shot bracket's 0.6 s a
+    round, warm)."""
     items = list(items)
     if airy_px is not None:
         if len(airy_px) != len(items) or not all(math.isfinite(a) and 0.0 <= a <= MAX_AIRY_PX for a in airy_px):

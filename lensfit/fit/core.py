@@ -328,8 +328,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
             new = _robust_weights(u / scale, loss)
             if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
                 break
-            q = shared * scale / data.sigma_px
-            weights, q = new, np.where(np.isfinite(q) & (q > 0.0), q, 1.0)
+            weights, q = new, shared * scale / data.sigma_px
+            q = np.where(np.isfinite(q) & (q > 0.0), q, 1.0)
         return theta, weights, converged
 
     def evaluate(theta, weights):

@@ -196,14 +196,14 @@ def likely_free_counts(m: int) -> tuple[int, ...]:
 
 
 def prewarm(m: int, n: int) -> None:
-    """Load (or trace and compile) the fit's compiled functions (the robust solve for the
-    default loss, Huber's, and the jackknife's refits) for ``m`` settings and ``n`` samples (padded as the fit pads them) on
-    data with nothing to fit, so that the caller can overlap their loading with other work:
-    ``lensfit.pipeline`` runs it in a background thread once the stack's edges are known, while
-    they are measured (a fresh process spent 0.3-0.5 s of the fit loading them;
+    """Load (or trace and compile) the fit's compiled functions (the robust solve for the default
+    loss, Huber's, and the jackknife's refits) for ``m`` settings and ``n`` samples (padded as the
+    fit pads them) on data with nothing to fit, so that the caller can overlap their loading with
+    other work: ``lensfit.pipeline`` runs it in a background thread once the stack's edges are
+    known, while they are measured (a fresh process spent 0.3-0.5 s of the fit loading them;
     ``lensfit.aot``). Which functions the fit then calls depends on its data
-    (:func:`likely_free_counts` guesses); one it did not load here loads at its first call.
-    SciPy's special functions, which the intervals take, are imported here too."""
+    (:func:`likely_free_counts` guesses); one it did not load here loads at its first call. SciPy's
+    special functions, which the intervals take, are imported here too."""
     import jax
 
     from lensfit.fit.constants import EDGE_NODES
