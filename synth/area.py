@@ -134,6 +134,8 @@ def area_average(static: tuple, raster: np.ndarray, x_lo: np.ndarray, y_lo: np.n
     xe, ye, values = grid
     ox = overlap_matrix(x_lo, side, xe)
     oy = overlap_matrix(y_lo, side, ye)
-    colour = oy @ (ox @ values.T).T
-    alpha = np.outer(np.asarray(oy.sum(axis=1)).ravel(), np.asarray(ox.sum(axis=1)).ravel())
-    return np.asarray(colour, np.float32), alpha.astype(np.float32)
+    # The large products formed in float32 (each output a sum of a few overlaps; rounding ~1e-7,
+    # far below a 16-bit step): float64 ones and their float32 copies took 0.5 s of a 13 MP grid.
+    colour = oy.astype(np.float32) @ np.ascontiguousarray((ox @ values.T).T, np.float32)
+    alpha = np.outer(np.asarray(oy.sum(axis=1), np.float32).ravel(), np.asarray(ox.sum(axis=1), np.float32).ravel())
+    return np.asarray(colour, np.float32), alpha
