@@ -434,3 +434,27 @@ def test_parallel_workers_get_the_costliest_groups_first():
     for value in set(spp):
         same = [g for g in suite_groups if g[0]["render"]["samples_per_pixel"] == value]
         assert [g for g in ordered if g[0]["render"]["samples_per_pixel"] == value] == same
+
+
+def test_a_noisy_stack_in_memory_holds_the_pixels_its_written_copy_decodes_to(calibration_stack, tmp_path):
+    """The benchmark's noisy stacks are held in memory (``noisy_stack``) instead of written as PNG
+    copies and read back (``noisy_copy``): every image is the copy's decoded image to the bit,
+    from the same seed, and noisy (not the clean image). A stack whose files would decode
+    otherwise (sRGB-encoded) is refused, for the caller to write the copy."""
+    from lensfit.bench.noise import noisy_copy, noisy_stack
+    from lensfit.stack import load_stack
+
+    held = noisy_stack(calibration_stack, np.random.default_rng(7), 2000.0, 3.0, 0.8)
+    noisy_copy(calibration_stack, tmp_path / "copy", np.random.default_rng(7), 2000.0, 3.0, 0.8)
+    copy, clean = load_stack(tmp_path / "copy"), load_stack(calibration_stack)
+    assert held is not None and len(held.images) == len(copy.images) >= 6
+    for i in range(len(copy.images)):
+        assert held.read(i).dtype == copy.read(i).dtype
+        assert np.array_equal(held.read(i), copy.read(i))
+        assert np.std(held.read(i) - 0.8 * np.clip(clean.read(i), 0.0, 1.0)) > 1e-3
+    srgb = tmp_path / "srgb"
+    noisy_copy(calibration_stack, srgb, np.random.default_rng(0), 2000.0, 3.0)
+    manifest = srgb / "stack.toml"
+    manifest.write_text(manifest.read_text().replace('encoding = "linear"', 'encoding = "srgb"'))
+    assert 'encoding = "srgb"' in manifest.read_text()
+    assert noisy_stack(srgb, np.random.default_rng(0), 2000.0, 3.0) is None

@@ -76,7 +76,7 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
     ``shared``: a ``synth.render.GeometricCache`` of renders of the same shots with other effects
     (:func:`run_group`); a render that takes its geometric images from there is timed as if it
     had rendered them: the seconds they took (without compilation) are added."""
-    from lensfit.bench.noise import noisy_copy
+    from lensfit.bench.noise import noisy_copy, noisy_stack
     from lensfit.fit import cramer_rao, fit
     from lensfit.jaxcache import enable_compilation_cache
     from lensfit.measure import measure
@@ -127,10 +127,14 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
         with tempfile.TemporaryDirectory(prefix="lensfit-bench-", dir=cache_dir) as tmp:
             path = stack
             if "full_well_e" in noise:
-                path = Path(tmp) / "noisy"
                 rng = np.random.default_rng([task["seed"], int(_key(noise["name"]), 16) % 2**32])
-                noisy_copy(stack, path, rng, float(noise["full_well_e"]), float(noise.get("read_noise_e", 0.0)),
-                           float(noise.get("exposure", 1.0)))
+                levels = (float(noise["full_well_e"]), float(noise.get("read_noise_e", 0.0)),
+                          float(noise.get("exposure", 1.0)))
+                # held in memory (the pixels the copy's files would hold); written where they could not be
+                path = noisy_stack(stack, rng, *levels)
+                if path is None:
+                    path = Path(tmp) / "noisy"
+                    noisy_copy(stack, path, rng, *levels)  # (nothing drawn from rng before the refusal)
             by_estimator: dict[str, Any] = {}
             for c in cases:
                 record = {"id": c["id"], "scene": scene_path.stem, "render": render_label(task["render"]),
