@@ -448,8 +448,12 @@ def test_a_noisy_stack_in_memory_holds_the_pixels_its_written_copy_decodes_to(ca
     noisy_copy(calibration_stack, tmp_path / "copy", np.random.default_rng(7), 2000.0, 3.0, 0.8)
     copy, clean = load_stack(tmp_path / "copy"), load_stack(calibration_stack)
     assert held is not None and len(held.images) == len(copy.images) >= 6
+    rng = np.random.default_rng(7)  # the noise model written out: photons, read noise, 16 bits
     for i in range(len(copy.images)):
-        assert held.read(i).dtype == copy.read(i).dtype
+        electrons = rng.poisson(np.clip(clean.read(i), 0.0, 1.0) * 0.8 * 2000.0) + rng.normal(0.0, 3.0, clean.shape)
+        expected = np.round(np.clip(electrons / 2000.0, 0.0, 1.0) * 65535).astype(np.uint16) / 65535.0
+        assert held.read(i).dtype == copy.read(i).dtype == np.float64
+        assert np.array_equal(copy.read(i), expected)
         assert np.array_equal(held.read(i), copy.read(i))
         assert np.std(held.read(i) - 0.8 * np.clip(clean.read(i), 0.0, 1.0)) > 1e-3
     srgb = tmp_path / "srgb"

@@ -79,8 +79,9 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
     from lensfit.bench.noise import noisy_copy, noisy_stack
     from lensfit.fit import cramer_rao, fit
     from lensfit.jaxcache import enable_compilation_cache
-    from lensfit.measure import measure
+    from lensfit.measure import HOLD_BYTES, measure
     from lensfit.pipeline import measure_and_fit
+    from lensfit.stack import load_stack
     from synth.render import render
     from synth.stack import write_stack
 
@@ -122,6 +123,7 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
     by_noise: dict[str, list[dict[str, Any]]] = {}
     for c in todo:
         by_noise.setdefault(c["noise"]["name"], []).append(c)
+    clean = None
     for cases in by_noise.values():
         noise = cases[0]["noise"]
         with tempfile.TemporaryDirectory(prefix="lensfit-bench-", dir=cache_dir) as tmp:
@@ -130,8 +132,11 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
                 rng = np.random.default_rng([task["seed"], int(_key(noise["name"]), 16) % 2**32])
                 levels = (float(noise["full_well_e"]), float(noise.get("read_noise_e", 0.0)),
                           float(noise.get("exposure", 1.0)))
-                # held in memory (the pixels the copy's files would hold); written where they could not be
-                path = noisy_stack(stack, rng, *levels)
+                # held in memory (the pixels the copy's files would hold), the clean images decoded
+                # once for every noise level; written where they could not be
+                if clean is None:
+                    clean = load_stack(stack).holding(HOLD_BYTES)
+                path = noisy_stack(clean, rng, *levels)
                 if path is None:
                     path = Path(tmp) / "noisy"
                     noisy_copy(stack, path, rng, *levels)  # (nothing drawn from rng before the refusal)
