@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import time
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -23,7 +24,9 @@ def quick_report(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "quick"
     # quick is a smoke suite: its camera-raw cases (noise, diffraction, a Bayer mosaic) may miss
     # the 1-2 % tolerances; the report is what is tested here, not those tolerances.
+    started = time.perf_counter()
     assert main(["bench", "--suite", "quick", "--out", str(out), "--jobs", "2", "--allow-fail"]) == 0
+    (out.parent / "outside_clock_s").write_text(repr(time.perf_counter() - started))
     return out
 
 
@@ -462,3 +465,18 @@ def test_a_noisy_stack_in_memory_holds_the_pixels_its_written_copy_decodes_to(ca
     manifest.write_text(manifest.read_text().replace('encoding = "linear"', 'encoding = "srgb"'))
     assert 'encoding = "srgb"' in manifest.read_text()
     assert noisy_stack(srgb, np.random.default_rng(0), 2000.0, 3.0) is None
+
+
+def test_the_results_say_how_long_the_run_took(quick_report):
+    """The provenance carries the run's wall seconds (rendering, measuring, fitting): for the
+    first run most of what the command took by an outside clock and never more; a resumed run
+    (the resume test here, with nothing left to do) its own seconds beside the first run's."""
+    doc = json.loads((quick_report / "results.json").read_text())
+    first = json.loads((quick_report / "cache" / "provenance.json").read_text())
+    outside = float((quick_report.parent / "outside_clock_s").read_text())
+    assert 0.5 * outside <= first["seconds_wall"] <= outside
+    if "first_run" in doc["provenance"]:
+        assert doc["provenance"]["first_run"]["seconds_wall"] == first["seconds_wall"]
+        assert doc["provenance"]["seconds_wall"] < 0.5 * first["seconds_wall"]
+    else:
+        assert doc["provenance"]["seconds_wall"] == first["seconds_wall"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 from lensfit.errors import InputError
@@ -202,9 +203,12 @@ def _bench_command(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     with OutputLock([("--out", out)]), _progress_bar(console, args.progress) as bar:
         task = bar.add_task(f"suite {suite.name}", total=n_cases)
+        started = time.perf_counter()
         records = run_suite(suite, out, jobs=args.jobs, resume=args.resume, executor=args.executor,
                             progress=lambda done, total: bar.update(task, completed=done, total=total))
-        prov = provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor)
+        # what this run took (rendering, measuring, fitting; a resumed run: the cases it ran)
+        prov = {**provenance(suite, ["lensfit", *args.argv], args.jobs, args.executor),
+                "seconds_wall": round(time.perf_counter() - started, 3)}
         first = out / "cache" / "provenance.json"
         if first.is_file():  # a resumed run: the cases came (partly) from the first run
             prov = {**prov, "first_run": json.loads(first.read_text())}
@@ -216,8 +220,8 @@ def _bench_command(args: argparse.Namespace) -> int:
     summary = summarise(records, suite)
     failed = sum(1 for r in records if r.get("error"))
     missed = sum(1 for r in summary["rows"] if r["passed"] is False)
-    print(f"{len(records)} cases ({failed} refused by the input checks); wrote "
-          + ", ".join(str(f) for f in files.values()))
+    print(f"{len(records)} cases ({failed} refused by the input checks) in {prov['seconds_wall'] / 60:.1f} minutes; "
+          "wrote " + ", ".join(str(f) for f in files.values()))
     for line in _interval_lines(summary["coverage"]):
         print(line)
     if missed and not args.allow_fail:
