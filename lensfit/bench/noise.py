@@ -5,7 +5,8 @@ Noise (until synth simulates sensors itself): each image's linear values are tak
 fraction of a full well (``full_well_e`` electrons at 1.0), photon noise is drawn as Poisson,
 read noise as Gaussian (``read_noise_e``), then clipped and quantised to 16 bits. Each draw
 is seeded (``numpy.random.default_rng(seed)``); the noisy stack is written to a temporary
-folder beside nothing the user owns.
+folder beside nothing the user owns (:func:`noisy_copy`), or, in ``lensfit bench``'s suites,
+held in memory as the pixels those files would decode to (:func:`noisy_stack`).
 """
 
 from __future__ import annotations
