@@ -51,12 +51,17 @@ REFIT_RTOL = 1e-7
 REFIT_ATOL = 1e-6
 
 
-def _optx_solve(theta0, args, m: int, rtol: float = SOLVE_RTOL, atol: float = SOLVE_ATOL):
+def _levenberg_marquardt(fn, theta0, args, rtol: float = SOLVE_RTOL, atol: float = SOLVE_ATOL):
+    """optimistix's Levenberg-Marquardt on residuals ``fn(theta, args)``: (theta, converged)."""
     import optimistix as optx
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(_solver_residual_fn(m), solver, theta0, args=args, max_steps=400, throw=False)
+    sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=400, throw=False)
     return sol.value, sol.result == optx.RESULTS.successful
+
+
+def _optx_solve(theta0, args, m: int, rtol: float = SOLVE_RTOL, atol: float = SOLVE_ATOL):
+    return _levenberg_marquardt(_solver_residual_fn(m), theta0, args, rtol, atol)
 
 
 def _robust_rows(r, q, loss: str):
@@ -81,16 +86,12 @@ def _robust_rows(r, q, loss: str):
 
 
 def _optx_solve_robust(theta0, args, q, m: int, loss: str):
-    import optimistix as optx
-
     def fn(theta_free, a):
         res = _residuals(theta_free, (*a[0][:2], m, *a[0][2:]))
         n = a[1].shape[0]
         return res.at[:n].set(_robust_rows(res[:n], a[1], loss))
 
-    solver = optx.LevenbergMarquardt(rtol=SOLVE_RTOL, atol=SOLVE_ATOL)
-    sol = optx.least_squares(fn, solver, theta0, args=(args, q), max_steps=400, throw=False)
-    return sol.value, sol.result == optx.RESULTS.successful
+    return _levenberg_marquardt(fn, theta0, (args, q))
 
 
 def _evaluate(theta, args, m: int):
@@ -127,28 +128,22 @@ class _Solver:
     def __init__(self, m: int):
         self.m = m
 
-    def _call(self, name, fn, *args):
+    def _call(self, name, fn, *args, **static):
         from lensfit import aot
 
-        return aot.call(f"fit-{name}", fn, args, {"m": self.m}, AOT_MODULES)
+        return aot.call(f"fit-{name}", fn, args, {"m": self.m, **static}, AOT_MODULES)
 
     def solve(self, theta0, args):
         return self._call("solve", _optx_solve, theta0, args)
 
     def solve_refit(self, theta0, args):
         """``solve`` to the jackknife's tolerances (``REFIT_RTOL``, ``REFIT_ATOL``)."""
-        from lensfit import aot
-
-        return aot.call("fit-solve", _optx_solve, (theta0, args),
-                        {"m": self.m, "rtol": REFIT_RTOL, "atol": REFIT_ATOL}, AOT_MODULES)
+        return self._call("solve", _optx_solve, theta0, args, rtol=REFIT_RTOL, atol=REFIT_ATOL)
 
     def solve_robust(self, theta0, args, q, loss: str):
         """``solve`` under the robust ``loss`` with each blur row's scale ``q`` (in its sigmas,
         padded as the rows; :func:`_robust_rows`): the weights of ``args`` are ``rows / sigma``."""
-        from lensfit import aot
-
-        return aot.call("fit-solve-robust", _optx_solve_robust, (theta0, args, q), {"m": self.m, "loss": loss},
-                        AOT_MODULES)
+        return self._call("solve-robust", _optx_solve_robust, theta0, args, q, loss=loss)
 
     def evaluate(self, theta, args):
         return self._call("evaluate", _evaluate, theta, args)
