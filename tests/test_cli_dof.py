@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 
@@ -95,3 +96,43 @@ def test_help_does_not_import_jax():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert "--focal-length" in proc.stdout
+
+
+_PROCESS_PROBE = """
+import ctypes, os, platform
+from lensfit.running import command_process
+command_process()
+import numpy as np
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(k, ctypes.c_size_t) for k in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                               "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+mapped = None
+if platform.libc_ver()[0] == "glibc":
+    info = ctypes.CDLL(None).mallinfo2
+    info.restype = MallInfo2
+    before = info().hblks
+    block = np.ones(2_000_000)  # 16 MB: glibc maps a block this size afresh by default
+    mapped = info().hblks - before
+print(os.environ.get("OPENBLAS_NUM_THREADS"), mapped)
+"""
+
+
+@pytest.mark.parametrize("preset", [None, "3"])
+def test_a_command_process_runs_one_blas_thread_and_reuses_freed_memory(preset):
+    """lensfit.running.command_process: numpy's BLAS pool left at one thread unless the user set
+    it; image-sized arrays taken from the heap instead of mapped afresh (glibc)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "MALLOC_MMAP_THRESHOLD_",
+                                                             "MALLOC_TRIM_THRESHOLD_")}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    proc = subprocess.run([sys.executable, "-c", _PROCESS_PROBE], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    threads, mapped = proc.stdout.split()
+    assert threads == (preset or "1")
+    assert mapped in ("0", "None")
+    # and the probe can fail: without command_process the block is mapped
+    bare = subprocess.run([sys.executable, "-c", _PROCESS_PROBE.replace("command_process()", "")],
+                          capture_output=True, text=True, env=env)
+    assert bare.stdout.split()[1] in ("1", "None")

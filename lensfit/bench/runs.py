@@ -309,8 +309,12 @@ def _run_local(tasks, cache: str, jobs: int, tick: Callable[[], None]) -> None:
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    # spawn, not fork: JAX and OpenCV hold threads that fork does not copy safely.
-    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+    from lensfit.running import command_process
+
+    # spawn, not fork: JAX and OpenCV hold threads that fork does not copy safely. The workers are
+    # set up as a command's process (one BLAS thread each: two workers on two cores).
+    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                initializer=command_process) as pool:
         futures = [pool.submit(run_group, g, cache) for g in costliest_first(groups(tasks))]
         for fut in cf.as_completed(futures):
             fut.result()

@@ -285,8 +285,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 def run() -> None:
     """The ``lensfit`` program: :func:`main` on the command line's arguments, then the process
     ends (``lensfit.running.exit_process``)."""
-    from lensfit.running import exit_process
+    from lensfit.running import command_process, exit_process
 
+    command_process()
     exit_process(main())
 
 

@@ -208,12 +208,14 @@ def prewarm(shaped: bool = True, diffraction: bool = False) -> None:
         prewarm_airy()
 
 
-def prewarm_airy() -> None:
+def prewarm_airy(rounds: bool = True) -> None:
     """Load the fits with the Airy pattern (every profile size) and compute its tables, as
     :func:`prewarm` does for the plain fits: ``lensfit.pipeline`` runs it in the background
-    while the first fit runs, before its diffraction test."""
+    while the first fit runs, before its diffraction test. ``rounds=False``: not the fits that
+    start from a round before (what the diffraction test alone calls; a round's own measuring
+    loads them, :func:`prewarm`)."""
     edge_kernel(1.0, 1.0, 0.0)
     for npix in NPIX_CLASSES:
         fit_profiles(_dummy(npix), False, _DISK, airy=[1.0])
-    for npix in NPIX_CLASSES:  # the later rounds', started from the round before
+    for npix in NPIX_CLASSES if rounds else ():  # the later rounds', started from the round before
         fit_profiles(_dummy(npix), False, _DISK, airy=[1.0], warm=True)
