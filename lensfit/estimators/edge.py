@@ -280,15 +280,15 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                     results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
                     radius[i] = None
                     continue
-                d, s_along, v, se, n, L, short, pixels, line, se_banded = sel
-                banded[i] = (d, s_along, v, se_banded, n)
+                d, s_along, v, se, n, L, short, pixels, line, se_banded, boxes = sel
+                banded[i] = (d, s_along, v, se_banded, boxes)
                 lines[i] = (line, n)
                 if attempt == 1:
                     flags[i] = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
                     angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
                     if min(angle, 90.0 - angle) < AXIS_ALIGNED_DEG:
                         flags[i].append("axis_aligned")
-                batch.append((d, s_along, v, se, n))
+                batch.append((d, s_along, v, se, boxes))
                 npixels[i] = pixels
                 index.append(i)
                 enqueue(i, batch[-1])

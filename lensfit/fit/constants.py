@@ -39,17 +39,22 @@ MAX_CLUSTERS = 400  # one LM solve each
 #: ``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2`` (c its blur diameter, at least
 #: ``BLUR_SCALE_MIN_PX``), weighted over the fit by the information it carries about a scale,
 #: ``(c / sigma)^2``. Measured for the edge estimator on exact edges (a half-plane blurred by a
-#: uniform disk, integrated over each pixel; slants 3-33 degrees; ``lensfit bench-measure``):
-#: noise-free +1.2 % at 0.7 px, +0.6 % at 1 px, +0.2 % at 1.5 px, +0.12 % at 2 px, +0.05 % at
-#: 3 px, at most 0.01 % from 6 px (the 1/c^2 term bounds these); under noise no bias beyond
-#: its 0.1-0.2 % standard error. On independent renders (Mitsuba 3, 32 spp) the f-number
-#: scatters 0.1 % beyond the readings' own scatter and the calibration's (bias +0.04 to
-#: +0.08 %): the constant term. (Until 2026-11-24 one constant 0.25 %, from synth renders at
-#: 256 spp: the f-number's 95 % intervals were 4.5x its error on independent renders, 9-14x
-#: on synth's.) Readings through the shaped (two-disk) spot model are within 1 % of the true
-#: second moment on real-ray spots (tests/test_compound_render.py).
+#: uniform disk, integrated over each pixel by Gauss-Legendre nodes; slants 3-33 degrees, two
+#: sub-pixel offsets; ``lensfit bench-measure``) since its profile's bins are modelled
+#: (``lensfit.estimators.profile.footprint``, 2026-11-28): noise-free -0.46 to +0.42 % at 0.7 px,
+#: -0.13 to +0.17 % at 1 px, -0.06 to +0.05 % at 1.5 px, within 0.02 % from 2 px (means over the
+#: slants within 0.03 %); under noise 0.005 (40 draws) no bias beyond its standard error (0.3 %
+#: at 0.7 px, 0.1 % at 1.5 px). The 1/c^2 term bounds these. Before, the bins' spread (a 1/8 px box
+#: the model left out) read every blur wide by about 0.9 % / c^2 (+0.9 % at 1 px, +0.19 % at 2 px),
+#: which an even 12 x 12 sub-pixel grid in the exact edges (a pixel 1/1728 px^2 too narrow: -0.46 %
+#: at 1 px) had halved; the term was 0.006 px^2. On independent renders (Mitsuba 3, 32 spp) the
+#: f-number scattered 0.1 % beyond the readings' own scatter and the calibration's (bias +0.04 to
+#: +0.08 %, before the bins were modelled): the constant term. (Until 2026-11-24 one constant
+#: 0.25 %, from synth renders at 256 spp: the f-number's 95 % intervals were 4.5x its error on
+#: independent renders, 9-14x on synth's.) Readings through the shaped (two-disk) spot model are
+#: within 1 % of the true second moment on real-ray spots (tests/test_compound_render.py).
 BLUR_SCALE_SIGMA = 0.001
-BLUR_SCALE_BIAS_PX2 = 0.006
+BLUR_SCALE_BIAS_PX2 = 0.0025
 BLUR_SCALE_MIN_PX = 0.5
 #: The constant where no approximate model stands between the image and the reading: the
 #: samples were read without the Airy model (which assumes 550 nm for the light's effective
@@ -102,10 +107,12 @@ MAX_CONDITION = 1e8
 LOSSES = ("linear", "huber", "cauchy")
 #: An edge whose ends lie at different depths has a blur that varies along it; a one-disk
 #: edge fit then reports a power mean of the local blur diameters between the mean (1) and the
-#: RMS (2). Measured with the edge estimator on ray-traced squares tilted 50-60 degrees (blur
-#: 0-8 px along one edge, crossing focus or not): 1.3 fits within 4.2 % (mean |error| 1.6 %);
-#: the mean is 1-10 % low, the RMS 5-10 % high (tests/test_fit_pipeline.py). Fronto-parallel
-#: edges are unaffected.
+#: RMS (2). Measured with the edge estimator on ray-traced squares tilted 40-65 degrees (blur
+#: 0-8 px along one edge, crossing focus or not; 24 edges, tests/test_fit_pipeline.py): 1.3 fits
+#: within 9.6 % (mean |error| 3.5 %), the mean within 13.5 % (3.8 %), the RMS within 19.5 %
+#: (10.3 %); 1.1-1.2 would fit best (3.1 %), within the scatter of one scene's edges (before the
+#: profile's bins were modelled: 3.5 % for 1.3, 2.7 % for 1.1-1.2). Fronto-parallel edges are
+#: unaffected.
 BLUR_POWER_MEAN = 1.3
 EDGE_NODES = 16
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(EDGE_NODES)
