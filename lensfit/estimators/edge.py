@@ -46,7 +46,9 @@ Method
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
     each side, and the ends of the segment are skipped by the window plus the blur, so that
     neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
-    128 across a wider window. Every edge of a stack is fitted in one batched solve per pass
+    128 across a wider window; a bin's value is the profile averaged over its pixels' positions,
+    so the model's pixel footprint is widened by their spread (``profile.footprint``: left out,
+    it read exact edges 0.9 % / c^2 wide). Every edge of a stack is fitted in one batched solve per pass
     (``measure_images``; ``jax.vmap`` over chunks of 16 edges, 4 for two disks and the Airy
     pattern, of 64 or 256 bins, each chunk solved as soon as it is full while the next profiles
     are gathered): two compiled shapes per kind of fit, whatever the stack
