@@ -432,8 +432,8 @@ def test_slanted_edge_squares_of_different_sizes_are_told_apart_by_the_image_ent
 
 
 def test_exact_edges_bias_stays_within_the_fits_scale_budget():
-    """The fit carries the edge estimator's shared scale error as ``BLUR_SCALE_SIGMA +
-    BLUR_SCALE_BIAS_PX2 / c^2`` (lensfit.fit.constants.disk_scale_sigma); on exact edges (a half-plane blurred by
+    """The fit carries the edge estimator's shared scale error as ``BLUR_SCALE_SIGMA`` and
+    ``BLUR_SCALE_BIAS_PX2 / c^2`` in quadrature (lensfit.fit.constants.disk_scale_sigma); on exact edges (a half-plane blurred by
     the CoC formula's uniform disk, pixel-integrated: no renderer) the noise-free reading stays
     inside that at every blur and slant, and its mean over the slants is unbiased (before the
     profile's bins were modelled, lensfit.estimators.profile.footprint: +0.9 % at 1 px, +1.8 % at

@@ -169,7 +169,8 @@ def run_exact(noise: float = 0.005, draws: int = 40, seed: int = 0, progress=Non
     slant (two sub-pixel offsets each), and the mean over ``draws`` noise draws (standard
     deviation ``noise`` at mid grey, shot + read) with its standard error; beside each the
     bound the fit's error budget takes for the estimator's shared scale error
-    (lensfit.fit.constants.disk_scale_sigma: ``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2``)."""
+    (lensfit.fit.constants.disk_scale_sigma: ``BLUR_SCALE_SIGMA`` and ``BLUR_SCALE_BIAS_PX2 / c^2`` in
+    quadrature)."""
     from lensfit.fit.constants import disk_scale_sigma
 
     enable_compilation_cache()

@@ -58,7 +58,7 @@ Error budget: each reported variance is split into its sources (``Estimate.share
 results.json ``variance_shares``): the blur readings' scatter, the calibration, what an image's
 edges share beyond that (the images' modelled shared distance error and the leave-one-image-out
 jackknife's excess over the model), the blur estimator's
-shared scale error (``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2`` per sample, the constant
+shared scale error (``BLUR_SCALE_SIGMA`` and ``BLUR_SCALE_BIAS_PX2 / c^2`` in quadrature per sample, the constant
 ``BLUR_SCALE_SIGMA_PLAIN`` where neither the Airy model nor a lens distortion is in play: a scale on
 every blur moves ``A``, ``N``, the slope and the floor alike, and nothing else) and the priors. The model covariance splits exactly as
 ``H^-1 J_g^T J_g H^-1`` over the row groups ``g`` of the Jacobian.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 
 import numpy as np
 
@@ -36,7 +37,7 @@ MAX_CLUSTERS = 400  # one LM solve each
 #: bias of the estimator's model that does not average out over edges (the per-sample model
 #: floor of lensfit.estimators.base does). It multiplies every blur alike, so it moves the
 #: aperture and f-number (and the slope and floor) and nothing else. A sample's share is
-#: ``BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2`` (c its blur diameter, at least
+#: ``BLUR_SCALE_SIGMA`` and ``BLUR_SCALE_BIAS_PX2 / c^2`` in quadrature (c its blur diameter, at least
 #: ``BLUR_SCALE_MIN_PX``), weighted over the fit by the information it carries about a scale,
 #: ``(c / sigma)^2``. Measured for the edge estimator on exact edges (a half-plane blurred by a
 #: uniform disk, integrated over each pixel by Gauss-Legendre nodes; slants 3-33 degrees, two
@@ -91,9 +92,11 @@ BLUR_SCALE_SIGMA_PLAIN = 0.0005
 
 def disk_scale_sigma(c_px: float, plain: bool = False) -> float:
     """The estimator's shared relative scale error for a uniform-disk reading of ``c_px``
-    (``plain``: read with no approximate model in play, ``BLUR_SCALE_SIGMA_PLAIN``)."""
+    (``plain``: read with no approximate model in play, ``BLUR_SCALE_SIGMA_PLAIN``): the constant
+    and the 1/c^2 term in quadrature, two independent sources (until 2026-11-28 added, as if one
+    moved with the other)."""
     constant = BLUR_SCALE_SIGMA_PLAIN if plain else BLUR_SCALE_SIGMA
-    return constant + BLUR_SCALE_BIAS_PX2 / max(c_px, BLUR_SCALE_MIN_PX) ** 2
+    return math.hypot(constant, BLUR_SCALE_BIAS_PX2 / max(c_px, BLUR_SCALE_MIN_PX) ** 2)
 #: A reading through the shaped (two-disk) spot model adds to that a share of its relative
 #: difference from the uniform disk's reading of the same edge (``disk_diameter_px``): on real-ray
 #: spots the two-disk family is within about a tenth of what the disk misses (1 % where the disk

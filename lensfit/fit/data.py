@@ -39,7 +39,7 @@ class FitData:
     #: error, which the fit carries (lensfit.fit.model._distance_scale)
     pose: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     #: the estimator's shared scale error that applies to each sample (relative 1 sigma;
-    #: BLUR_SCALE_SIGMA + BLUR_SCALE_BIAS_PX2 / c^2, more for a ``shaped_spot`` reading:
+    #: BLUR_SCALE_SIGMA and BLUR_SCALE_BIAS_PX2 / c^2 in quadrature, more for a ``shaped_spot`` reading:
     #: ``_scale_sigma``)
     scale_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: of ``dropped``, the edges whose blur outgrew the clean room around them (flag
@@ -226,7 +226,8 @@ def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> n
 
 def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), distorted: set[str] = frozenset()) -> float:
     """The estimator's shared scale error for one reading: the uniform disk's, and for a shaped
-    spot's reading ``SHAPE_SCALE_SHARE`` of its relative difference from the uniform disk's on top
+    spot's reading ``SHAPE_SCALE_SHARE`` of its relative difference from the uniform disk's beside
+    it, in quadrature (an independent source; added until 2026-11-28)
     (``BLUR_SCALE_SIGMA_SHAPED`` where samples from before 2026-11-25 do not give that). The
     constant is ``BLUR_SCALE_SIGMA_PLAIN`` where the reading is plain: not through the Airy
     model, in a setting of ``undistorted`` (calibrated, no lens distortion found), or of
@@ -241,7 +242,7 @@ def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), disto
     disk = row.get("disk_diameter_px")
     if disk is None or not math.isfinite(float(disk)) or c <= 0:
         return BLUR_SCALE_SIGMA_SHAPED
-    return disk_scale_sigma(c, plain) + SHAPE_SCALE_SHARE * abs(c - float(disk)) / c
+    return math.hypot(disk_scale_sigma(c, plain), SHAPE_SCALE_SHARE * abs(c - float(disk)) / c)
 
 
 #: The flag the pipeline gives samples of images its diffraction test found without an Airy
