@@ -126,7 +126,9 @@ BLAS_THREADS = {"OPENBLAS_NUM_THREADS": "1"}
 def command_process() -> None:
     """Settings of a ``lensfit`` command-line process, made before anything heavy is imported:
     :data:`BLAS_THREADS` where the environment sets none (a user's own setting stands; child
-    processes, such as ``lensfit bench``'s workers, inherit them). The library sets nothing."""
+    processes inherit them), and glibc's reuse of freed memory (:func:`_keep_freed_memory`).
+    Called by the ``lensfit`` program and in the benchmark's own worker processes
+    (``lensfit.bench.runs``); importing the library changes nothing in the caller's process."""
     for name, value in BLAS_THREADS.items():
         os.environ.setdefault(name, value)
     _keep_freed_memory()

@@ -102,7 +102,8 @@ def footprint(normal: np.ndarray, bin_variance_px2: float) -> np.ndarray:
     at their mean: to second order the profile convolved with their spread, a box of 1/8 px on a
     slanted edge (variance 1/768 px^2). Left out, it read the blur of exact edges (a half-plane
     blurred by a uniform disk, integrated over square pixels) too wide by about 0.9 % / c^2 for
-    a blur diameter of c px: +0.9 % at 1 px, +0.2 % at 2 px (``lensfit bench-measure --exact``)."""
+    a blur diameter of c px: +0.9 % at 1 px, +0.2 % at 2 px (``lensfit bench-measure``, its
+    exact-edge table; tests/test_measure.py)."""
     a = max(abs(float(normal[0])), abs(float(normal[1])))
     b = min(abs(float(normal[0])), abs(float(normal[1])))
     return np.array([a, math.sqrt(b * b + 12.0 * bin_variance_px2)])
