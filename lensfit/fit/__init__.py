@@ -56,8 +56,8 @@ an angle, and does not depend on it). Distances measured otherwise (a manifest's
 
 Error budget: each reported variance is split into its sources (``Estimate.shares``,
 results.json ``variance_shares``): the blur readings' scatter, the calibration, what an image's
-edges share beyond that (the images' modelled shared distance error and the leave-one-image-out
-jackknife's excess over the model), the blur estimator's
+edges share beyond that (the images' modelled shared distance error and the excess over the
+model of the images' cluster-robust spread), the blur estimator's
 shared scale error (``BLUR_SCALE_SIGMA`` and ``BLUR_SCALE_BIAS_PX2 / c^2`` in quadrature per sample, the constant
 ``BLUR_SCALE_SIGMA_PLAIN`` where neither the Airy model nor a lens distortion is in play: a scale on
 every blur moves ``A``, ``N``, the slope and the floor alike, and nothing else) and the priors. The model covariance splits exactly as
@@ -77,7 +77,8 @@ solves go on from there where that fits better. The covariance is
 the blur rows' part scaled by their reduced chi-square (up or down: their own scatter about the
 fit, from the samples less the free parameters as degrees of freedom), the calibration's and the
 priors' parts as their sigmas state them; the blur part is raised per parameter to the
-leave-one-image-out jackknife's (stratified by setting) where that is larger. Propagated to every
+images' spread where that is larger: the cluster-robust covariance with each image a cluster
+(CR2, bias-reduced for the images' leverage; stratified by setting). Propagated to every
 derived quantity by the delta method (log space for positive quantities, so intervals stay
 positive).
 
@@ -91,7 +92,7 @@ Layout
 ------
 ``data`` (samples in) -> ``start`` (closed-form vertex) -> ``solve`` (compiled
 Levenberg-Marquardt, robust reweighting) around ``model`` -> ``uncertainty`` (covariance, delta
-method, jackknife over images, Cramer-Rao) and ``identifiability`` (what cannot be known, and P)
+method, the images' cluster-robust spread, Cramer-Rao) and ``identifiability`` (what cannot be known, and P)
 -> ``result`` (estimates, results file); ``core`` runs them (``fit``); ``constants`` holds the
 tunable numbers. ``lensfit.fit`` is both this package and its function: ``lensfit.fit(samples)``
 calls ``fit`` (the package module is callable).

@@ -30,9 +30,11 @@ MIN_USEFUL_BLUR_PX = 1.0
 #: their part of the covariance, down as well as up): a numerical guard for exact samples
 #: (chi-square 0), under which their sigmas shrink at most 100-fold.
 BLUR_SCALE2_MIN = 1e-4
-#: Images needed for the leave-one-image-out jackknife of the covariance (see fit).
+#: Images needed for the images' cluster-robust spread in the covariance
+#: (``lensfit.fit.uncertainty._image_spread``), and the most it takes (one small
+#: eigendecomposition each).
 MIN_CLUSTERS = 6
-MAX_CLUSTERS = 400  # one LM solve each
+MAX_CLUSTERS = 400
 #: The blur estimator's scale error shared by every sample of a fit (relative, 1 sigma): a
 #: bias of the estimator's model that does not average out over edges (the per-sample model
 #: floor of lensfit.estimators.base does). It multiplies every blur alike, so it moves the

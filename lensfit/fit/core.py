@@ -24,7 +24,7 @@ from lensfit.fit.solve import (_floor_escape, _image_scatter, _padded_size, _pre
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
 from lensfit.fit.start import _vertex_search
 from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _images_part,
-                                     _jackknife, _null_direction, _positive, _shares, student_z)
+                                     _image_spread, _null_direction, _positive, _shares, student_z)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
@@ -320,7 +320,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
             # distance error added: an image's pose error moves all its edges' blur together, most
             # where the blur is smallest relative to its slope (near the focus plane), and judged
             # against the readings' sigma alone those images, the focus distance's best, were
-            # down-weighted as outliers while the jackknife, holding the weights, missed the cost
+            # down-weighted as outliers while the image jackknife (then the images' spread), holding
+            # the weights, missed the cost
             # (1 % pose errors: 95 % intervals held the focus distance in 77 % of captures).
             shared = _shared_sigma(theta, m, data, rows)
             u = (data.coc_px - _predict_all(theta, m, data)) / shared
@@ -384,7 +385,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # 2026-11-25 max(1, chi-square) scaled all of them.
     # Where the images scatter along the blur's slope beyond what their readings explain (an error
     # of each image's pose: tau > 0), that scatter is a term of its own, shared by each image's
-    # edges (_images_part, pooled over the images; the jackknife's spread is pooled with it), and
+    # edges (_images_part, pooled over the images; the images' spread is pooled with it), and
     # the readings' chi-square is taken about each image's shared error. (Until 2026-11-25 only
     # the image jackknife carried it; with a few images near the focus plane setting the focus
     # distance, its variance rested on those alone: 1 % pose errors, 95 % intervals held the
@@ -410,8 +411,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         parts_free["images"] = images
         cov = cov + images
     parts = {src: _full_size(c, free_idx, m) for src, c in parts_free.items()}
-    cov, strata = _jackknife(cov, parts_free.get("blur", cov) + images, theta, free_idx, data, used, row_on, weights,
-                             fpx, fpx_w, floor_w, p_prior, np.diag(images))
+    cov, strata = _image_spread(cov, parts_free.get("blur", cov) + images, jac, res, cov_fit, free_idx, data, used,
+                                np.diag(images))
     dof = (StrataDof([_full_size(c, free_idx, m) for c, _ in strata], [d for _, d in strata])
            if strata else math.inf)
     corr = _correlation(cov)

@@ -122,7 +122,7 @@ class FitResult:
     #: "fitted" (two or more focus settings), "prior" (a stated range) or "assumed" (a value)
     pupil_magnification: Estimate = field(default_factory=lambda: Estimate(1.0, 0.0, (1.0, 1.0), (1.0, 1.0)))
     pupil_magnification_source: str = "assumed"
-    #: seconds spent solving ("fit") and on the covariance, jackknife and every reported quantity
+    #: seconds spent solving ("fit") and on the covariance, the images' spread and every reported quantity
     #: ("uncertainty"); kept in memory for ``lensfit bench-stages``, never written
     stage_seconds: dict[str, float] = field(default_factory=dict)
 

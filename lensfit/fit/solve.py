@@ -44,13 +44,6 @@ SOLVE_RTOL = 1e-10
 SOLVE_ATOL = 1e-9
 
 
-#: The jackknife's refits stop at tolerances a thousand times looser: their spread is the
-#: sigma, which a millionth of a sigma does not move (on a diffraction demo stack, the twelve
-#: refits 243 -> 83 steps, each within 4e-7 of their spread of where they stopped before).
-REFIT_RTOL = 1e-7
-REFIT_ATOL = 1e-6
-
-
 def _levenberg_marquardt(fn, theta0, args, rtol: float = SOLVE_RTOL, atol: float = SOLVE_ATOL):
     """optimistix's Levenberg-Marquardt on residuals ``fn(theta, args)``: (theta, converged)."""
     import optimistix as optx
@@ -136,10 +129,6 @@ class _Solver:
     def solve(self, theta0, args):
         return self._call("solve", _optx_solve, theta0, args)
 
-    def solve_refit(self, theta0, args):
-        """``solve`` to the jackknife's tolerances (``REFIT_RTOL``, ``REFIT_ATOL``)."""
-        return self._call("solve", _optx_solve, theta0, args, rtol=REFIT_RTOL, atol=REFIT_ATOL)
-
     def solve_robust(self, theta0, args, q, loss: str):
         """``solve`` under the robust ``loss`` with each blur row's scale ``q`` (in its sigmas,
         padded as the rows; :func:`_robust_rows`): the weights of ``args`` are ``rows / sigma``."""
@@ -165,8 +154,7 @@ def _floor_escape(sol, free_idx, args, m: int):
     ``FLOOR_SADDLE_PX`` of 0 started at ``FLOOR_START_PX``, where that fits better (a lower cost
     by more than a billionth); else None. The model takes each floor squared, so a floor at 0 is
     a stationary point whatever the data: a solve that reaches it, or starts there, stays there
-    even where a floor fits better. The fit (``lensfit.fit.core``) and the jackknife's refits
-    (``lensfit.fit.uncertainty``) both look beyond it this way."""
+    even where a floor fits better. The fit (``lensfit.fit.core``) looks beyond it this way."""
     lo = Layout(m).floor(0)
     near = [k for k, j in enumerate(free_idx) if lo <= j < lo + m and abs(sol[k]) < FLOOR_SADDLE_PX]
     if not near:
@@ -192,7 +180,7 @@ def likely_free_counts(m: int) -> tuple[int, ...]:
 
 def prewarm(m: int, n: int) -> None:
     """Load (or trace and compile) the fit's compiled functions (the robust solve for the default
-    loss, Huber's, and the jackknife's refits) for ``m`` settings and ``n`` samples (padded as the
+    loss, Huber's) for ``m`` settings and ``n`` samples (padded as the
     fit pads them) on data with nothing to fit, so that the caller can overlap their loading with
     other work: ``lensfit.pipeline`` runs it in a background thread once the stack's edges are
     known, while they are measured (a fresh process spent 0.3-0.5 s of the fit loading them;
@@ -218,7 +206,6 @@ def prewarm(m: int, n: int) -> None:
             full = _solver_args(theta, free_idx, data, np.zeros(n), np.zeros(m), np.zeros(m), np.zeros(m))
             jax.block_until_ready(solver.solve(theta[free_idx], full))
             jax.block_until_ready(solver.solve_robust(theta[free_idx], full, np.ones(_padded_size(n)), "huber"))
-            jax.block_until_ready(solver.solve_refit(theta[free_idx], full))
             jax.block_until_ready(solver.evaluate(theta[free_idx], full))
         jax.block_until_ready(solver.derived(theta))
     import scipy.special  # noqa: F401 - the intervals' Student-t quantiles (0.07 s of a fresh fit)
@@ -262,8 +249,8 @@ def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray) -> ImageScatt
     image the weighted least-squares ``delta_i`` of its residuals (``rows``: the samples'
     weights), and the scatter ``tau`` of those beyond their standard errors
     (:func:`_between_scale`). The fit absorbs part of their spread (``tau`` reads about
-    ``sqrt(1 - free parameters / images)`` of the drawn scatter); left so, since the jackknife's
-    spread is pooled with the term this gives (:func:`lensfit.fit.uncertainty._jackknife`). With
+    ``sqrt(1 - free parameters / images)`` of the drawn scatter); left so, since the images'
+    spread is pooled with the term this gives (:func:`lensfit.fit.uncertainty._image_spread`). With
     ``tau`` raised by that factor (and the larger of the two kept, as it then was), 1 % pose errors
     gave 95 % half-widths 3.7-4.0x the error, RMS error over sigma 0.72-0.92."""
     import dataclasses
