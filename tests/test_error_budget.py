@@ -67,6 +67,21 @@ def coverage(draws, seed, **kw):
     return {q: h / draws for q, h in hits.items()}
 
 
+#: A focus bracket's two settings (label, focus distance in mm), five images each (fit_bracket).
+BRACKET = (("a", 1500.0), ("b", 3000.0))
+
+
+def fit_bracket(rng, pose_rel_sigma: float):
+    """A focus bracket's capture (:data:`BRACKET`, readings with 0.02 px of noise, a calibration
+    exact to 1e-4), fitted by least squares."""
+    rows, fpx, fsg = [], {}, {}
+    for setting, focus in BRACKET:
+        r, fpx[setting], fsg[setting] = capture(rng, fpx_rel_sigma=1e-4, pose_rel_sigma=pose_rel_sigma,
+                                                noise_px=0.02, setting=setting, focus_mm=focus, images=5, e=0.0)
+        rows += r
+    return fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, loss="linear")
+
+
 def test_intervals_hold_the_truth_with_calibration_pose_and_estimator_errors():
     # 120 draws: a 95 % rate reads 0.95 +- 0.02; 85 % would read 0.85 +- 0.03.
     cov = coverage(120, 11)
@@ -346,13 +361,7 @@ def test_a_brackets_settings_take_their_own_images_degrees_of_freedom():
     89-92 % of 200 Monte Carlo brackets; stratified 92-96 %: README.)"""
     from lensfit.fit.uncertainty import student_z
 
-    rng = np.random.default_rng(4)
-    rows, fpx, fsg = [], {}, {}
-    for setting, focus in (("a", 1500.0), ("b", 3000.0)):
-        r, fpx[setting], fsg[setting] = capture(rng, fpx_rel_sigma=1e-4, pose_rel_sigma=0.005, noise_px=0.02,
-                                                setting=setting, focus_mm=focus, images=5, e=0.0)
-        rows += r
-    res = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, loss="linear")
+    res = fit_bracket(np.random.default_rng(4), pose_rel_sigma=0.005)
     for setting in ("a", "b"):
         s = res.settings[setting]
         sh = s["focus_distance_mm"].shares
@@ -375,13 +384,8 @@ def test_a_brackets_images_spread_is_not_widened_by_their_leverage():
     rng = np.random.default_rng(21)
     z, half, err = [], [], []
     for _ in range(40):
-        rows, fpx, fsg = [], {}, {}
-        for setting, focus in (("a", 1500.0), ("b", 3000.0)):
-            r, fpx[setting], fsg[setting] = capture(rng, fpx_rel_sigma=1e-4, pose_rel_sigma=0.0, noise_px=0.02,
-                                                    setting=setting, focus_mm=focus, images=5, e=0.0)
-            rows += r
-        res = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, loss="linear")
-        for setting, focus in (("a", 1500.0), ("b", 3000.0)):
+        res = fit_bracket(rng, pose_rel_sigma=0.0)
+        for setting, focus in BRACKET:
             for q, t in (("f_number", N), ("focus_distance_mm", focus)):
                 e = res.settings[setting][q]
                 if e.value is None:  # (a setting whose five images all fell beyond its focus: refused)
