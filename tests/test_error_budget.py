@@ -429,3 +429,44 @@ def test_a_floor_stuck_at_zero_is_left():
         cost = [float(np.sum(np.asarray(_solver(1)[1](t, args)[0]) ** 2)) for t in (stuck, left)]
     assert stuck[3] == 0.0
     assert abs(abs(left[3]) - 0.6) < 0.05 and cost[1] < cost[0] - 10.0
+
+
+def test_the_images_spread_is_the_bias_reduced_cluster_robust_sum():
+    """lensfit.fit.uncertainty._image_spread against CR2 written out with scipy's matrix square
+    root (Bell and McCaffrey 2002): ``sum_g H^-1 J_g' (I - H_gg)^-1/2 r_g r_g' (I - H_gg)^-1/2
+    J_g H^-1`` per stratum, on a random weighted least-squares problem of 8 images in two
+    settings (rows beyond the samples: a calibration row and padding, in ``H`` only)."""
+    from types import SimpleNamespace
+
+    from scipy.linalg import sqrtm
+
+    from lensfit.fit.uncertainty import _image_spread
+
+    rng = np.random.default_rng(7)
+    n, p = 64, 4
+    jac = rng.normal(size=(n + 3, p))
+    jac[n + 1:] = 0.0  # padding rows
+    res = rng.normal(size=n + 3)
+    group = np.repeat(np.arange(8), 8)
+    setting = (group >= 4).astype(int)
+    cov_fit = np.linalg.inv(jac.T @ jac)
+    data = SimpleNamespace(group=group, setting=setting)
+    used = np.ones(n, bool)
+    used[5] = False  # a sample left out by the fit
+    cov, strata = _image_spread(cov_fit, 0.01 * cov_fit, jac, res, cov_fit, np.arange(p), data, used)
+    assert strata is not None and len(strata) == 2
+    for h, (part, dof) in enumerate(strata):
+        want = np.zeros((p, p))
+        for g in range(4 * h, 4 * h + 4):
+            rows = np.flatnonzero((group == g) & used)
+            jg = jac[rows]
+            root = np.real(np.linalg.inv(sqrtm(np.eye(len(rows)) - jg @ cov_fit @ jg.T)))
+            b = cov_fit @ jg.T @ root @ res[rows]
+            want += np.outer(b, b)
+        assert dof == 3.0
+        np.testing.assert_allclose(part, want, rtol=1e-9, atol=1e-12)
+    # the spread (far above the model's readings' part, 1 % of H^-1) replaces that part; the
+    # rest of the covariance (here 99 % of H^-1: the calibration's and the priors') stays
+    spread = np.diag(sum(c for c, _ in strata))
+    assert np.all(spread > 0.01 * np.diag(cov_fit))
+    np.testing.assert_allclose(np.diag(cov), 0.99 * np.diag(cov_fit) + spread, rtol=1e-9)
