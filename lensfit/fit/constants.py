@@ -72,8 +72,9 @@ BLUR_SCALE_MIN_PX = 0.5
 #: the error). Part of that bias is the render's Monte-Carlo noise read through the two-disk
 #: refit's per-band weights (``lensfit.estimators.profile._band_variance``: exact edges under
 #: 32-spp binomial noise read 0.23 % narrow; a weighting without it took the Mitsuba bracket's N
-#: bias +0.09 -> +0.02 %, the demo's stayed +0.08 %; left, README). Where the Airy model is in play, or a distortion the reading was not taken
-#: through, and wherever it is not known (samples without their calibration), BLUR_SCALE_SIGMA:
+#: bias +0.09 -> +0.02 %, the demo's stayed +0.08 %; left, README). Where the Airy model is in
+#: play, or a distortion the reading was not taken through, and wherever it is not known
+#: (samples without their calibration), BLUR_SCALE_SIGMA:
 #: the Airy model takes the light's effective wavelength as 550 nm where real channels see a
 #: spectrum (synth's camera-raw set, diffracting at 610 / 550 / 465 nm per channel, reads N +0.04
 #: to +0.12 % high). The N +0.12 to +0.26 % (RMS error

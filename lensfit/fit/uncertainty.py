@@ -158,15 +158,15 @@ def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used, images
         return cov, None
     groups = np.unique(data.group[used])
     b = np.zeros((len(groups), len(free_idx)))
+    stratum = np.zeros(len(groups), int)  # each image's: the setting of most of its samples
     for i, g in enumerate(groups):
         rows = np.flatnonzero(used & (data.group == g))
+        stratum[i] = np.bincount(data.setting[rows]).argmax()
         jg = jac[rows]
         lev, vec = np.linalg.eigh(np.eye(len(rows)) - jg @ cov_fit @ jg.T)
         # (I - H_gg)^-1/2 r_g; a direction the image alone determines (1 - leverage ~ 0) has no residual
         root = np.where(lev > 1e-9, 1.0 / np.sqrt(np.maximum(lev, 1e-9)), 0.0)
         b[i] = cov_fit @ (jg.T @ (vec @ (root * (vec.T @ res[rows]))))
-    # each image's stratum: the setting of most of its samples
-    stratum = np.array([np.bincount(data.setting[used & (data.group == g)]).argmax() for g in groups])
     strata = [(b[stratum == h].T @ b[stratum == h], float(np.sum(stratum == h) - 1))
               for h in np.unique(stratum) if np.sum(stratum == h) >= 2]
     spread_cov = sum((c for c, _ in strata), np.zeros((len(free_idx), len(free_idx))))
