@@ -134,6 +134,64 @@ def test_the_images_scatter_reads_their_pose_errors(pose):
         assert 0.6 * pose <= np.median(taus) <= 1.4 * pose, taus
 
 
+def _covariance_scatters(monkeypatch):
+    """Record every images' scatter the fit's covariance reads (the call with the Jacobian), with
+    the response (:func:`lensfit.fit.solve._shift_response`) of each image's fitted shared error."""
+    import lensfit.fit.core as core
+    from lensfit.fit.solve import _shift_response
+
+    seen = []
+    real = core._image_scatter
+
+    def spy(theta, m, data, rows, jac=None, cov_fit=None):
+        sc = real(theta, m, data, rows, jac, cov_fit)
+        if jac is not None:
+            groups = np.unique(data.group[(data.group >= 0) & (rows > 0)])
+            ses = np.array([1.0 / math.sqrt(float(np.sum(rows[sel] * (sc.slope[sel] / data.sigma_px[sel]) ** 2)))
+                            for sel in ((data.group == g) & (rows > 0) for g in groups)])
+            gain, _ = _shift_response(data, rows, sc.slope, groups, ses, jac, cov_fit)
+            deltas = np.array([sc.shared[sel][0] / sc.slope[sel][0]
+                               for sel in ((data.group == g) & (rows > 0) for g in groups)])
+            seen.append((sc.tau, deltas, gain))
+        return sc
+
+    monkeypatch.setattr(core, "_image_scatter", spy)
+    return seen
+
+
+def test_the_images_scatter_is_unbiased_once_the_fit_has_taken_its_part(monkeypatch):
+    """Ten images with 1 % pose errors each, readings nearly exact: the fitted shared errors
+    carry what the fit's parameters did not take, and an image far from the focus plane also
+    the error of the focus distance that the images near it set. Each image's fitted error
+    scatters as its computed response says (``delta_i^2`` against ``gain_i tau^2``, over 150
+    captures), and the scatter read from them matches the drawn 1 % in mean square. (The farthest
+    image's fitted error scatters 2.4x the drawn one, the nearest the focus plane's 0.6x: taken
+    as the drawn scatter, each image's leverage alone corrected for, the scatter read 1.22x.)"""
+    seen = _covariance_scatters(monkeypatch)
+    rng = np.random.default_rng(3)
+    pose = 0.01
+    base = 1.0 / np.linspace(1.0 / 900.0, 1.0 / 5000.0, 10)
+    for _ in range(150):
+        rows = []
+        for i, d_img in enumerate(base):
+            shift = 1.0 + pose * rng.normal()
+            for d in d_img * (1.0 + np.linspace(-0.03, 0.03, 20)):
+                c = (F / N) * (1.0 / (1.0 / F - 1.0 / 2000.0)) * abs(1.0 / 2000.0 - 1.0 / d) / PITCH
+                sigma = math.hypot(0.002, 0.0002 * c)
+                rows.append({"setting": "a", "image": f"img{i}", "distance_mm": d * shift,
+                             "coc_diameter_px": abs(c + sigma * rng.normal()), "sigma_px": sigma})
+        s = 1.0 / (1.0 / F - 1.0 / 2000.0)
+        fit(rows, pixel_pitch_mm=PITCH, focal_length_px=s / PITCH, focal_length_sigma_px=1e-4 * s / PITCH,
+            loss="linear")
+    taus = np.array([t for t, _, _ in seen])
+    deltas = np.array([d for _, d, _ in seen])
+    gains = np.array([g for _, _, g in seen])
+    ratio = np.mean(deltas**2, axis=0) / (pose**2 * np.mean(gains, axis=0))
+    assert np.all((ratio > 0.75) & (ratio < 1.3)), ratio
+    assert np.ptp(np.mean(gains, axis=0)) > 0.5  # the far image's response is not the near ones'
+    assert 0.85 <= np.mean(taus**2) / pose**2 <= 1.15, np.mean(taus**2) / pose**2
+
+
 def test_a_jackknifed_calibration_takes_its_views_degrees_of_freedom(tmp_path):
     """A calibration's focal-length sigma from a leave-one-view-out jackknife over G views is
     itself an estimate, with G - 1 degrees of freedom: simulated here as the true sigma times
@@ -244,10 +302,12 @@ def test_jackknife_intervals_take_welch_satterthwaite_degrees_of_freedom(dof, kn
 
 
 def test_each_quantity_takes_its_own_degrees_of_freedom():
-    """Large shared per-image pose errors and a tight calibration: the images' spread takes over
-    for the f-number and the focus distance, whose 95 % multiples are then Student's with the
-    Welch-Satterthwaite degrees of freedom of their shares (11 images' spread: G - 1 = 11),
-    while the focal length, known from the calibration, keeps the normal 1.96."""
+    """Large shared per-image pose errors and a tight calibration: the images' shared errors
+    carry most of the f-number's and the focus distance's variance, whose 95 % multiples are
+    then Student's with the Welch-Satterthwaite degrees of freedom of their shares (the images'
+    scatter, pooled over 12 images: G - 1 = 11; the readings' own: samples less the free
+    parameters and the images' shared errors), while the focal length, known from the
+    calibration, keeps the normal 1.96."""
     from lensfit.fit.uncertainty import student_z
 
     rng = np.random.default_rng(3)
@@ -261,15 +321,19 @@ def test_each_quantity_takes_its_own_degrees_of_freedom():
 
     # (f's small images' share: the focus distance's pose-driven scatter reaches f through
     # the calibration's pinhole distance, by f / X)
+    blur_dof = float(np.sum(r.weights)) - len(r.parameter_names) - IMAGES
+
+    def welch(sh):
+        return student_z(1.0 / (sh["blur"] ** 2 / blur_dof + sh["images"] ** 2 / (IMAGES - 1)))[1]
+
     sh = s["focal_length_mm"].shares
     assert sh["calibration"] > 0.85 and sh["images"] < 0.15, sh
-    assert multiple("focal_length_mm") == pytest.approx(student_z((IMAGES - 1) / (sh["blur"] + sh["images"]) ** 2)[1],
-                                                        rel=1e-3)
+    assert multiple("focal_length_mm") == pytest.approx(welch(sh), rel=1e-3)
     assert multiple("focal_length_mm") < 1.97  # not t(11) = 2.20
     for q in ("f_number", "focus_distance_mm"):
         sh = s[q].shares
         assert sh["images"] > 0.5, (q, sh)
-        expected = student_z((IMAGES - 1) / (sh["blur"] + sh["images"]) ** 2)[1]
+        expected = welch(sh)
         assert expected > 2.1
         got = (multiple(q) if q == "f_number" else
                (s["inverse_focus_distance_per_m"].ci95[1] - s["inverse_focus_distance_per_m"].value)
@@ -353,23 +417,28 @@ def test_intervals_follow_the_readings_scatter_not_their_stated_sigmas(kw):
         assert 0.8 <= rms_z <= 1.15 and ratio <= 3.3, (q, rms_z, ratio)
 
 
-def test_a_brackets_settings_take_their_own_images_degrees_of_freedom():
-    """A focus bracket of two settings, five images each, with large per-image pose errors: the
-    images' spread, stratified by setting, gives each setting's focus distance and f-number the
-    degrees of freedom of its own five images (4 / r^2, r the spread's share), not of all
-    ten (9 / r^2). (Unstratified, the 95 % intervals of the focus distances held the truth in
-    89-92 % of 200 Monte Carlo brackets; stratified 92-96 %: README.)"""
-    from lensfit.fit.uncertainty import student_z
-
-    res = fit_bracket(np.random.default_rng(4), pose_rel_sigma=0.005)
-    for setting in ("a", "b"):
-        s = res.settings[setting]
-        sh = s["focus_distance_mm"].shares
-        assert sh["images"] > 0.3, sh
-        got = ((s["inverse_focus_distance_per_m"].ci95[1] - s["inverse_focus_distance_per_m"].value)
-               / s["inverse_focus_distance_per_m"].sigma)
-        r = sh["blur"] + sh["images"]
-        assert got == pytest.approx(student_z(4 / r**2)[1], rel=2e-3), (setting, got, student_z(9 / r**2)[1])
+def test_a_brackets_intervals_hold_the_truth_under_shared_pose_errors():
+    """A focus bracket of two settings, five images each, with 0.5 % pose errors per image: the
+    images' shared errors are a term of their own, their scatter pooled over the ten images and
+    read through each image's response (lensfit.fit.solve._shift_response), with the images
+    less one for its degrees of freedom. Over 100 Monte Carlo brackets (200 intervals a
+    quantity), 95 % intervals hold the focus distances and the f-numbers at about their rate,
+    error over sigma RMS near 1 (measured: 92.5 and 94 %, RMS 1.20 and 1.11). (With the mean of
+    that term and the images' cluster-robust spread, stratified by setting, until 2026-11-28:
+    88.5 and 92.5 %, RMS 1.72 and 1.45.)"""
+    rng = np.random.default_rng(4)
+    hits, z = {"X": 0, "N": 0}, {"X": [], "N": []}
+    for _ in range(100):
+        res = fit_bracket(rng, pose_rel_sigma=0.005)
+        for setting, focus in BRACKET:
+            for k, q, t in (("X", "focus_distance_mm", focus), ("N", "f_number", N)):
+                e = res.settings[setting][q]
+                assert e.value is not None, e.reason
+                hits[k] += e.ci95[0] <= t <= e.ci95[1]
+                z[k].append((e.value - t) / e.sigma)
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
+    assert hits["X"] / 200 >= 0.9 and hits["N"] / 200 >= 0.9, (hits, rms)
+    assert rms["X"] <= 1.4 and rms["N"] <= 1.3, rms
 
 
 def test_a_brackets_images_spread_is_not_widened_by_their_leverage():

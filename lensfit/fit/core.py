@@ -385,20 +385,20 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # 2026-11-25 max(1, chi-square) scaled all of them.
     # Where the images scatter along the blur's slope beyond what their readings explain (an error
     # of each image's pose: tau > 0), that scatter is a term of its own, shared by each image's
-    # edges (_images_part, pooled over the images; the images' spread is pooled with it), and
+    # edges (_images_part, pooled over the images; the images' spread is then not taken), and
     # the readings' chi-square is taken about each image's shared error. (Until 2026-11-25 only
     # the image jackknife carried it; with a few images near the focus plane setting the focus
     # distance, its variance rested on those alone: 1 % pose errors, 95 % intervals held the
     # focus distance in 91 % of captures.)
     named = bool(free_idx.size) and bool(np.all(data.group[used] >= 0))
-    scatter = _image_scatter(theta, m, data, weights * row_on) if named else None
+    cov_fit, cond = _covariance(jac, 1.0)  # (J'J)^-1 of the fit as weighted: the images' terms' H^-1
+    scatter = _image_scatter(theta, m, data, weights * row_on, jac, cov_fit) if named else None
     shared = scatter is not None and scatter.tau > 0  # the images' term is in the budget
     blur_dof = max(float(np.sum(weights[used])) - len(free_idx) - (scatter.images if shared else 0), 1.0)
     chi2_cov = (float(np.sum((weights * row_on * ((resid - scatter.shared) / data.sigma_px) ** 2)[used])) / blur_dof
                 if shared else chi2_red)
     jac_w = jac.copy()
     jac_w[:npad] /= math.sqrt(max(chi2_cov, BLUR_SCALE2_MIN))
-    cov_fit, cond = _covariance(jac, 1.0)  # (J'J)^-1 of the fit as weighted: the images' term's H^-1
     cov, _ = _covariance(jac_w, 1.0)
     parts_free = _budget_parts(jac_w, cov, npad, m)
     # each setting's calibration part whose sigma a jackknife over few views estimated (its views

@@ -243,16 +243,19 @@ class ImageScatter(NamedTuple):
     images: int
 
 
-def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray) -> ImageScatter:
+def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray, jac=None, cov_fit=None) -> ImageScatter:
     """The images' shared distance errors: an error of an image's pose moves all of its
     distances by one factor ``exp(delta_i)``, its blur by ``delta_i g``, ``g = dc / d ln w``. Per
     image the weighted least-squares ``delta_i`` of its residuals (``rows``: the samples'
     weights), and the scatter ``tau`` of those beyond their standard errors
-    (:func:`_between_scale`). The fit absorbs part of their spread (``tau`` reads about
-    ``sqrt(1 - free parameters / images)`` of the drawn scatter); left so, since the images'
-    spread is pooled with the term this gives (:func:`lensfit.fit.uncertainty._image_spread`). With
-    ``tau`` raised by that factor (and the larger of the two kept, as it then was), 1 % pose errors
-    gave 95 % half-widths 3.7-4.0x the error, RMS error over sigma 0.72-0.92."""
+    (:func:`_between_scale`). The fit takes part of their spread and passes the errors of the
+    images that set its parameters on to the others' fitted errors: given the fit's weighted
+    Jacobian ``jac`` and its ``cov_fit`` = ``(J'J)^-1`` (the covariance's call), ``tau`` is read
+    through each image's response (:func:`_shift_response`); without them (the robust weights'
+    calls, between solves) as if each fitted error were its drawn one. (Until 2026-11-28 always
+    so, by the median: in Monte Carlo captures the fit's part and the median's own bias over ten
+    images about cancelled, ``tau^2`` 1.02x the drawn in mean square, while single images' fitted
+    errors scattered 0.6-2.4x theirs.)"""
     import dataclasses
 
     h = 1e-4
@@ -273,7 +276,38 @@ def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray) -> ImageScatt
             deltas[i] = float(np.sum(rows[sel] * slope[sel] * resid[sel] / data.sigma_px[sel] ** 2)) / info
             ses[i] = 1.0 / math.sqrt(info)
             shared[sel] = slope[sel] * deltas[i]
-    return ImageScatter(slope, shared, _between_scale(deltas, ses), int(np.sum(np.isfinite(ses))))
+    gain = noise = None
+    if jac is not None and cov_fit is not None and np.all(np.isfinite(ses)):
+        gain, noise = _shift_response(data, rows, slope, groups, ses, jac, cov_fit)
+    return ImageScatter(slope, shared, _between_scale(deltas, ses, gain, noise), int(np.sum(np.isfinite(ses))))
+
+
+def _shift_response(data: FitData, rows, slope, groups, ses, jac, cov_fit):
+    """How the images' fitted shared errors respond to their true ones, once the fit has taken
+    its part: with ``S`` the images' shift directions in the fit's weighted residuals (column
+    ``i``: image ``i``'s samples' ``sqrt(w) g / sigma``, ``S'S = A = diag(1 / se_i^2)``),
+    ``B = S'J`` and ``Q = A^-1 B H^-1 B'``, the fitted errors are ``(I - Q) delta`` plus their
+    noise: image ``i``'s has variance ``c_i tau^2 + (1 - h_i) se_i^2``, ``c_i`` the sum of row
+    ``i`` of ``(I - Q)^2`` (elementwise) and ``h_i = Q_ii`` (``jac`` the fit's weighted Jacobian,
+    blur rows first in sample order, ``cov_fit`` its ``H^-1``). The fit's parameters absorb part of
+    every image's error (``h_i``: the image's leverage along its shift) and pass the errors of the
+    images that set them on to the others (the off-diagonal ``Q_ij``): an image far from the focus
+    plane, whose own shift the blur shows weakly, read the others' through the fitted focus
+    distance and scattered 2.4x the drawn errors (Monte Carlo, 10 images). Returns ``(c, 1 - h)``.
+
+    (The images' term takes the images less one for its degrees of freedom. Tried 2026-11-28 and
+    left: Satterthwaite's for the fitted errors' sum of squares (``tr(M)^2 / tr(M^2)``, ``M = (I -
+    Q)'(I - Q)``), 3.6 for 10 images of one setting, 2.2 for 6, 4.5 for a 2 x 5 focus bracket
+    (from the standardised errors' correlations: 5.5, 2.7, 4.5): 95 % intervals held the
+    focus distance in 99.7 % and 98.3 % of Monte Carlo captures, against 98.0 and 94.7 % with
+    the images less one; the bracket's 94.3 % against 92.3 %. An error and the scatter read
+    beside it grow together, which keeps the ratio's tails near the normal's.)"""
+    b = np.zeros((len(groups), jac.shape[1]))
+    for i, g in enumerate(groups):
+        sel = np.flatnonzero((data.group == g) & (rows > 0))
+        b[i] = jac[sel].T @ (np.sqrt(rows[sel]) * slope[sel] / data.sigma_px[sel])
+    resid = np.eye(len(groups)) - (ses**2)[:, None] * (b @ cov_fit @ b.T)
+    return np.sum(resid**2, axis=1), np.clip(np.diag(resid), 0.0, 1.0)
 
 
 def _shared_sigma(theta, m: int, data: FitData, rows: np.ndarray) -> np.ndarray:
@@ -284,18 +318,42 @@ def _shared_sigma(theta, m: int, data: FitData, rows: np.ndarray) -> np.ndarray:
     return np.sqrt(data.sigma_px**2 + np.where(data.group >= 0, sc.slope * sc.tau, 0.0) ** 2)
 
 
-def _between_scale(deltas: np.ndarray, ses: np.ndarray) -> float:
+#: Huber's "proposal 2" for the images' scatter (:func:`_between_scale`): each image's squared
+#: standardised error counts at most ``_SCATTER_K^2``, and the mean of the clipped squares is
+#: matched to its expectation for a standard normal, ``E min(Z^2, k^2)``.
+_SCATTER_K = 2.5
+_SCATTER_BETA = (math.erf(_SCATTER_K / math.sqrt(2.0)) - 2.0 * _SCATTER_K * math.exp(-0.5 * _SCATTER_K**2)
+                 / math.sqrt(2.0 * math.pi) + _SCATTER_K**2 * math.erfc(_SCATTER_K / math.sqrt(2.0)))
+
+
+def _between_scale(deltas: np.ndarray, ses: np.ndarray, gain=None, noise=None) -> float:
     """The scatter ``tau`` of the images' shared errors beyond their standard errors: the
-    smallest ``tau >= 0`` with median ``|delta_i| / sqrt(se_i^2 + tau^2)`` at most 0.6745 (the
-    normal's median absolute value), by bisection."""
+    ``tau >= 0`` at which the mean of ``min(delta_i^2 / v_i, k^2)``, ``v_i = noise_i se_i^2 +
+    gain_i tau^2``, is its expectation for normal errors (Huber's proposal 2, ``k`` =
+    ``_SCATTER_K``; 0 where the errors are within their noise), by bisection. ``gain`` and
+    ``noise`` (:func:`_shift_response`; 1 where not given): how much of the true errors and of
+    their noise the fitted ones carry. A wild image counts as ``k^2`` at most.
+
+    Until 2026-11-28 the median of ``|delta_i| / sqrt(v_i)`` was set to 0.6745, the normal's
+    median absolute value, with ``gain`` and ``noise`` 1: over ten images the median's own
+    scatter raised ``tau^2`` by a fifth on average (Huber's rule: 2 %), and the fit's share of
+    the errors was left in (Monte Carlo, 10 images of 0.3-5 % pose errors: ``tau`` read
+    1.22x the drawn scatter with the images' leverage alone corrected for, 1.08x with
+    ``gain``)."""
     ok = np.isfinite(ses)
-    d, se = np.abs(deltas[ok]), ses[ok]
-    if d.size == 0 or np.median(d / se) <= _NORMAL_MAD:
+    d2, se2 = deltas[ok] ** 2, ses[ok] ** 2
+    gain = np.ones_like(d2) if gain is None else np.maximum(np.asarray(gain)[ok], 1e-6)
+    var0 = se2 * (1.0 if noise is None else np.maximum(np.asarray(noise)[ok], 1e-6))
+
+    def excess(tau):
+        return float(np.mean(np.minimum(d2 / (var0 + gain * tau * tau), _SCATTER_K**2))) - _SCATTER_BETA
+
+    if d2.size == 0 or excess(0.0) <= 0.0:
         return 0.0
-    lo, hi = 0.0, float(np.max(d)) / _NORMAL_MAD + 1e-300
+    lo, hi = 0.0, float(np.sqrt(np.max(d2 / gain))) / math.sqrt(_SCATTER_BETA / d2.size) + 1e-300
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if np.median(d / np.sqrt(se**2 + mid**2)) > _NORMAL_MAD else (lo, mid)
+        lo, hi = (mid, hi) if excess(mid) > 0.0 else (lo, mid)
     return hi
 
 
