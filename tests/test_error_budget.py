@@ -423,7 +423,7 @@ def test_a_brackets_intervals_hold_the_truth_under_shared_pose_errors():
     read through each image's response (lensfit.fit.solve._shift_response), with the images
     less one for its degrees of freedom. Over 100 Monte Carlo brackets (200 intervals a
     quantity), 95 % intervals hold the focus distances and the f-numbers at about their rate,
-    error over sigma RMS near 1 (measured: 92.5 and 94 %, RMS 1.20 and 1.11). (With the mean of
+    error over sigma RMS near 1 (measured: 93 and 95 %, RMS 1.14 and 1.08). (With the mean of
     that term and the images' cluster-robust spread, stratified by setting, until 2026-11-28:
     88.5 and 92.5 %, RMS 1.72 and 1.45.)"""
     rng = np.random.default_rng(4)

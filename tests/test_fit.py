@@ -418,7 +418,7 @@ def test_errors_shared_by_an_image_widen_the_intervals(loss, least):
     focus-distance 95 % intervals; the images' shared errors as a term of their own
     (lensfit.fit.uncertainty._images_part, their scatter read through each image's response,
     lensfit.fit.solve._shift_response), with Student-t quantiles for its 9 degrees of freedom,
-    restore 94 % under least squares and Huber in these 50 trials (98 % in 400). (The mean of
+    restore 96 % under least squares and Huber in these 50 trials (98 % in 400). (The mean of
     that term and the images' cluster-robust spread, until 2026-11-28: 92 and 90 %, 92.5 and
     90 % in 400; the leave-one-image-out jackknife before it: 92 and 84 %.)"""
     f, N, D = 50.0, 2.8, 2000.0

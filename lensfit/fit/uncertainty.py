@@ -140,7 +140,7 @@ def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used, images
     near the focus plane, leverage 0.58, carries most of it: Bell and McCaffrey's degrees of
     freedom for it are 2) and N's 1.44x, where the term reads 1.00x and 1.13x. Until 2026-11-28
     their mean was taken (never below the readings' own part): 95 % intervals held the focus distance in 90 % (Huber) and 92.5 % (least squares) of captures,
-    83 % with 6 images; with the term alone 98 and 95 %.
+    83 % with 6 images; with the term alone 98 and 93 %.
 
     Until 2026-11-28 the spread was a leave-one-image-out jackknife (one Levenberg-Marquardt
     refit per image): to first order the same sum with ``(I - H_gg)^-1`` for the root, CR3, which
