@@ -135,24 +135,21 @@ def test_the_images_scatter_reads_their_pose_errors(pose):
 
 
 def _covariance_scatters(monkeypatch):
-    """Record every images' scatter the fit's covariance reads (the call with the Jacobian), with
-    the response (:func:`lensfit.fit.solve._shift_response`) of each image's fitted shared error."""
+    """Record every images' scatter the fit's covariance reads (the call with the Jacobian): its
+    ``tau``, each image's fitted shared error and that error's response to the drawn one
+    (``gain``, :func:`lensfit.fit.solve._shift_response`)."""
     import lensfit.fit.core as core
-    from lensfit.fit.solve import _shift_response
 
     seen = []
     real = core._image_scatter
 
     def spy(theta, m, data, rows, jac=None, cov_fit=None):
         sc = real(theta, m, data, rows, jac, cov_fit)
-        if jac is not None:
+        if sc.gain is not None:
             groups = np.unique(data.group[(data.group >= 0) & (rows > 0)])
-            ses = np.array([1.0 / math.sqrt(float(np.sum(rows[sel] * (sc.slope[sel] / data.sigma_px[sel]) ** 2)))
-                            for sel in ((data.group == g) & (rows > 0) for g in groups)])
-            gain, _ = _shift_response(data, rows, sc.slope, groups, ses, jac, cov_fit)
             deltas = np.array([sc.shared[sel][0] / sc.slope[sel][0]
                                for sel in ((data.group == g) & (rows > 0) for g in groups)])
-            seen.append((sc.tau, deltas, gain))
+            seen.append((sc.tau, deltas, sc.gain))
         return sc
 
     monkeypatch.setattr(core, "_image_scatter", spy)

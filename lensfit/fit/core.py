@@ -411,8 +411,9 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         parts_free["images"] = images
         cov = cov + images
     parts = {src: _full_size(c, free_idx, m) for src, c in parts_free.items()}
-    cov, strata = _image_spread(cov, parts_free.get("blur", cov) + images, jac, res, cov_fit, free_idx, data, used,
-                                np.diag(images))
+    strata = None
+    if not np.any(np.diag(images) > 0):  # else the images' shared errors are a term of their own
+        cov, strata = _image_spread(cov, parts_free.get("blur", cov), jac, res, cov_fit, free_idx, data, used)
     dof = (StrataDof([_full_size(c, free_idx, m) for c, _ in strata], [d for _, d in strata])
            if strata else math.inf)
     corr = _correlation(cov)

@@ -235,12 +235,14 @@ class ImageScatter(NamedTuple):
     in log inverse distance ``slope`` (px) and ``shared``, the part of its residual its image's
     fitted shared error explains (``slope * delta_i``; 0 where the sample names no image); ``tau``
     the scatter of the images' shared errors (relative) beyond what their readings' sigmas
-    explain, from ``images`` images."""
+    explain, from ``images`` images; ``gain`` each image's ``c_i`` (:func:`_shift_response`)
+    where ``tau`` was read through them, else None."""
 
     slope: np.ndarray
     shared: np.ndarray
     tau: float
     images: int
+    gain: np.ndarray | None = None
 
 
 def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray, jac=None, cov_fit=None) -> ImageScatter:
@@ -269,27 +271,30 @@ def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray, jac=None, cov
     resid = data.coc_px - 0.5 * (up + down)
     groups = np.unique(data.group[named])
     deltas, ses = np.zeros(len(groups)), np.full(len(groups), np.inf)
+    through = None if jac is None or cov_fit is None else np.zeros((len(groups), jac.shape[1]))
     for i, g in enumerate(groups):
-        sel = (data.group == g) & (rows > 0)
+        sel = np.flatnonzero((data.group == g) & (rows > 0))
         info = float(np.sum(rows[sel] * (slope[sel] / data.sigma_px[sel]) ** 2))
         if info > 0:
             deltas[i] = float(np.sum(rows[sel] * slope[sel] * resid[sel] / data.sigma_px[sel] ** 2)) / info
             ses[i] = 1.0 / math.sqrt(info)
             shared[sel] = slope[sel] * deltas[i]
+        if through is not None:  # B = S'J: the image's shift direction in the weighted rows, through J
+            through[i] = jac[sel].T @ (np.sqrt(rows[sel]) * slope[sel] / data.sigma_px[sel])
     gain = noise = None
-    if jac is not None and cov_fit is not None and np.all(np.isfinite(ses)):
-        gain, noise = _shift_response(data, rows, slope, groups, ses, jac, cov_fit)
-    return ImageScatter(slope, shared, _between_scale(deltas, ses, gain, noise), int(np.sum(np.isfinite(ses))))
+    if through is not None and np.all(np.isfinite(ses)):
+        gain, noise = _shift_response(through, ses, cov_fit)
+    return ImageScatter(slope, shared, _between_scale(deltas, ses, gain, noise), int(np.sum(np.isfinite(ses))), gain)
 
 
-def _shift_response(data: FitData, rows, slope, groups, ses, jac, cov_fit):
+def _shift_response(through: np.ndarray, ses: np.ndarray, cov_fit: np.ndarray):
     """How the images' fitted shared errors respond to their true ones, once the fit has taken
     its part: with ``S`` the images' shift directions in the fit's weighted residuals (column
     ``i``: image ``i``'s samples' ``sqrt(w) g / sigma``, ``S'S = A = diag(1 / se_i^2)``),
-    ``B = S'J`` and ``Q = A^-1 B H^-1 B'``, the fitted errors are ``(I - Q) delta`` plus their
-    noise: image ``i``'s has variance ``c_i tau^2 + (1 - h_i) se_i^2``, ``c_i`` the sum of row
-    ``i`` of ``(I - Q)^2`` (elementwise) and ``h_i = Q_ii`` (``jac`` the fit's weighted Jacobian,
-    blur rows first in sample order, ``cov_fit`` its ``H^-1``). The fit's parameters absorb part of
+    ``B = S'J`` (``through``, a row per image) and ``Q = A^-1 B H^-1 B'``, the fitted errors are
+    ``(I - Q) delta`` plus their noise: image ``i``'s has variance ``c_i tau^2 + (1 - h_i)
+    se_i^2``, ``c_i`` the sum of row ``i`` of ``(I - Q)^2`` (elementwise) and ``h_i = Q_ii``
+    (``J`` the fit's weighted Jacobian, ``cov_fit`` its ``H^-1``). The fit's parameters absorb part of
     every image's error (``h_i``: the image's leverage along its shift) and pass the errors of the
     images that set them on to the others (the off-diagonal ``Q_ij``): an image far from the focus
     plane, whose own shift the blur shows weakly, read the others' through the fitted focus
@@ -303,11 +308,7 @@ def _shift_response(data: FitData, rows, slope, groups, ses, jac, cov_fit):
     the images less one; the bracket's 94.3 % against 92.3 % (measured with proposal 2 at
     ``k`` = 2.5; with 1.5 the images less one give 98.0, 93.3 and 93 %). An error and the scatter read
     beside it grow together, which keeps the ratio's tails near the normal's.)"""
-    b = np.zeros((len(groups), jac.shape[1]))
-    for i, g in enumerate(groups):
-        sel = np.flatnonzero((data.group == g) & (rows > 0))
-        b[i] = jac[sel].T @ (np.sqrt(rows[sel]) * slope[sel] / data.sigma_px[sel])
-    resid = np.eye(len(groups)) - (ses**2)[:, None] * (b @ cov_fit @ b.T)
+    resid = np.eye(len(ses)) - (ses**2)[:, None] * (through @ cov_fit @ through.T)
     return np.sum(resid**2, axis=1), np.clip(np.diag(resid), 0.0, 1.0)
 
 

@@ -116,7 +116,7 @@ class StrataDof:
         return sum(v) ** 2 / den if den > 0 else math.inf
 
 
-def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used, images_diag=None):
+def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used):
     """The images' spread: the edges of one image share its pose (distance errors of ~0.05 %
     move all of them together) and its noise pattern, so they are not independent samples and
     the model-based covariance understates the spread (seen: focus-distance intervals holding the
@@ -131,16 +131,17 @@ def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used, images
     part is the sum over its images. The calibration's rows and the priors stay in ``H`` as they
     are, so the spread is that of the blur readings alone: a parameter's blur variance is the
     larger of the model's (``blur_cov``, the blur rows' part of ``cov``) and this spread, and the
-    calibration's and the priors' parts are added to it. Where the model carries the images'
-    shared distance errors (``images_diag``, its part of ``blur_cov``: :func:`_images_part`, from
-    their scatter pooled over all the images), the covariance is left as it is: that term reads
+    calibration's and the priors' parts are added to it. Not called where the model carries the
+    images' shared distance errors (:func:`_images_part`, from their scatter pooled over all the
+    images; ``lensfit.fit.core``), whose covariance is left as it is: that term reads
     the same variance with far fewer degrees of freedom lost to the few images that carry a
     parameter. In Monte Carlo captures with per-image pose errors (10 images of 0.3 % pose errors,
     300-400 draws) this spread read the focus distance's variance 0.58x on average (the one image
     near the focus plane, leverage 0.58, carries most of it: Bell and McCaffrey's degrees of
     freedom for it are 2) and N's 1.44x, where the term reads 1.00x and 1.13x. Until 2026-11-28
-    their mean was taken (never below the readings' own part): 95 % intervals held the focus distance in 90 % (Huber) and 92.5 % (least squares) of captures,
-    83 % with 6 images; with the term alone 98 and 93 %.
+    their mean was taken (never below the readings' own part): 95 % intervals held the focus
+    distance in 90 % (Huber) and 92.5 % (least squares) of captures, 83 % with 6 images; with
+    the term alone 98 and 93 %.
 
     Until 2026-11-28 the spread was a leave-one-image-out jackknife (one Levenberg-Marquardt
     refit per image): to first order the same sum with ``(I - H_gg)^-1`` for the root, CR3, which
@@ -160,8 +161,6 @@ def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used, images
     if not (free_idx.size and np.all(data.group[used] >= 0)
             and MIN_CLUSTERS <= len(np.unique(data.group[used])) <= MAX_CLUSTERS):
         return cov, None
-    if images_diag is not None and np.any(images_diag > 0):
-        return cov, None  # the images' shared errors are a term of their own
     groups = np.unique(data.group[used])
     b = np.zeros((len(groups), len(free_idx)))
     stratum = np.zeros(len(groups), int)  # each image's: the setting of most of its samples
