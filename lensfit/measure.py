@@ -64,16 +64,26 @@ def _prewarm(estimator: str, diffraction: bool) -> threading.Thread | None:
     return in_background(load, "lensfit-prewarm")
 
 
+_LAST_LOADER: list[threading.Thread | None] = [None]
+
+
 def in_background(load: Callable[[], None], name: str) -> threading.Thread:
     """Run ``load`` (loading compiled code ahead of its use) in a started thread, which the
-    caller joins before the use. A failure there is left for the use itself to meet and report."""
+    caller joins before the use. A failure there is left for the use itself to meet and report.
+    The loaders run one after another, in the order they were started (each waits for the one
+    before): the first needed is in soonest, and the measuring keeps the other core."""
+    before = _LAST_LOADER[0]
+
     def work():
+        if before is not None:
+            before.join()
         try:
             load()
         except Exception:  # noqa: BLE001 - the same call in the measuring raises it properly
             pass
 
     thread = threading.Thread(target=work, name=name)
+    _LAST_LOADER[0] = thread
     thread.start()
     return thread
 

@@ -121,19 +121,32 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     options = dict(fit_options or {})
     ahead: list[Any] = []
     auto = wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk")
+
+    def airy_ahead() -> Any:
+        # The fits with the Airy pattern; before the diffraction test only the fits it calls (the
+        # rounds' own measuring loads the rest where the test finds the pattern).
+        return in_background(partial(_prewarm_airy, rounds=not auto), "lensfit-prewarm-airy")
+
+    def on_edges(settings: int, edges: int) -> None:
+        # Queued behind the edge fits' loading (lensfit.measure.in_background) while the edges are
+        # measured: the CoC fit's functions, then the Airy fits (until 2026-11-28 these waited for
+        # the measuring to end, and the diffraction test for them after the first fit).
+        ahead.append(_fit_ahead(settings, edges))
+        if auto or wavelength_nm:
+            ahead.append(airy_ahead())
+
     try:
         # The edges' profiles are kept for the rounds, which solve them again with the Airy pattern
         # (``measure``'s ``keep_profiles``: the same readings, a quarter less time a round).
         table = measure(stack, estimator, progress=progress, keep_profiles=auto or wavelength_nm is not None,
-                        on_edges=lambda settings, edges: ahead.append(_fit_ahead(settings, edges)))
-    finally:
+                        on_edges=on_edges)
+    except BaseException:
         for thread in ahead:
             thread.join()
-    # The fits with the Airy pattern are loaded while the first fit runs (0.2-0.4 s of a process).
-    # Before the diffraction test, only the fits it calls: the rounds' own measuring loads the
-    # rest where the test finds the pattern (0.1 s of CPU on the cores the first fit runs on).
-    warming = (in_background(partial(_prewarm_airy, rounds=not auto), "lensfit-prewarm-airy")
-               if auto or wavelength_nm else None)
+        raise
+    if ahead:
+        ahead[0].join()
+    warming = ahead[1] if len(ahead) > 1 else airy_ahead() if auto or wavelength_nm else None
     try:
         out = _fit_rounds(stack, table, estimator, wavelength_nm, options, progress, auto, warming)
     finally:

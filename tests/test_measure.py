@@ -498,6 +498,78 @@ def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack
     assert used and used <= warmed, used - warmed
 
 
+def test_background_loaders_run_one_after_another_in_the_order_started():
+    """Loading ahead (``lensfit.measure.in_background``) on a 2-core machine: the measuring keeps
+    one core, the loaders the other, the first needed first. A loader started while another runs
+    waits for it; one whose loading fails does not stop the next."""
+    import threading
+    import time
+
+    from lensfit.measure import in_background
+
+    events, first_may_end = [], threading.Event()
+
+    def first():
+        events.append("first starts")
+        first_may_end.wait(5.0)
+        events.append("first ends")
+        raise RuntimeError("a failed load is left for its use to report")
+
+    def second():
+        events.append("second starts")
+
+    a = in_background(first, "test-first")
+    b = in_background(second, "test-second")
+    time.sleep(0.2)  # the second would have run by now, were it not waiting
+    assert events == ["first starts"]
+    first_may_end.set()
+    a.join(5.0)
+    b.join(5.0)
+    assert events == ["first starts", "first ends", "second starts"]
+
+
+def test_the_pipeline_loads_the_edge_fits_then_the_fit_then_the_airy_fits(calibration_stack, monkeypatch):
+    """Where the diffraction test may run, ``lensfit.pipeline`` queues its loaders behind the edge
+    fits' as soon as the edges are known, while they are measured: the CoC fit's functions, then
+    the Airy fits the test calls (until 2026-11-28 these started once the measuring had ended,
+    and the test waited for them after the first fit: 0.1-0.3 s of a fresh process)."""
+    import lensfit.estimators.edge_fit as edge_module
+    import lensfit.fit.solve as solve_module
+    import lensfit.measure as measure_module
+    from lensfit import pipeline
+
+    events = []
+    real = {"edge": edge_module.prewarm, "fit": solve_module.prewarm, "airy": edge_module.prewarm_airy,
+            "measure": measure_module.measure, "in_background": measure_module.in_background}
+
+    def logged(kind):
+        def run(*a, **k):
+            events.append(kind)
+            return real[kind](*a, **k)
+        return run
+
+    def started(load, name):
+        events.append("started " + name)
+        return real["in_background"](load, name)
+
+    def measured(*a, **k):
+        out = real["measure"](*a, **k)
+        events.append("measured")
+        return out
+
+    monkeypatch.setattr(edge_module, "prewarm", logged("edge"))
+    monkeypatch.setattr(solve_module, "prewarm", logged("fit"))
+    monkeypatch.setattr(edge_module, "prewarm_airy", logged("airy"))
+    monkeypatch.setattr(measure_module, "in_background", started)
+    monkeypatch.setattr(measure_module, "measure", measured)
+    table, result, _ = pipeline.measure_and_fit(calibration_stack, auto_diffraction=True)
+    assert result.code == "ok"
+    starts = [e for e in events if e.startswith("started") or e == "measured"]
+    assert starts == ["started lensfit-prewarm", "started lensfit-prewarm-fit", "started lensfit-prewarm-airy",
+                      "measured"], starts
+    assert [e for e in events if e in ("edge", "fit", "airy")] == ["edge", "fit", "airy"], events
+
+
 def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkeypatch):
     """The pipeline loads the CoC fit's compiled functions in the background once the stack's
     edges are known (``measure(on_edges=...)``, ``lensfit.fit.solve.prewarm``), and those are the
