@@ -43,6 +43,9 @@ import numpy as np
 #: Default wavelength (nm): the middle of the visible band, where a grey or green-weighted
 #: image has its effective wavelength.
 DEFAULT_WAVELENGTH_NM = 550.0
+#: Largest Airy scale (px) the edge estimator's diffraction model takes: beyond it the pattern
+#: spans more than the windows the profile has (f/64 at 550 nm on 1 um pixels is 35 px).
+MAX_AIRY_PX = 64.0
 #: The edge kernel's knots (:func:`edge_kernel`): intervals over the core (``KERNEL_CORE_AIRY``
 #: Airy scales plus the pixel footprint's half-width either side of the centre), intervals a side
 #: outside it, growing geometrically out to ``KERNEL_REACH_AIRY`` Airy scales (the LSF's mass

@@ -34,7 +34,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from lensfit.diffraction import DEFAULT_WAVELENGTH_NM
+from lensfit.diffraction import DEFAULT_WAVELENGTH_NM, MAX_AIRY_PX
 from lensfit.errors import InputError
 from lensfit.fit.data import AIRY_NOT_SEEN
 from lensfit.fit.spots import AUTO_MIN_AIRY_PX, airy_per_setting
@@ -210,7 +210,8 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
     airy = airy_per_setting(result, wavelength_nm)  # each round's scales, from the fit before it
     for _ in range(MAX_ROUNDS):
         if not any(airy.values()):
-            result.warnings.append("diffraction not modelled: no setting's aperture was determined")
+            result.warnings.append("diffraction not modelled: no setting's aperture was determined (or its Airy "
+                                   f"pattern is wider than the {MAX_AIRY_PX:g} px the edge model reads)")
             break
         rounds.append(airy)
         if warming is not None:

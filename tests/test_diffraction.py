@@ -412,3 +412,38 @@ def test_the_rounds_stop_where_the_next_would_move_no_f_number_by_the_tolerance(
     assert saved == {0.01: False, 0.03: True, 0.1: False, 0.3: False, 0.6: False, "curved": True}
     # A setting whose Airy scale did not move gives no slope to go by.
     assert not _settled_next({"s": 1.0}, {"s": 1.0}, {"s": 1.01}, {"s": 0.002})
+
+
+def test_the_airy_scale_of_an_aperture_the_fit_did_not_determine_is_none():
+    """Where every blur sits below a pixel the first fit reports no aperture, and its solution's
+    f-number can run off (seen: a random 18 mm f/25 scene, log N = 24.8, an Airy scale of 5e9 px,
+    which stopped ``lensfit fit`` with an internal error in the diffraction test). Such a scale
+    is no scale (the median of the others', 0 if none: not tested, not modelled); a determined
+    aperture gives lambda N_w / p against the formula."""
+    from types import SimpleNamespace
+
+    from lensfit.diffraction import MAX_AIRY_PX
+    from lensfit.fit.model import Layout
+    from lensfit.fit.spots import airy_per_setting
+
+    pitch, fpx, f_mm = 0.006, 3000.0, 18.0
+    at = Layout(2)
+    full = np.zeros(at.size)
+    full[at.LOG_F] = math.log(f_mm)
+    full[at.log_n(0)], full[at.log_n(1)] = 24.8, math.log(8.0)
+
+    def result(apertures):
+        settings = {lab: {"aperture_diameter_mm": SimpleNamespace(value=a)} for lab, a in zip("ab", apertures)}
+        data = SimpleNamespace(pixel_pitch_mm=pitch, labels=["a", "b"], focal_length_px=np.array([fpx, fpx]))
+        return SimpleNamespace(samples=data, settings=settings, _full=full)
+
+    # b from the solution (f / N = 2.25 mm): lambda N_w / p with N_w = f_px p / A
+    expected_b = 550e-6 * (fpx * pitch / (f_mm / 8.0)) / pitch
+    scales = airy_per_setting(result([None, None]))
+    assert scales["b"] == pytest.approx(expected_b, rel=1e-12)
+    assert scales["a"] == scales["b"] <= MAX_AIRY_PX  # the run-off one takes the other's
+    full[at.log_n(1)] = 30.0  # both run off: none
+    assert airy_per_setting(result([None, None])) == {"a": 0.0, "b": 0.0}
+    # a reported aperture stands (and one whose pattern is wider than the model reads is none)
+    assert airy_per_setting(result([2.0, 1e-6]))["a"] == pytest.approx(550e-6 * fpx * pitch / 2.0 / pitch)
+    assert airy_per_setting(result([2.0, 1e-6]))["b"] == airy_per_setting(result([2.0, 1e-6]))["a"]

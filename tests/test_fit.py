@@ -353,7 +353,13 @@ def test_without_focal_length_in_px_only_slope_and_focus_distance():
 
 def test_bad_input_is_a_typed_error_naming_the_argument():
     rows = [{"setting": "a", "distance_mm": 1000.0, "coc_diameter_px": None, "sigma_px": None}]
-    with pytest.raises(InputError, match="samples"):
+    with pytest.raises(InputError, match="samples") as caught:
+        fit(rows, pixel_pitch_mm=PITCH)
+    assert "flags say why" in str(caught.value)
+    # every edge found and none read, its blur wider than the room beside it (a random 21 mm f/1.2
+    # scene focused at 1.2 m): the message says so and what to change, not "detect the targets"
+    rows = [{**rows[0], "flags": "window_truncated;axis_aligned"}] * 3
+    with pytest.raises(InputError, match="3 of them flagged window_truncated.*stop down"):
         fit(rows, pixel_pitch_mm=PITCH)
     rows = [{"setting": "a", "distance_mm": -5.0, "coc_diameter_px": 1.0, "sigma_px": 0.1}]
     with pytest.raises(InputError, match=r"samples\[0\]\.distance_mm"):

@@ -98,15 +98,13 @@ from typing import Any, Callable
 
 import numpy as np
 
+from lensfit.diffraction import MAX_AIRY_PX
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.estimators.edge_fit import FitQueue, fit_profiles
 from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
 from lensfit.estimators.profile import line_end_covariance, select as _select, windows
 
 SUB_PIXEL_PX = 0.5
-#: Largest Airy scale (px) the diffraction model takes: beyond it the pattern spans more than
-#: the windows the profile has (f/64 at 550 nm on 1 um pixels is 35 px).
-MAX_AIRY_PX = 64.0
 SUB_PIXEL_SIGMA_PX = 0.2
 #: A reading (c >= SUB_PIXEL_PX) whose 1 sigma exceeds this multiple of c is no reading (flag
 #: ``blur_undetermined``, no value); a sub-pixel one is none unless a blur of ``edge_fit.PROBE_C_PX`` fits

@@ -167,8 +167,16 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
         used.append(r)
         used_rows.append(i)
     if not used:
+        if truncated:  # the edges were found, and every blur outgrew its window
+            fix = (f"{truncated} of them flagged window_truncated: the blur outgrew the clean room around each "
+                   "edge; stop down, bring the targets nearer the focus distance, or use a target with larger "
+                   "squares")
+        elif rows:
+            fix = "the estimator read no edge's blur (each sample's flags say why)"
+        else:
+            fix = "measure a stack whose targets were detected (lensfit measure)"
         raise InputError("samples", f"{len(rows)} rows", "at least one sample with a measured coc_diameter_px and "
-                         "sigma_px", "measure a stack whose targets were detected (lensfit measure)")
+                         "sigma_px", fix)
     labels = sorted({str(r["setting"]) for r in used})
     idx = {k: i for i, k in enumerate(labels)}
     dist = np.array([float(r["distance_mm"]) for r in used])

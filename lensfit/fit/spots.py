@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from lensfit.diffraction import DEFAULT_WAVELENGTH_NM, airy_scale_px, working_f_number
+from lensfit.diffraction import DEFAULT_WAVELENGTH_NM, MAX_AIRY_PX, airy_scale_px, working_f_number
 
 #: How the fit takes readings that come in two (``fit(spot_shape=...)``).
 SPOT_SHAPE_MODES = ("auto", "shaped", "disk")
@@ -33,7 +33,10 @@ def airy_per_setting(result: Any, wavelength_nm: float = DEFAULT_WAVELENGTH_NM) 
     """Each setting's Airy scale ``lambda N_w / p`` (px) from a fit: ``N_w = f_px p / A``. Where
     the fit reported no aperture (the Airy pattern itself can make the f-number too uncertain to
     report before diffraction is modelled) its solution's ``A = f / N`` serves; a setting without
-    one takes the median scale of the others (0 if none)."""
+    one, or whose scale is beyond ``MAX_AIRY_PX`` (what the edge estimator's model reads: where
+    every blur sits below a pixel the solution's f-number can run off to 1e10, which had stopped
+    the auto diffraction test with an internal error), takes the median scale of the others (0 if
+    none)."""
     from lensfit.fit.model import Layout
 
     data = result.samples
@@ -46,7 +49,9 @@ def airy_per_setting(result: Any, wavelength_nm: float = DEFAULT_WAVELENGTH_NM) 
             a = math.exp(result._full[at.LOG_F] - result._full[at.log_n(k)])
         fpx = float(data.focal_length_px[k])
         if math.isfinite(fpx) and a and math.isfinite(a) and a > 0:
-            out[label] = airy_scale_px(wavelength_nm, working_f_number(fpx * pitch, a), pitch)
+            scale = airy_scale_px(wavelength_nm, working_f_number(fpx * pitch, a), pitch)
+            if 0.0 < scale <= MAX_AIRY_PX:
+                out[label] = scale
     known = sorted(out.values())
     fill = known[len(known) // 2] if known else 0.0
     return {label: out.get(label, fill) for label in data.labels}
