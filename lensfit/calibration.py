@@ -331,25 +331,63 @@ def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, po
         return None
     p = views[0][0].shape[1]
     n_pose = 6 * len(dets)
-    H, B = np.zeros((p, p)), np.zeros((p, p))  # J^T J and J^T S J, view by view (S is block diagonal)
-    trace_s, rss, n_rows = 0.0, 0.0, 0
+    # J^T J, J^T S J, J^T W J and J^T S W J view by view (S block diagonal, W its pseudo-inverse)
+    H, B, G, Q = (np.zeros((p, p)) for _ in range(4))
+    trace_s = trace_w = trace_ws = rss = rwr = 0.0
+    n_rows = 0
     for d, (rows, r) in zip(dets, views):
         S_k = np.eye(len(rows)) if independent else np.asarray(d.point_cov_px2, np.float64)
         if not np.all(np.isfinite(S_k)):
             return None
+        W_k = np.linalg.pinv(S_k, rcond=1e-10, hermitian=True)
         H += rows.T @ rows
         B += rows.T @ S_k @ rows
+        G += rows.T @ W_k @ rows
+        Q += rows.T @ S_k @ W_k @ rows
         trace_s += float(np.trace(S_k))
+        trace_w += float(np.trace(W_k))
+        trace_ws += float(np.trace(W_k @ S_k))
         rss += float(r @ r)
+        rwr += float(r @ W_k @ r)
         n_rows += len(r)
     if n_rows <= p:
         return None
     H_inv = _information_inverse(H)
-    unexplained = trace_s - float(np.trace(H_inv @ B))  # tr((I - J H^-1 J^T) S)
+    unexplained = trace_s - float(np.trace(H_inv @ B))  # tr(R S), R = I - J H^-1 J^T
     if not unexplained > 0:
         return None
-    var = rss / unexplained * float((H_inv @ B @ H_inv)[n_pose, n_pose])
+    a, b = rss / unexplained, 0.0
+    if not independent:
+        a, b = _variance_components(rss, rwr, unexplained, n_rows - float(np.trace(H_inv @ H)),
+                                    trace_ws - 2.0 * float(np.trace(H_inv @ Q)) + float(np.trace(H_inv @ G @ H_inv @ B)),
+                                    trace_w - float(np.trace(H_inv @ G)))
+    var = float((H_inv @ (a * B + b * H) @ H_inv)[n_pose, n_pose])
     return math.sqrt(var) if math.isfinite(var) and var >= 0 else None
+
+
+def _variance_components(rss: float, rwr: float, tr_rs: float, tr_r: float, tr_wrsr: float,
+                         tr_wr: float) -> tuple[float, float]:
+    """``(a, b)`` of the corners' covariance ``a S + b I``: the lines' covariance ``S`` (up to a
+    scale) and an excess every coordinate has alone (what the lines' model leaves out: the
+    corners' own localisation, a profile the edge fit read with a bias of its own), by the method
+    of moments from the residuals ``r = R e``: ``E[r'r] = a tr(RS) + b tr(R)`` and
+    ``E[r'Wr] = a tr(WRSR) + b tr(WR)``, ``W`` the pseudo-inverse of ``S``. Both at least 0;
+    ``b = 0`` gives the lines' covariance alone with its scale from ``r'r`` (as before 2026-11-28).
+    On an end-to-end fuzz's focus bracket (18.8 mm f/6.2, five 15-corner views a setting, 16 spp,
+    8 renders): the focal length's error over its sigma RMS 1.37 -> 0.86, the largest 4.7 -> 2.4;
+    OpenCV's model (every coordinate alone) 0.52, 1.25."""
+    A = np.array([[tr_rs, tr_r], [tr_wrsr, tr_wr]])
+    y = np.array([rss, rwr])
+    lines_only = (rss / tr_rs, 0.0)
+    try:
+        a, b = np.linalg.solve(A, y)
+    except np.linalg.LinAlgError:
+        return lines_only
+    if not (math.isfinite(a) and math.isfinite(b)) or b <= 0.0:
+        return lines_only
+    if a < 0.0:
+        return 0.0, rss / tr_r
+    return float(a), float(b)
 
 
 def _view_jacobians(dets: list[Detection], K: np.ndarray, dist: np.ndarray, poses,
