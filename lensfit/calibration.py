@@ -53,6 +53,10 @@ class Intrinsics:
     focal_length_sigma_px: float = 0.0
     #: how that sigma was found (``SIGMA_METHODS``; "" where not known, e.g. an older file)
     focal_length_sigma_method: str = ""
+    #: the degrees of freedom of a jackknife's sigma: ``(sum h)^2 / sum h^2 - 1`` over the views'
+    #: leverages ``h`` (the views less one where they inform the focal length alike; about 1.7
+    #: where 4 of 10 do, one of them most), at least 1; 0 where not a jackknife's, or not known
+    focal_length_sigma_dof: float = 0.0
 
     @property
     def camera_matrix(self) -> np.ndarray:
@@ -266,25 +270,28 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         usable = _usable(dets)
         n = len(usable)
         if not with_jackknife:
-            return sigma_opencv, "opencv"
+            return sigma_opencv, "opencv", 0.0
         if n < JACKKNIFE_MIN_VIEWS:
             through_lines = _correlated_sigma(usable, *solution, flags | extra)
             if through_lines is not None:
-                return through_lines, "corner covariance"
+                return through_lines, "corner covariance", 0.0
             plain = _correlated_sigma(usable, *solution, flags | extra, independent=True)
-            return (sigma_opencv if plain is None else plain), "opencv"
+            return (sigma_opencv if plain is None else plain), "opencv", 0.0
         # each leave-one-out calibration started from the whole one's intrinsics: the same
         # minimum (sigma within 1e-7), 13 % less time than OpenCV's own start from homographies;
         # the leverages from the inverse information equilibrated (OpenCV's reported sigma, from
         # which they were read until 2026-11-28, truncates it on narrow views: _correlated_sigma)
         weighted, guess = 0.0, extra | cv2.CALIB_USE_INTRINSIC_GUESS
         unit = _focal_information_inverse(usable, *solution, flags | extra) or unit
+        leverages = []
         for i in range(n):
             subset = usable[:i] + usable[i + 1:]
             _, K_i, dist_i, _, unit_i, poses_i = run(subset, solution[0], solution[1], guess)
             unit_i = _focal_information_inverse(subset, K_i, dist_i, poses_i, flags | guess) or unit_i
-            weighted += (K_i[0, 0] - f_all) ** 2 * (min(unit / unit_i, 1.0) if unit_i > 0 else 1.0)
-        return float(np.sqrt(weighted)), "jackknife"
+            kept = min(unit / unit_i, 1.0) if unit_i > 0 else 1.0
+            weighted += (K_i[0, 0] - f_all) ** 2 * kept
+            leverages.append(1.0 - kept)
+        return float(np.sqrt(weighted)), "jackknife", jackknife_dof(leverages)
 
     def setting(dets, K_start, dist_start, extra):
         rms, K, dist, sigma, unit, poses = run(dets, K_start, dist_start, extra)
@@ -302,6 +309,38 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
     f_px = {label: run(dets, K_all, dist_all, fixed)[1][0, 0] for label, dets in detections.items()}
     _, K_all, dist_all, *_ = run(one_camera(f_px, K_all[:2, 2]), K0, np.zeros(5), 0)
     return {label: setting(dets, K_all, dist_all, fixed) for label, dets in detections.items()}
+
+
+#: Below these degrees of freedom a calibration's jackknife says so (:func:`few_informative_views`).
+FEW_VIEWS_DOF = 3.0
+
+
+def few_informative_views(intrinsics: dict[str, Intrinsics]) -> list[str]:
+    """Warnings for calibrations whose focal length rests on few of their views (a jackknife's
+    degrees of freedom under ``FEW_VIEWS_DOF``, :func:`jackknife_dof`): its interval is then wide,
+    and tilted views would narrow it."""
+    return [f"setting {label!r}: its focal length rests on about {v.focal_length_sigma_dof + 1:.1f} of its "
+            f"{v.views} views, its interval on Student's t with {v.focal_length_sigma_dof:.1f} degrees of freedom "
+            "(wide); add views of the targets tilted by 20-40 degrees"
+            for label, v in intrinsics.items()
+            if v.focal_length_sigma_method == "jackknife" and 0.0 < v.focal_length_sigma_dof < FEW_VIEWS_DOF]
+
+
+def jackknife_dof(leverages: list[float]) -> float:
+    """Degrees of freedom of the leave-one-view-out jackknife's variance: each view's part of it
+    has an expectation in proportion to its leverage ``h_i`` (its share of what is known of the
+    focal length), so the sum is a Satterthwaite mix of ``(sum h)^2 / sum h^2`` views' chi-squares,
+    less one for the estimate (Bell and McCaffrey's correction, in its simplest form): ``n - 1``
+    where the views inform it alike, about 1.7 where 4 of 10 do and one most (until 2026-11-28
+    always the views less one: on such a random scene, 12 renders, the jackknife's sigma read
+    0.1-2x the spread and the focal length's 95 % intervals, taking t(9), missed at 3-7 sigma). At
+    least 1; the views less one at most."""
+    h = np.clip(np.asarray(leverages, float), 0.0, 1.0)
+    n = len(h)
+    if n < 2 or not np.any(h > 0):
+        return float(max(n - 1, 1))
+    effective = float(h.sum() ** 2 / np.sum(h * h))
+    return float(min(max(effective - 1.0, 1.0), n - 1))
 
 
 def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, poses, flags: int,

@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.clock import StageClock
-from lensfit.calibration import calibrate, estimate_pose, known_intrinsics, outlier_views
+from lensfit.calibration import calibrate, estimate_pose, few_informative_views, known_intrinsics, outlier_views
 from lensfit.errors import InputError, SpecError
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.sample_table import Sample, SampleTable
@@ -312,6 +312,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             detections[i] = refined
         with clock.stage("calibrate"):
             table.intrinsics = calibrate_all()
+    table.warnings.extend(few_informative_views(table.intrinsics))
     for i in range(n):
         entry = stack.images[i]
         table.corners_px[entry.file.name] = [(d.target_id, np.asarray(d.image_points_px, np.float64))

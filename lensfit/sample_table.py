@@ -145,7 +145,8 @@ class SampleTable:
                     float(v["focal_length_px"]), tuple(v.get("principal_point_px", (0.0, 0.0))),
                     tuple(v.get("distortion", [0.0] * 5)), float(v.get("rms_px", 0.0)), int(v.get("views", 0)),
                     str(v.get("source", "file")), float(v.get("focal_length_sigma_px", 0.0)),
-                    str(v.get("focal_length_sigma_method", "")))
+                    str(v.get("focal_length_sigma_method", "")),
+                    float(v.get("focal_length_sigma_dof", 0.0)))
             except (AttributeError, KeyError, TypeError, ValueError) as exc:
                 raise SpecError(path, f"intrinsics.{label}", f"unreadable calibration ({exc!r}); expected the fields "
                                 "lensfit measure writes") from None

@@ -94,7 +94,8 @@ def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
         ctx = {"pixel_pitch_mm": samples.pixel_pitch_mm,
                "focal_length_px": {k: v.focal_length_px for k, v in samples.intrinsics.items()},
                "focal_length_sigma_px": {k: v.focal_length_sigma_px for k, v in samples.intrinsics.items()},
-               "focal_length_dof": {k: float(max(v.views - 1, 1)) if v.focal_length_sigma_method == "jackknife"
+               "focal_length_dof": {k: (v.focal_length_sigma_dof or float(max(v.views - 1, 1)))
+                                    if v.focal_length_sigma_method == "jackknife"
                                     else math.inf for k, v in samples.intrinsics.items()},
                # settings whose calibration fitted no lens distortion, and those whose did (their
                # readings taken through it where flagged distortion_scaled; lensfit.fit.constants:
