@@ -198,7 +198,7 @@ def test_an_excess_the_lines_covariance_leaves_out_is_read_from_the_residuals():
     their ends): the lines' covariance, its scale read from the residuals, then puts the
     residuals' excess into the anti-correlated pattern that the focal length hardly follows and
     states too small a sigma. With a second variance component, ``a S + b I``, both read from the
-    residuals by the method of moments (``lensfit.calibration._variance_components``), the sigma
+    residuals by the method of moments (``lensfit.calibration_sigma._variance_components``), the sigma
     reads the spread of 60 calibrations more nearly; without the excess it stays that of the
     lines alone (the test above)."""
     f, s_lines, _ = line_refined_calibrations(11, 60, excess_px=0.04)
@@ -312,7 +312,7 @@ def test_a_jackknife_over_few_informative_views_takes_their_degrees_of_freedom()
     import cv2
     from scipy.stats import t as student
 
-    from lensfit.calibration import jackknife_dof
+    from lensfit.calibration_sigma import jackknife_dof
 
     assert jackknife_dof([0.1] * 10) == pytest.approx(9.0)
     assert jackknife_dof([0.5, 0.5] + [0.0] * 8) == pytest.approx(1.0)
