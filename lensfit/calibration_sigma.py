@@ -64,7 +64,8 @@ def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, po
         S_k = np.eye(len(rows)) if independent else np.asarray(d.point_cov_px2, np.float64)
         if not np.all(np.isfinite(S_k)):
             return None
-        W_k = np.linalg.pinv(S_k, rcond=1e-10, hermitian=True)
+        # (the identity is its own pseudo-inverse)
+        W_k = S_k if independent else np.linalg.pinv(S_k, rcond=1e-10, hermitian=True)
         H += rows.T @ rows
         B += rows.T @ S_k @ rows
         G += rows.T @ W_k @ rows
@@ -83,8 +84,8 @@ def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, po
         return None
     a, b = rss / unexplained, 0.0
     if not independent:
-        a, b = _variance_components(rss, rwr, unexplained, n_rows - float(np.trace(H_inv @ H)),
-                                    trace_ws - 2.0 * float(np.trace(H_inv @ Q)) + float(np.trace(H_inv @ G @ H_inv @ B)),
+        tr_wrsr = trace_ws - 2.0 * float(np.trace(H_inv @ Q)) + float(np.trace(H_inv @ G @ H_inv @ B))
+        a, b = _variance_components(rss, rwr, unexplained, n_rows - float(np.trace(H_inv @ H)), tr_wrsr,
                                     trace_w - float(np.trace(H_inv @ G)))
     var = float((H_inv @ (a * B + b * H) @ H_inv)[n_pose, n_pose])
     return math.sqrt(var) if math.isfinite(var) and var >= 0 else None

@@ -22,7 +22,7 @@ from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
 from lensfit.fit.solve import (_floor_escape, _image_scatter, _padded_size, _predict_all, _robust_scale,
                                _robust_weights, _shared_sigma, _solver, _solver_args, _solver_residual_fn)
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
-from lensfit.fit.start import _side_hint, _vertex_search
+from lensfit.fit.start import _one_side, _vertex_search
 from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _images_part,
                                      _image_spread, _null_direction, _positive, _shares, student_z)
 
@@ -170,12 +170,13 @@ def _one_sided(label: str, focus: Estimate, w_per_m: np.ndarray, x_per_m: float)
     than the focus: its focus distance 8.7 % near at 7.6 sigma, its floor 0.81 px against 0)."""
     if focus.value is None or focus.ci95 is None or focus.ci95[1] is None:
         return []
-    side = _side_hint(w_per_m, x_per_m)
-    if not side:
+    side = _one_side(w_per_m, x_per_m)
+    if side is None:
         return []
-    where = "beyond" if "nearer" in side else "nearer than"
-    return [f"setting {label!r}: {side[2:]} distance, which is extrapolated from the blur's slope (a blur floor and "
-            f"the smallest blurs' readings can bend it beyond its interval): add targets {where} the focus distance"]
+    where = "beyond" if side == "nearer" else "nearer than"
+    return [f"setting {label!r}: every sample is {side} than the focus distance, which is extrapolated from the blur's "
+            f"slope (a blur floor and the smallest blurs' readings can bend it beyond its interval): add targets "
+            f"{where} the focus distance"]
 
 
 def _refused(data: FitData, loss: str, reason: str) -> FitResult:

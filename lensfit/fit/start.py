@@ -56,11 +56,18 @@ def _vertex_profile(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarra
     return grid, chi2, np.sqrt(k2), np.sqrt(b2)
 
 
+def _one_side(w: np.ndarray, x: float) -> str | None:
+    """"nearer" or "farther" when all inverse distances ``w`` lie on one side of the vertex ``x``
+    (same units), else None."""
+    if np.all(w > x):
+        return "nearer"
+    if np.all(w < x):
+        return "farther"
+    return None
+
+
 def _side_hint(w: np.ndarray, x: float) -> str:
     """"; every sample is nearer/farther than the focus" when all inverse distances ``w`` lie on
     one side of the vertex ``x`` (same units), else ""."""
-    if np.all(w > x):
-        return "; every sample is nearer than the focus"
-    if np.all(w < x):
-        return "; every sample is farther than the focus"
-    return ""
+    side = _one_side(w, x)
+    return f"; every sample is {side} than the focus" if side else ""
