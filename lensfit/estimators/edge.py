@@ -383,7 +383,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             d_c, d_rms, d_sigma = disk[j] if j in is_shaped and not cut else (None, rms, None)
             results[i] = BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels[i], d_rms, line_px,
                                       d_c, None if d_c is None else with_model_floor(d_sigma, d_c),
-                                      line_end_covariance(np.asarray(cov, np.float64), half_len))
+                                      line_end_covariance(np.asarray(cov, np.float64), half_len, "sub_pixel_blur" in f))
     flat = [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
     out: list[list[BlurEstimate]] = [[] for _ in items]
     for k, r in zip(owner, flat):
