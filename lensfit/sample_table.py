@@ -146,7 +146,7 @@ class SampleTable:
                     tuple(v.get("distortion", [0.0] * 5)), float(v.get("rms_px", 0.0)), int(v.get("views", 0)),
                     str(v.get("source", "file")), float(v.get("focal_length_sigma_px", 0.0)),
                     str(v.get("focal_length_sigma_method", "")),
-                    float(v.get("focal_length_sigma_dof", 0.0)))
+                    float(v.get("focal_length_sigma_dof", 0.0)), float(v.get("informative_views", 0.0)))
             except (AttributeError, KeyError, TypeError, ValueError) as exc:
                 raise SpecError(path, f"intrinsics.{label}", f"unreadable calibration ({exc!r}); expected the fields "
                                 "lensfit measure writes") from None

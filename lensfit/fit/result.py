@@ -192,7 +192,7 @@ def results_document(result: FitResult, command: Iterable[str] | None = None,
         doc["calibration"] = {
             label: {"focal_length_px": v.focal_length_px, "focal_length_sigma_px": v.focal_length_sigma_px,
                     "focal_length_sigma_method": v.focal_length_sigma_method,
-                    "focal_length_sigma_dof": v.focal_length_sigma_dof,
+                    "focal_length_sigma_dof": v.focal_length_sigma_dof, "informative_views": v.informative_views,
                     "principal_point_px": list(v.principal_point_px),
                     "distortion_opencv": [float(x) for x in v.distortion], "rms_px": v.rms_px, "views": v.views,
                     "source": v.source}
