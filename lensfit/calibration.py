@@ -347,9 +347,10 @@ FEW_VIEWS_DOF = 3.0
 
 
 def few_informative_views(intrinsics: dict[str, Intrinsics]) -> list[str]:
-    """Warnings for calibrations whose focal length rests on few of their views (a jackknife's
-    degrees of freedom under ``FEW_VIEWS_DOF``, :func:`jackknife_dof`): its interval is then wide,
-    and tilted views would narrow it."""
+    """Warnings for calibrations whose focal length rests on few of their views (the jackknife's
+    own degrees of freedom, ``informative_views`` less one, under ``FEW_VIEWS_DOF``,
+    :func:`jackknife_dof`; before its pooling with the model): its interval is then wide, and
+    tilted views would narrow it."""
     return [f"setting {label!r}: its focal length rests on about {v.informative_views:.1f} of its "
             f"{v.views} views, its interval on Student's t with {v.focal_length_sigma_dof:.1f} degrees of freedom "
             "(wide); add views of the targets tilted by 20-40 degrees"

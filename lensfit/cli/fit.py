@@ -124,8 +124,12 @@ def _print_fit(result, document) -> None:
         cal = (document.get("calibration") or {}).get(label)
         if cal and cal.get("source") == "calibrated":
             how = cal.get("focal_length_sigma_method") or "sigma"
+            views = f"{cal['views']} views"
+            if cal.get("informative_views"):  # a jackknife, pooled with the corners' model
+                how += " with the corners' model"
+                views = f"{cal['informative_views']:.1f} informative of {views}"
             print(f"calibration: focal length {cal['focal_length_px']:.1f} ± {cal['focal_length_sigma_px']:.2g} px "
-                  f"({how}, {cal['views']} views, reprojection RMS {cal['rms_px']:.3g} px)")
+                  f"({how}, {views}, reprojection RMS {cal['rms_px']:.3g} px)")
             dist = cal.get("distortion_opencv") or []
             if any(dist):
                 print(f"lens distortion k1 {dist[0]:+.3g}, k2 {dist[1]:+.3g}: each edge's blur is read through it "
