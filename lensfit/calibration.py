@@ -58,8 +58,9 @@ class Intrinsics:
     #: where 4 of 10 do, one of them most), at least 1, and ``MODEL_PRIOR_DOF`` more where it is
     #: pooled with the model's; 0 where not a jackknife's, or not known
     focal_length_sigma_dof: float = 0.0
-    #: the views' effective count in a jackknife, ``(sum h)^2 / sum h^2`` over their leverages
-    #: (how many views the focal length rests on); 0 where not a jackknife's, or not known
+    #: how many views a jackknife's focal length rests on: its own degrees of freedom plus one,
+    #: ``(sum h)^2 / sum h^2`` over the views' leverages held within 2 and the views
+    #: (:func:`jackknife_dof`); 0 where not a jackknife's, or not known
     informative_views: float = 0.0
 
     @property
@@ -277,12 +278,12 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         n = len(usable)
         if not with_jackknife:
             return sigma_opencv, "opencv", 0.0, 0.0
+        # the model's sigma: through the refined corners' covariance, else OpenCV's model
+        model, method = _correlated_sigma(usable, *solution, flags | extra), "corner covariance"
+        if model is None:
+            model, method = _correlated_sigma(usable, *solution, flags | extra, independent=True), "opencv"
         if n < JACKKNIFE_MIN_VIEWS:
-            through_lines = _correlated_sigma(usable, *solution, flags | extra)
-            if through_lines is not None:
-                return through_lines, "corner covariance", 0.0, 0.0
-            plain = _correlated_sigma(usable, *solution, flags | extra, independent=True)
-            return (sigma_opencv if plain is None else plain), "opencv", 0.0, 0.0
+            return (sigma_opencv if model is None else model), method, 0.0, 0.0
         # each leave-one-out calibration started from the whole one's intrinsics: the same
         # minimum (sigma within 1e-7), 13 % less time than OpenCV's own start from homographies;
         # the leverages from the inverse information equilibrated (OpenCV's reported sigma, from
@@ -299,9 +300,6 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
             leverages.append(1.0 - kept)
         dof = jackknife_dof(leverages)
         views = dof + 1.0
-        model = _correlated_sigma(usable, *solution, flags | extra)
-        if model is None:
-            model = _correlated_sigma(usable, *solution, flags | extra, independent=True)
         if model is None:
             return float(np.sqrt(weighted)), "jackknife", dof, views
         # the model's variance as a prior worth MODEL_PRIOR_DOF degrees of freedom
