@@ -23,9 +23,11 @@ from lensfit.diffraction import DEFAULT_WAVELENGTH_NM, MAX_AIRY_PX, airy_scale_p
 
 #: How the fit takes readings that come in two (``fit(spot_shape=...)``).
 SPOT_SHAPE_MODES = ("auto", "shaped", "disk")
-#: The Airy scale (px, at 550 nm) from which the pattern's tails matter to a reading: below it
-#: the pattern moves the f-number by well under its sigma (also where the pipeline's diffraction
-#: test starts).
+#: The Airy scale (px, at 550 nm) from which untested samples' second moments are set aside for the
+#: uniform disk's readings (and down to which the pipeline's diffraction test tries fractions of
+#: the first fit's scale). Below it the tails still add an offset to every reading (0.1 px at a =
+#: 0.16 px), which a fit with every target on one side of the focus takes for its focus distance:
+#: the pipeline tests the images from lensfit.pipeline.TEST_MIN_AIRY_PX.
 AUTO_MIN_AIRY_PX = 0.5
 
 
