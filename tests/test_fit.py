@@ -155,6 +155,48 @@ def test_a_focus_distance_with_every_sample_on_one_side_is_flagged_as_extrapolat
     assert not one_sided(simulate(f, N, math.inf, spread(1000, 30000), rng))[0]
 
 
+def test_a_one_sided_floor_spans_the_fit_without_it():
+    """Every sample nearer than the focus, and one image nearest it read 1 px wide in quadrature
+    (an end-to-end fuzz's board at the plane in focus read 0.7 px for 0.29): a fitted floor takes
+    that image and bends the V's only arm, and the focus distance's 95 % interval missed the truth.
+    The data cannot tell that floor from a shift of the focus distance, so the intervals span the
+    fit without it (variance source floor_choice) and hold the truth; a warning says what that
+    fit read. With samples on both sides the vertex is not extrapolated: nothing changes. A true
+    floor on one side: the widened intervals still hold the truth."""
+    f, N, D = 50.0, 4.0, 3000.0
+
+    def capture(seed, both_sides=False, floor_px=0.0):
+        rng = np.random.default_rng(seed)
+        d = np.concatenate([spread(900, 2600, 50), np.full(8, 2950.0)]
+                           + ([spread(3400, 9000, 20)] if both_sides else []))
+        rows, fpx, fpx_sigma = simulate(f, N, D, d, rng, noise_px=0.03, floor_px=floor_px)
+        if not floor_px:
+            for r in rows[50:58]:
+                r["coc_diameter_px"] = float(np.hypot(r["coc_diameter_px"], 1.0))
+        return rows, fpx, fpx_sigma
+
+    def holds(est, truth):
+        return est.ci95[0] <= truth <= est.ci95[1]
+
+    rows = capture(1)
+    narrow = run_fit(*rows, floor_choice=False).settings["a"]
+    assert not holds(narrow["focus_distance_mm"], D), narrow["focus_distance_mm"]
+    r = run_fit(*rows)
+    est = r.settings["a"]
+    assert est["blur_floor_px"].value > 0.5
+    for q, truth in (("focus_distance_mm", D), ("f_number", N)):
+        assert holds(est[q], truth), (q, est[q])
+        assert est[q].shares["floor_choice"] > 0.5 and abs(sum(est[q].shares.values()) - 1) < 1e-9
+    assert any("fitted without a floor it reads" in w for w in r.warnings), r.warnings
+    assert_no_nan(r)
+    both = capture(1, both_sides=True)
+    a, b = run_fit(*both).settings["a"], run_fit(*both, floor_choice=False).settings["a"]
+    assert a["focus_distance_mm"].ci95 == b["focus_distance_mm"].ci95 and "floor_choice" not in a["f_number"].shares
+    for seed in range(4):
+        est = run_fit(*capture(seed, floor_px=1.0)).settings["a"]
+        assert holds(est["focus_distance_mm"], D) and holds(est["f_number"], N), (seed, est["focus_distance_mm"])
+
+
 def test_focus_at_the_hyperfocal_distance():
     f, N, coc_mm = 35.0, 8.0, 0.03
     H = f * f / (N * coc_mm) + f

@@ -15,6 +15,7 @@ from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES,
                                    FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX,
                                    FLOOR_START_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
+from lensfit.fit.floor_choice import floor_sensitive, widen
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _second_vertex)
 from lensfit.fit.model import Layout, _size
@@ -33,7 +34,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         loss: str = "huber", blur_floor_px: float | None = None,
         floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
         pupil_magnification: float | tuple[float, float] | None = None,
-        field_curvature: str = "auto", spot_shape: str = "auto") -> FitResult:
+        field_curvature: str = "auto", spot_shape: str = "auto", floor_choice: bool = True) -> FitResult:
     """Fit focal length, and per setting f-number and focus distance, to blur samples.
 
     Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
@@ -71,6 +72,10 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         radius and spread over the field; "auto" keeps it only where it differs from 0 by
         ``FIELD_CURVATURE_Z`` sigma (elsewhere the fit is the one "off" gives: kappa = 0, as for
         a thin lens).
+    floor_choice : where every sample of a setting lies on one side of its focus distance and
+        its fitted floor is above 0, fit again without the floor and widen that setting's
+        intervals to span both fits (lensfit.fit.floor_choice; default True). The pipeline's
+        diffraction rounds turn it off and compare their own rounds without the floor.
     spot_shape : "auto" (default), "shaped" or "disk": which reading to take where a sample
         gives two, its spot's second moment through the shaped-spot model or the uniform disk's
         (``disk_diameter_px``). "auto" takes the second moment unless the Airy pattern at the
@@ -99,12 +104,12 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     if spot_shape not in SPOT_SHAPE_MODES:
         raise InputError("spot_shape", spot_shape, "one of: " + ", ".join(SPOT_SHAPE_MODES))
 
-    def run(disk_readings: Any) -> FitResult:
+    def run(disk_readings: Any, floor: float | None = blur_floor_px) -> FitResult:
         data = prepare(samples, pixel_pitch_mm=pixel_pitch_mm, focal_length_px=focal_length_px,
                        focal_length_sigma_px=focal_length_sigma_px, disk_readings=disk_readings)
         try:
             with np.errstate(all="ignore"):  # overflow on the way is caught below, not printed
-                result = _fit(data, loss, blur_floor_px, floor_prior_sigma_px, max_irls, pupil, field_curvature)
+                result = _fit(data, loss, floor, floor_prior_sigma_px, max_irls, pupil, field_curvature)
         except InputError:
             raise
         except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
@@ -117,11 +122,15 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
                             "produces: check their units (mm, px) and the pixel pitch")
         return result
 
-    result = run(True if spot_shape == "disk" else ())
+    disk = True if spot_shape == "disk" else ()
+    result = run(disk)
     instead = disk_instead(result) if spot_shape == "auto" else None
     if instead:
-        result = run(set(instead[0]))
+        disk = set(instead[0])
+        result = run(disk)
         result.warnings.append(instead[1])
+    if floor_choice and blur_floor_px is None and (sensitive := floor_sensitive(result)):
+        widen(result, run(disk, 0.0), sensitive)
     return result
 
 

@@ -41,7 +41,8 @@ def _correlation(cov: np.ndarray) -> np.ndarray:
 #: pose, its noise: :func:`_images_part`, and the excess of the images' spread, :func:`_image_spread`;
 #: "images"); the blur
 #: estimator's shared scale error ("estimator_scale", ``BLUR_SCALE_SIGMA``); the priors on the
-#: blur floor and the pupil magnification ("priors").
+#: blur floor and the pupil magnification ("priors"). (A one-sided setting's "floor_choice" is
+#: added after the fit: lensfit.fit.floor_choice.)
 BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "priors")
 
 
