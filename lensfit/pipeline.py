@@ -242,7 +242,8 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
         warming.join()
     rounds_options = {**options, "floor_choice": False}
     table, result = _rounds(stack, table, result, airy, estimator, wavelength_nm, rounds_options, progress, rounds)
-    if options.get("blur_floor_px") is None and (sensitive := floor_sensitive(result)):
+    if (options.get("blur_floor_px") is None and options.get("floor_choice", True)
+            and (sensitive := floor_sensitive(result))):
         # Each round takes the Airy scale from the fit before it, so the fit without the floor is
         # its own rounds' (from the same readings it would keep the floor's f-number and scale:
         # the fuzz's 13 mm f/4 stack read N +8 % there, +0.4 % after its rounds).

@@ -197,6 +197,31 @@ def test_a_one_sided_floor_spans_the_fit_without_it():
         assert holds(est["focus_distance_mm"], D) and holds(est["f_number"], N), (seed, est["focus_distance_mm"])
 
 
+def test_a_one_sided_focus_that_only_the_floor_locates_is_refused():
+    """Where the fit without the floor cannot determine the setting's focus distance (an end-to-end
+    fuzz's 8.7 mm stack: two vertices fitted it about equally; with the floor, 41 % near at 3.9
+    sigma), the quantities it could not determine are refused, naming the floor and its reason."""
+    from lensfit.fit import Outcome
+    from lensfit.fit.floor_choice import widen
+
+    rng = np.random.default_rng(1)
+    f, N, D = 50.0, 4.0, 3000.0
+    rows, fpx, fpx_sigma = simulate(f, N, D, np.concatenate([spread(900, 2600, 50), np.full(8, 2950.0)]), rng,
+                                    noise_px=0.03, floor_px=1.0)
+    result = run_fit(rows, fpx, fpx_sigma, floor_choice=False)
+    assert result.ok
+    two = simulate(f, N, D, np.repeat([1200.0, 1800.0], 20), rng)  # two distances: the V fits twice
+    undetermined = run_fit(*two, floor_choice=False)
+    assert undetermined.settings["a"]["focus_distance_mm"].value is None
+    widen(result, undetermined, ["a"])
+    est = result.settings["a"]
+    assert result.code == Outcome.NOT_IDENTIFIABLE
+    assert est["focus_distance_mm"].value is None and "only the fitted blur floor" in est["focus_distance_mm"].reason
+    assert est["focal_length_mm"].value is not None  # shared by the settings: kept
+    assert any("only the fitted blur floor" in r for r in result.reasons)
+    assert_no_nan(result)
+
+
 def test_focus_at_the_hyperfocal_distance():
     f, N, coc_mm = 35.0, 8.0, 0.03
     H = f * f / (N * coc_mm) + f

@@ -63,7 +63,10 @@ def widen(result: Any, without_floor: Any, labels: list[str]) -> None:
     for label in labels:
         mine, other = result.settings[label], without_floor.settings.get(label, {})
         inv, inv_alt = mine.get("inverse_focus_distance_per_m"), other.get("inverse_focus_distance_per_m")
-        if inv is None or inv_alt is None or inv.value is None or inv_alt.value is None:
+        if inv is None or inv.value is None or not inv.sigma:
+            continue
+        if inv_alt is None or inv_alt.value is None:
+            _refuse(result, label, other)
             continue
         new_inv = _linear(inv, inv_alt.value)
         mine["inverse_focus_distance_per_m"] = new_inv
@@ -88,6 +91,28 @@ def widen(result: Any, without_floor: Any, labels: list[str]) -> None:
             f"setting {label!r}: with every sample on one side of the focus, the fitted blur floor "
             f"({floor.value:.2f} px) cannot be told from a shift of the focus distance; fitted without a floor it "
             f"reads {said or 'otherwise'}, and the intervals span both (variance source floor_choice)")
+
+
+def _refuse(result: Any, label: str, other: dict[str, Estimate]) -> None:
+    """Setting ``label``'s quantities that the fit without the floor could not determine (``other``
+    its settings), refused: on one side of the focus, only the fitted floor locates them."""
+    from lensfit.fit.result import Outcome
+
+    floor = result.settings[label]["blur_floor_px"].value
+    refused = []
+    for name, est in list(result.settings[label].items()):
+        alt = other.get(name)
+        if name in ("focal_length_mm", "blur_floor_px", "field_curvature_per_m") or est.value is None or (
+                alt is not None and alt.value is not None):
+            continue
+        why = (f"with every sample of setting {label!r} on one side of its focus distance, only the fitted blur floor "
+               f"({floor:.2f} px) locates it: fitted without a floor, "
+               f"{(alt.reason if alt is not None else None) or 'it is not determined'}")
+        result.settings[label][name] = Estimate(None, reason=why)
+        refused.append(name)
+    if refused:
+        result.reasons.append(f"settings.{label} ({', '.join(refused)}): {why}")
+        result.code = Outcome.NOT_IDENTIFIABLE
 
 
 def _shares(est: Estimate, extra: float) -> dict[str, float] | None:
