@@ -27,7 +27,7 @@ from typing import Any
 
 from lensfit.fit.constants import FLOOR_SADDLE_PX
 from lensfit.fit.model import Layout
-from lensfit.fit.result import Estimate
+from lensfit.fit.result import Estimate, Outcome
 from lensfit.fit.start import _one_side
 
 #: The setting's quantities the choice moves (the focal length is shared by every setting and
@@ -96,8 +96,6 @@ def widen(result: Any, without_floor: Any, labels: list[str]) -> None:
 def _refuse(result: Any, label: str, other: dict[str, Estimate]) -> None:
     """Setting ``label``'s quantities that the fit without the floor could not determine (``other``
     its settings), refused: on one side of the focus, only the fitted floor locates them."""
-    from lensfit.fit.result import Outcome
-
     floor = result.settings[label]["blur_floor_px"].value
     refused = []
     for name, est in list(result.settings[label].items()):
