@@ -29,6 +29,7 @@ from lensfit.fit.constants import FLOOR_SADDLE_PX
 from lensfit.fit.model import Layout
 from lensfit.fit.result import Estimate, Outcome
 from lensfit.fit.start import _one_side
+from lensfit.fit.uncertainty import focus_interval
 
 #: The setting's quantities the choice moves (the focal length is shared by every setting and
 #: moved by under 0.01 % on the fuzz's stacks; the focus distances follow their inverse).
@@ -156,10 +157,7 @@ def _distance(est: Estimate, inv: Estimate, offset_mm: float) -> Estimate:
     """A focus distance (plus ``offset_mm``: from the sensor) from its widened inverse ``inv``
     (per m): sigma by the delta method, intervals the inverse's mapped (None: infinity)."""
     def dist(ci):
-        if ci is None:
-            return None
-        lo, hi = ci
-        return (1000.0 / hi + offset_mm if hi > 0 else None, 1000.0 / lo + offset_mm if lo > 0 else None)
+        return None if ci is None else tuple(None if e is None else e + offset_mm for e in focus_interval(*ci))
 
     value = 1000.0 / inv.value
     return dataclasses.replace(est, sigma=value * inv.sigma / inv.value, ci68=dist(inv.ci68), ci95=dist(inv.ci95),

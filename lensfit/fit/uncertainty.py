@@ -94,6 +94,11 @@ def _null_direction(jac: np.ndarray) -> np.ndarray:
     return vt[-1]
 
 
+def focus_interval(lo_per_m: float, hi_per_m: float) -> tuple[float | None, float | None]:
+    """An inverse focus distance interval (per m) as a focus distance interval (mm; None: infinity)."""
+    return (1000.0 / hi_per_m if hi_per_m > 0 else None, 1000.0 / lo_per_m if lo_per_m > 0 else None)
+
+
 def _positive(value: float, sigma_log: float, z: tuple[float, float] = (1.0, _Z95)) -> Estimate:
     """A positive quantity with its log-space sigma: intervals ``value * exp(+-z sigma_log)``."""
     z1 = math.exp(z[0] * sigma_log)
@@ -341,14 +346,11 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
             lo68, hi68 = inv_focus_per_m - z[0] * s_inv, inv_focus_per_m + z[0] * s_inv
             out["inverse_focus_distance_per_m"] = Estimate(inv_focus_per_m, s_inv, (lo68, hi68), (lo95, hi95))
 
-            def dist(lo, hi):  # an inverse-distance interval as a distance interval (None = infinity)
-                return (1000.0 / hi if hi > 0 else None, 1000.0 / lo if lo > 0 else None)
-
             s_val = float(q["s"][k])
             if inv_focus_per_m > 0:
                 dval = 1000.0 / inv_focus_per_m
-                out["focus_distance_mm"] = Estimate(dval, dval * s_inv / inv_focus_per_m, dist(lo68, hi68),
-                                                    dist(lo95, hi95))
+                out["focus_distance_mm"] = Estimate(dval, dval * s_inv / inv_focus_per_m, focus_interval(lo68, hi68),
+                                                    focus_interval(lo95, hi95))
                 ds = out["focus_distance_mm"]
                 out["focus_distance_from_sensor_mm"] = Estimate(
                     dval + s_val, ds.sigma, tuple(None if v is None else v + s_val for v in ds.ci68),
@@ -357,7 +359,8 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
             else:
                 note = (f"focus at infinity within the uncertainty (inverse focus distance {inv_focus_per_m:.3g} +- "
                         f"{s_inv:.2g} /m)")
-                out["focus_distance_mm"] = Estimate(None, None, dist(lo68, hi68), dist(lo95, hi95), note, True)
+                out["focus_distance_mm"] = Estimate(None, None, focus_interval(lo68, hi68), focus_interval(lo95, hi95),
+                                                    note, True)
                 out["focus_distance_from_sensor_mm"] = (Estimate(None, None, None, None, note, True) if thin
                                                         else Estimate(None, reason=_FROM_SENSOR_UNKNOWN))
             fl = float(q["floor"][k])
