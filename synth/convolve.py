@@ -116,20 +116,20 @@ def _block_mean(image: np.ndarray, n: int) -> np.ndarray:
 
 
 def render_convolve(shot: Shot, background: float, supersampling: int, *, camera=None,
-                    aperture=None, fine: bool = False):
+                    aperture=None, fine: int = 1):
     """Render one shot of fronto-parallel objects; returns linear radiance, float32 (H, W).
 
     ``camera`` replaces the shot's camera (one colour channel's, under chromatic aberration);
     ``aperture`` (``synth.effects.aperture.Aperture``) replaces the disk PSF by its shape.
-    ``fine`` (``supersampling`` even): returns (image, fine image), the fine image at twice the
-    resolution (each quarter pixel the mean of its S/2 x S/2 sub-pixels, objects composited
-    there) and the image its 2 x 2 means; diffraction filters the fine one.
+    ``fine`` (a factor k above 1 that divides ``supersampling``): returns (image, fine image), the
+    fine image at k times the resolution (each cell the mean of its S/k x S/k sub-pixels, objects
+    composited there) and the image its k x k means; diffraction filters the fine one.
     """
     cam = camera if camera is not None else shot.camera
     S = int(supersampling)
-    if fine and S % 2:
-        raise ValueError(f"a fine image needs an even supersampling, not {S}")
-    R = 2 if fine else 1  # output pixels per pixel, along each axis
+    R = int(fine)  # output pixels per pixel, along each axis
+    if R < 1 or S % R:
+        raise ValueError(f"a fine image at {R} times the resolution needs a supersampling divisible by {R}, not {S}")
     SO = S // R  # sub-pixels per output pixel, along each axis
     W, H = cam.width_px * R, cam.height_px * R
     cx, cy = cam.principal_point_px
@@ -193,8 +193,8 @@ def render_convolve(shot: Shot, background: float, supersampling: int, *, camera
         a = np.clip(alpha[iv0 - start_v:iv1 - start_v, iu0 - start_u:iu1 - start_u], 0.0, 1.0)
         window = image[iv0:iv1, iu0:iu1]
         image[iv0:iv1, iu0:iu1] = window * (1.0 - a) + c
-    if fine:
-        coarse = image.reshape(cam.height_px, 2, cam.width_px, 2).mean(axis=(1, 3))
+    if R > 1:
+        coarse = image.reshape(cam.height_px, R, cam.width_px, R).mean(axis=(1, 3))
         return coarse.astype(np.float32), image.astype(np.float32)
     return image.astype(np.float32)
 

@@ -191,13 +191,13 @@ def sample_table(spp: int) -> np.ndarray:
     return pts
 
 
-@partial(jax.jit, static_argnames=("structure", "width", "spp", "aperture", "front_stop", "compound", "quadrants"))
+@partial(jax.jit, static_argnames=("structure", "width", "spp", "aperture", "front_stop", "compound", "cells"))
 def _render_pixels(pixels, cam, planes, rasters, background, seed, warp=None, *, structure, width, spp,
-                   aperture=("circle",), front_stop=None, compound=None, quadrants=False):
+                   aperture=("circle",), front_stop=None, compound=None, cells=1):
     """Mean radiance of the pixels ``pixels`` (uint32 indices ``row * width + column``): array
-    (count,); with ``quadrants`` (``spp`` an even square, see :func:`quadrant_spp`) also the
-    mean over each quarter of every pixel, (count, 2, 2) (quarter row, quarter column): the same
-    samples, whose n x n pixel strata fall into the quarters n/2 x n/2 each.
+    (count,); with ``cells`` k above 1 (dividing n, ``spp = n^2``: :func:`cell_factor`) also the
+    mean over each of the k x k cells of every pixel, (count, k, k) (cell row, cell column): the
+    same samples, whose n x n pixel strata fall into the cells n/k x n/k each.
 
     ``aperture`` is ``synth.effects.aperture.Aperture.static``; ``front_stop`` is None or
     (distance_mm, radius_mm) of the stop that clips the pupil off axis (optical vignetting,
@@ -267,17 +267,28 @@ def _render_pixels(pixels, cam, planes, rasters, background, seed, warp=None, *,
     if lens_passed is not None:  # blocked by a clear aperture of the compound lens: no light
         value = jnp.where(lens_passed, value, 0.0) * cam[9]
     mean = value.mean(axis=1)
-    if not quadrants:
+    if cells <= 1:
         return mean
-    h = n // 2  # value[p, sy * n + sx] -> [p, qy, sy', qx, sx'] with sy = qy h + sy'
-    return mean, value.reshape(-1, 2, h, 2, h).mean(axis=(2, 4))  # (count, qy, qx)
+    h = n // cells  # value[p, sy * n + sx] -> [p, qy, sy', qx, sx'] with sy = qy h + sy'
+    return mean, value.reshape(-1, cells, h, cells, h).mean(axis=(2, 4))  # (count, qy, qx)
 
 
 def quadrant_spp(spp: int) -> bool:
     """Whether ``spp`` samples stratify each quarter of a pixel alike (an even square: 4, 16,
     64, 256, ...), so that the ray tracer can return the image at twice the resolution."""
+    return cell_factor(spp) > 1
+
+
+def cell_factor(spp: int) -> int:
+    """How many times the resolution (per axis) the ray tracer can return its image at from
+    ``spp`` samples per pixel, each cell the mean of whole strata of the pixel's n x n
+    (``spp = n^2``): 8, 4 or 2, the largest that divides n (16 spp: 4; 64 and 256 spp: 8), else 1.
+    Each stratum's sample is uniform within it, so every cell's mean is an unbiased estimate of
+    the irradiance integrated over that cell, one sample each or more."""
     n = math.isqrt(spp)
-    return n * n == spp and n % 2 == 0
+    if n * n != spp:
+        return 1
+    return next((k for k in (8, 4, 2) if n % k == 0), 1)
 
 
 def scene_arrays(shot: Shot):
@@ -345,22 +356,25 @@ def tile_pixels(width_px: int, height_px: int, spp: int) -> int:
 def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
                     progress: Callable[[int], None] | None = None, *, camera=None,
                     aperture: tuple = ("circle",), front_stop: tuple[float, float] | None = None,
-                    warp: np.ndarray | None = None, fine: bool = False, constant_regions: bool = True):
+                    warp: np.ndarray | None = None, fine: int = 1, constant_regions: bool = True):
     """Render one shot by ray tracing; returns linear radiance, float32 (height, width).
 
     ``progress(n)`` is called with the number of rows finished (in proportion to the pixels
     traced) after each tile. ``camera`` replaces the shot's camera (one colour channel's, under
     chromatic aberration); ``aperture``, ``front_stop`` and ``warp`` (here (height, width, 6)) as
-    for ``_render_pixels``. ``fine`` (where :func:`quadrant_spp`): returns (image, fine image)
-    with the fine image at twice the resolution, each quarter pixel the mean of its own samples
-    (no extra rays); its 2 x 2 means are the image. Diffraction filters that one, before the
+    for ``_render_pixels``. ``fine`` (a factor k above 1 that divides n, ``spp = n^2``): returns
+    (image, fine image) with the fine image at k times the resolution, each cell the mean of its
+    own samples (no extra rays); its k x k means are the image. Diffraction filters that one, before the
     pixels integrate it. ``constant_regions``: pixels whose every ray meets one region of
     constant reflectance (or nothing) take that value without being sampled
     (:mod:`synth.flat`; a thin lens without front stop, from ``flat.MIN_SPP`` samples per
     pixel); the traced pixels are the same either way.
     """
-    if fine and not quadrant_spp(spp):
-        raise ValueError(f"a fine image needs an even square number of samples per pixel, not {spp}")
+    k_fine = int(fine)
+    n = math.isqrt(spp)
+    if k_fine > 1 and (n * n != spp or n % k_fine):
+        raise ValueError(f"a fine image at {k_fine} times the resolution needs n x n samples per pixel with n a "
+                         f"multiple of {k_fine}, not {spp}")
     cam = camera if camera is not None else shot.camera
     W, H = cam.width_px, cam.height_px
     structure, rasters, planes = scene_arrays(shot)
@@ -376,11 +390,11 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
     else:
         out, todo = np.full((H, W), np.nan, np.float32), None  # every pixel, in order
     total = H * W if todo is None else len(todo)
-    out_fine = np.repeat(np.repeat(out, 2, axis=0), 2, axis=1) if fine else None
+    out_fine = np.repeat(np.repeat(out, k_fine, axis=0), k_fine, axis=1) if k_fine > 1 else None
     count = tile_pixels(W, H, spp)
     warp_flat = None if warp is None else np.ascontiguousarray(warp, np.float32).reshape(-1, 6)
     static = {"structure": structure, "width": W, "spp": spp, "aperture": aperture,
-              "front_stop": front_stop, "compound": compound, "quadrants": fine}
+              "front_stop": front_stop, "compound": compound, "cells": k_fine}
 
     def tile(k0):
         """The pixels of the tile from the ``k0``-th to trace."""
@@ -405,7 +419,7 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
     starts = list(range(0, total, count))
     out = np.ascontiguousarray(out)
     flat_out = out.reshape(-1)  # a view (contiguous): the tiles write into out
-    fine_view = out_fine.reshape(H, 2, W, 2) if fine else None
+    fine_view = out_fine.reshape(H, k_fine, W, k_fine) if k_fine > 1 else None
     reported = 0
     pending = dispatch(starts[0]) if starts else None
     for k, k0 in enumerate(starts):
@@ -414,7 +428,7 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         pixels = tile(k0)
         take = len(pixels)
         where = slice(k0, k0 + take) if todo is None else pixels
-        if fine:
+        if k_fine > 1:
             block, quarter = block
             fine_view[pixels // W, :, pixels % W, :] = np.asarray(quarter)[:take]
         flat_out[where] = np.asarray(block)[:take]
@@ -424,4 +438,4 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
             reported = done
     if progress is not None and reported < H:
         progress(H - reported)
-    return (out, out_fine) if fine else out
+    return (out, out_fine) if k_fine > 1 else out

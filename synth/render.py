@@ -25,10 +25,10 @@ from lensfit.errors import InputError
 from lensfit.outputs import provenance
 from synth.convolve import render_convolve
 from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
-from synth.raytrace import quadrant_spp, render_raytrace
+from synth.raytrace import cell_factor, render_raytrace
 from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
-from synth.effects.stages import ShotState, fine_possible, quantise_16bit, run_stages, working_f_number
+from synth.effects.stages import ShotState, fine_factor, quantise_16bit, run_stages, working_f_number
 from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan
 from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
 
@@ -88,7 +88,8 @@ class GeometricCache:
     the tracer's aperture, front stop and warp, samples per pixel, seed, background,
     supersampling); a hit hands out a copy, bit for bit the image a new render would give.
 
-    ``entries``: key -> {"image", "window": (start, end) in ``time.time()`` of its render};
+    ``entries``: key -> {"image", "fine" (its cells, k x k a pixel, or None), "factor" (that k, 1
+    without), "window": (start, end) in ``time.time()`` of its render};
     ``hits``: the keys handed out, in order (the caller accounts for their seconds)."""
 
     def __init__(self) -> None:
@@ -131,21 +132,34 @@ def _geometric_key(*parts) -> str | None:
         return None
 
 
-def fine_render(scene: Scene, sp: ShotPlan) -> bool:
-    """Whether a shot's geometric render comes also at twice the resolution, for diffraction to
-    act on the irradiance before the pixels integrate it (``synth.effects.diffraction``): the
-    ray tracer at an even square number of samples per pixel, the convolution renderer at an
-    even supersampling, within the memory budget. Otherwise diffraction filters the image as
-    sampled (an approximation; the truth says which)."""
+#: The factor a diffraction render asks for (``fine_render``): 4, and 8 where the Airy scale
+#: ``a = lambda N_w / p`` is under FINE_8_BELOW_AIRY_PX (synth.effects.diffraction: at a = 0.22 px
+#: a 0.29 px blur read 0.0-0.36 px by its phase at 4, 0.28-0.32 at 8). The shared renders of
+#: the bench keep at most FINE_SHARED cells a side (at 256 spp 8 would hold 64 floats a pixel).
+FINE_8_BELOW_AIRY_PX = 0.5
+FINE_SHARED = 4
+
+
+def fine_render(scene: Scene, sp: ShotPlan) -> int:
+    """How many times the resolution (per axis) a shot's geometric render comes at as well, for
+    diffraction to act on the irradiance before the pixels integrate it
+    (``synth.effects.diffraction``): 4, or 8 under a small Airy pattern (FINE_8_BELOW_AIRY_PX),
+    as far as the method's samples allow (:func:`synth.effects.stages.fine_factor`) and within
+    the memory budget (else the next smaller); 1 where none: diffraction then filters the image
+    as sampled (an approximation; the truth says which)."""
     from lensfit.limits import RENDER_MEMORY_BYTES
     from synth.effects import diffraction
 
-    r, cam = scene.render, sp.shot.camera
-    if not fine_possible(sp.method, r.samples_per_pixel, r.supersampling):
-        return False
-    need = diffraction.bytes_needed(scene.effects.diffraction, working_f_number(cam), 0.5 * cam.pixel_pitch_mm,
-                                    2 * cam.width_px, 2 * cam.height_px)
-    return need <= RENDER_MEMORY_BYTES
+    r, cam, params = scene.render, sp.shot.camera, scene.effects.diffraction
+    most = fine_factor(sp.method, r.samples_per_pixel, r.supersampling)
+    airy_px = min(params.wavelength_nm) * 1e-6 * working_f_number(cam) / cam.pixel_pitch_mm
+    wanted = 8 if airy_px < FINE_8_BELOW_AIRY_PX else 4
+    for k in (8, 4, 2):
+        if k <= wanted and most % k == 0 and diffraction.bytes_needed(
+                params, working_f_number(cam), cam.pixel_pitch_mm / k, k * cam.width_px,
+                k * cam.height_px) <= RENDER_MEMORY_BYTES:
+            return k
+    return 1
 
 
 def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
@@ -182,11 +196,14 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
 
         kwargs_rt["warp"] = pixel_warp(cam, fx.distortion)
     planes: list[np.ndarray] = []
-    fines: list[np.ndarray | None] = []  # the planes at twice the resolution, for diffraction
-    fine = fx.diffraction is not None and fine_render(scene, sp)
-    # The ray tracer's quarter-pixel means cost no rays: a shared render keeps them for a later
-    # render of the shot with diffraction (the bench's effects sets), whose image they are.
-    quarters = sp.method == "raytrace" and quadrant_spp(r.samples_per_pixel) and (fine or cache is not None)
+    fines: list[np.ndarray | None] = []  # the planes at `factor` times the resolution, for diffraction
+    factor = fine_render(scene, sp) if fx.diffraction is not None else 1
+    fine = factor > 1
+    # The ray tracer's cell means (k x k a pixel) cost no rays: a shared render keeps them, at the
+    # factor its samples allow, for a later render of the shot with diffraction (the bench's
+    # effects sets), whose image they are.
+    cells = (factor if fine else _shared_cells(r.samples_per_pixel) if cache is not None else 1) \
+        if sp.method == "raytrace" else 1
     distinct = len({id(c) for c in cameras})
     for c, ccam in enumerate(cameras):
         same = next((j for j in range(c) if cameras[j] is ccam), None)
@@ -198,15 +215,15 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
         cam_kw = {} if ccam is cam else {"camera": ccam}
         key = None if cache is None else _geometric_key(
             sp.method, shot, ccam, kwargs_rt, r.samples_per_pixel, raytrace_seed(r.seed, k), scene.background_value,
-            r.supersampling, fx.aperture, r.mitsuba_variant, fine and sp.method == "convolve")
+            r.supersampling, fx.aperture, r.mitsuba_variant, factor if sp.method == "convolve" and fine else False)
         entry = None if key is None else cache.entries.get(key)
-        if entry is not None and (entry["fine"] is not None or not fine):
+        if entry is not None and (not fine or entry["factor"] % factor == 0):
             if sp.method == "mitsuba":  # what Mitsuba refuses depends on the effects, which the key leaves out
                 from synth.mitsuba import check
 
                 check(shot, fx)
             planes.append(entry["image"].copy())
-            fines.append(entry["fine"].copy() if fine else None)
+            fines.append(_cells(entry["fine"], entry["factor"] // factor) if fine else None)
             cache.hits.append(key)
             rows(ccam.height_px)
             continue
@@ -219,17 +236,18 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
                                  effects=fx, variant=r.mitsuba_variant)
         elif sp.method == "raytrace":
             img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
-                                  **cam_kw, **kwargs_rt, fine=quarters)
-            if quarters:
+                                  **cam_kw, **kwargs_rt, fine=cells)
+            if cells > 1:
                 img, img_fine = img
         else:
             img = render_convolve(shot, scene.background_value, r.supersampling, **cam_kw,
-                                  **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}), fine=fine)
+                                  **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}), fine=factor)
             if fine:
                 img, img_fine = img
             rows(cam.height_px)
         if key is not None:
             cache.entries[key] = {"image": img.copy(), "fine": None if img_fine is None else img_fine.copy(),
+                                  "factor": 1 if img_fine is None else img_fine.shape[0] // img.shape[0],
                                   "window": (started, time.time())}
         planes.append(img)
         fines.append(img_fine if fine else None)
@@ -242,8 +260,22 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
         image = planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
         image_fine = (fines[0] if len(fines) == 1 else np.stack(fines, axis=-1)) if fine else None
     lap("defocus")
-    state = run_stages(ShotState(image, scene, shot, sp.method, k, fine=image_fine), lap)
+    state = run_stages(ShotState(image, scene, shot, sp.method, k, fine=image_fine, fine_factor=factor), lap)
     return state.image, state.raw, state.extra, seconds
+
+
+def _shared_cells(spp: int) -> int:
+    """The cells a side a shared ray-traced render keeps for a later render with diffraction."""
+    return next(k for k in (FINE_SHARED, 2, 1) if cell_factor(spp) % k == 0)
+
+
+def _cells(fine: np.ndarray, n: int) -> np.ndarray:
+    """A copy of ``fine`` with each n x n block of its cells merged into their mean (n = 1: the
+    cells as they are)."""
+    if n == 1:
+        return fine.copy()
+    rows, cols = fine.shape[0] // n, fine.shape[1] // n
+    return fine.reshape(rows, n, cols, n, *fine.shape[2:]).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
 
 def _mitsuba_version(variant: str) -> str:

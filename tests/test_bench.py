@@ -250,10 +250,10 @@ def test_effects_sets_share_the_geometric_render_bit_for_bit(tmp_path, spp):
     # A scene drawn as written, with diffraction and as a camera's raw DNG shares one geometric
     # render (lensfit.bench.runs.run_group): the images are those of separate renders bit for
     # bit; a render with another seed or another aperture shares nothing. At 16 spp diffraction
-    # acts on the render at twice the resolution, which the shared render keeps; at 8 (not an
-    # even square) on the image as sampled.
+    # acts on the render at four times the resolution (one stratum a cell), which the shared
+    # render keeps; at 8 (not a square) on the image as sampled.
     from lensfit.bench.suites import scene_with_effects
-    from synth.effects.diffraction import APPLIED_FINE, APPLIED_SAMPLED
+    from synth.effects.diffraction import APPLIED_SAMPLED, applied_fine
     from synth.render import GeometricCache, render
 
     scene = tmp_path / "s.toml"
@@ -289,7 +289,7 @@ tilt_deg = [20.0, 10.0]
         together = render(scene_with_effects(scene, fx), method="raytrace", samples_per_pixel=spp,
                           geometric_cache=shared)
         if fx["name"] != "scene":
-            assert together.truth["images"][0]["diffraction"]["applied"] == (APPLIED_FINE if spp == 16
+            assert together.truth["images"][0]["diffraction"]["applied"] == (applied_fine(4) if spp == 16
                                                                              else APPLIED_SAMPLED)
         for name, image in alone.images.items():
             assert np.array_equal(image, together.images[name]), (fx["name"], name)

@@ -164,6 +164,50 @@ def test_synth_diffraction_is_the_pupil_transfer_function(method, N):
     assert min(wrong) > 2 * rms, (wrong, rms)
 
 
+def near_focus_edge(spp, phase_px, N=6.0):
+    """An axis-aligned edge 0.3 px out of focus under an Airy pattern of 1.1 px (f/6 on 3 um
+    pixels; ``N`` another f-number), its line ``phase_px`` off a pixel boundary, as ``auto`` renders it (ray traced: a blur
+    under 2 px): (image, its edge task, Airy scale, CoC)."""
+    from synth.render import render
+    from synth.scene import scene_from_dict
+
+    f, D, pitch, size = 50.0, 2000.0, 0.003, 81
+    s = 1 / (1 / f - 1 / D)
+    d = 1 / (1 / D - 0.3 * pitch / (f / N * s))  # CoC diameter A s |1/D - 1/d| = 0.3 px
+    mm = pitch * d / s  # target mm per px at the board
+    scene = scene_from_dict({
+        "camera": {"pixel_pitch_mm": pitch, "width_px": size, "height_px": size},
+        "lens": {"focal_length_mm": f, "f_number": N, "focus_distance_mm": D},
+        "render": {"samples_per_pixel": spp, "effects": ["defocus", "diffraction"], "method": "auto"},
+        "diffraction": {"wavelength_nm": 550.0},
+        "background": {"value": 0.5},
+        "object": [{"id": "edge", "target": "slanted-edge", "distance_mm": d, "angle_deg": 0.0,
+                    "edge_mm": 60 * mm, "size_mm": [size * mm * 1.2] * 2, "offset_mm": [(0.5 + phase_px) * mm, 0.0]}],
+    })
+    result = render(scene)
+    assert result.truth["images"][0]["method"] == "raytrace"
+    target = result.truth["images"][0]["targets"][0]
+    edge = target["edges"][0]
+    task = EdgeTask(np.array(edge["start_px"]), np.array(edge["end_px"]), 20.0, 20.0)
+    return (next(iter(result.images.values())).astype(np.float64), task, 550e-6 * N * (s / f) / pitch,
+            target["coc_diameter_px"])
+
+
+@pytest.mark.parametrize("spp, N", [(16, 6.0), (64, 6.0), (64, 1.2)])
+def test_synth_diffraction_keeps_a_blur_far_below_the_airy_pattern(spp, N):
+    # Read through the Airy model, a blur several times smaller than the pattern hangs on the
+    # profile's width to a few thousandths of a px^2, so this is where a render's own error
+    # shows. The transfer function applied to a render at twice the resolution folded the half
+    # pixels' content above one cycle per pixel down into what the pupil passes: this edge read
+    # 0.0, 0.44 or 0.63 px by its phase (an exact image, 0.28 at every phase). At four times the
+    # resolution (each cell the mean of its own strata: one at 16 spp), 0.25-0.30. Under a
+    # pattern of 0.22 px (f/1.2) four times is not enough (0.0-0.36 px), eight is.
+    for phase in (0.0, 0.17, 0.33):
+        image, task, a, c = near_focus_edge(spp, phase, N)
+        got = measure_images([(image, [task])], airy_px=[a])[0][0]
+        assert got.coc_diameter_px == pytest.approx(c, abs=0.08), (phase, got.coc_diameter_px, c)
+
+
 def test_diffraction_filtering_the_sampled_image_misses_what_folded_down():
     # What the finer render is for: the transfer function applied to the pixel-integrated image
     # (the approximation synth takes where it has no finer render) misfits the same profile at

@@ -338,7 +338,7 @@ def test_raytrace_is_independent_of_tiling(monkeypatch):
     images = []
     for tile in (1 << 20, 64 * 16, 256):
         monkeypatch.setattr(rt, "TILE_SAMPLES", tile)
-        images.append(rt.render_raytrace(shot, 0.3, 16, 3, fine=True))
+        images.append(rt.render_raytrace(shot, 0.3, 16, 3, fine=4))
     for image, fine in images[1:]:
         assert np.array_equal(image, images[0][0])
         # (the quarter pixels' means are summed in another order in another tile shape: float32)

@@ -21,30 +21,40 @@ parameter           unit    meaning                                             
 ==================  ======  ===================================================  ==========
 
 Diffraction acts on the irradiance before the pixels integrate it. So the geometric render is
-taken at twice the resolution, the transfer function of a circular pupil (incoherent light;
-Goodman sec. 6.3)::
+taken at k = 4 times the resolution, 8 under an Airy pattern smaller than half a pixel, as far
+as the samples allow (each cell integrated over its own area; ``synth.render.fine_render``), the
+transfer function of a circular pupil (incoherent light; Goodman sec.
+6.3)::
 
     OTF(nu) = (2/pi) (acos(v) - v sqrt(1 - v^2)),   v = nu lambda N_w <= 1, 0 beyond,
 
 is multiplied into that image's 2-D FFT (scipy; edges extended by 12 dark rings, 99.2 % of the
-energy, to keep the wrap-around out), and each pixel is the mean of its four quarters. The
-finer render costs no extra rays: the ray tracer's n x n strata per pixel fall n/2 x n/2 into
-each quarter (an even square number of samples per pixel: 4, 16, 64, 256), and the convolution
-renderer averages its S x S sub-pixels per quarter instead of per pixel (an even
-``supersampling``). What this leaves out is small: the quarter pixels' own content above their
-Nyquist frequency (one cycle per pixel) folds down where the pupil passes it, which it does
-only up to ``1 / a`` cycles per pixel (``a = lambda N_w / p``; ``1 / a`` 0.96 at f/11, 0.66 at f/16
-on 6 um pixels; the folded band is attenuated by the quarter pixels' own footprint). Where the
-pattern is small (``a`` well under half a pixel) and an edge is sharp (a board at the plane in
-focus), the pupil passes much of that band and the fold shows: measured 2026-11-28, an
-axis-aligned edge blurred by a 0.29 px disk at ``a = 0.22`` px (f/2.4 on 6 um pixels) reads
-0.13 or 0.71 px through the edge estimator's Airy model by its sub-pixel phase, the same at 16
-and 256 spp, where exact images of that edge read 0.29-0.32 px at every phase (left: a render
-at ``2 / a`` times the resolution would remove it; blurs of 0.5 px and more read right). Measured
-2026-11-27 on an edge at the focus plane at f/11 on 5 um pixels (Airy scale 1.24 px, the
-sharpest image diffraction meets) against the exact transfer-function product (disk x pupil x
-pixel, tests/test_diffraction.py): 0.15-0.16 % of the contrast RMS, under 1 % at most, ray
-traced or convolved; the image filtered as sampled misfits by 0.66 % RMS, 3.5 % at most.
+energy, to keep the wrap-around out), and each pixel is the mean of its k x k cells. The finer
+render costs no extra rays: the ray tracer's n x n strata per pixel fall n/k x n/k into each
+cell (``synth.raytrace.cell_factor``: up to 4 at 16 spp, one stratum a cell, whose sample is
+uniform within it, so the cell's mean is unbiased; up to 8 at 64 and 256 spp), and the
+convolution renderer averages its S x S sub-pixels per cell instead of per pixel (up to 4 at the
+default supersampling of 4, 8 at 8). What this leaves out is the cells' own content above
+their Nyquist frequency (k/2 cycles per pixel), which folds down where the pupil passes it (up
+to ``1 / a`` cycles per pixel, ``a = lambda N_w / p``), attenuated by the cell's own footprint.
+It matters where a blur is far below the Airy pattern: read through the Airy model, such a blur
+hangs on the profile's width to a few thousandths of a px^2. Measured 2026-11-28 on an
+axis-aligned edge blurred by a 0.28 px disk at ``a = 1.1`` px, cells integrated exactly and
+read by the edge estimator at four sub-pixel phases: 0.0 / 0.44 / 0.63 / 0.62 px at k = 2 (a
+fuzz's focus bracket read N 5.6 % low and its focus distance 3.3 % far from such boards, at 4
+and 8 sigma), 0.25-0.30 at k = 4, 0.276-0.277 at k = 8 (the exact image: 0.276-0.278); a 0.6 px
+blur 0.53-0.68 at k = 2, 0.597-0.603 at k = 4; 2 px within 0.3 % at k = 2 and 0.05 % at k = 4;
+at ``a = 0.5`` and 2.5 the same (tests/test_diffraction.py renders the 0.3 px edge). Under a
+smaller pattern 4 is not enough: a 0.29 px blur at ``a = 0.22`` px read 0.13-0.72 px at k = 2,
+0.0-0.36 at k = 4 and 0.28-0.32 at k = 8, hence 8 there (16 spp and a supersampling of 4 give
+no more than 4). (Until 2026-11-28 k was 2 throughout.) Measured 2026-11-27 on an edge at the focus plane at f/11 on
+5 um pixels (Airy scale 1.24 px, the sharpest image diffraction meets) against the exact
+transfer-function product (disk x pupil x pixel, tests/test_diffraction.py): 0.15-0.16 % of the
+contrast RMS at k = 2, under 1 % at most, ray traced or convolved; the image filtered as
+sampled misfits by 0.66 % RMS, 3.5 % at most. The finer grid costs the filtering 4x the memory
+and time of k = 2: a fuzz's 10-shot stack of 1 MP frames rendered in 8.0-9.5 s instead of 5.2,
+its peak memory 0.98 GB instead of 0.69 (``synth.render.fine_render`` takes k = 2 where 4 is
+beyond the memory budget).
 
 Where no finer render is to be had (Mitsuba's images, an odd number of samples per pixel or an
 odd supersampling, or a finer FFT beyond the memory budget) the transfer function is applied to
@@ -146,7 +156,12 @@ def apply(image: np.ndarray, params: Diffraction, working_f_number: float, pixel
 
 
 #: The truth's ``applied`` entry: how the transfer function met the image.
-APPLIED_FINE = "to the irradiance at twice the resolution, then integrated over each pixel (2 x 2 means)"
+def applied_fine(factor: int) -> str:
+    """The truth's ``applied`` where the transfer function met the geometric render at ``factor``
+    times the resolution."""
+    times = "twice" if factor == 2 else f"{factor} times"
+    return f"to the irradiance at {times} the resolution, then integrated over each pixel ({factor} x {factor} means)"
+
 APPLIED_SAMPLED = "to the image as sampled (pixel-integrated; an approximation where the image is sharp)"
 
 
@@ -163,12 +178,15 @@ def _transfer(ny: int, nx: int, wavelength_nm: float, working_f_number: float, p
     return out
 
 
-def apply_fine(fine: np.ndarray, params: Diffraction, working_f_number: float, pixel_pitch_mm: float) -> np.ndarray:
-    """The image (H, W) or (H, W, C), float32, from its geometric render at twice the resolution
-    ``fine`` (2H, 2W[, C]): filtered there by each wavelength's transfer function (quarter-pixel
-    pitch ``pixel_pitch_mm / 2``), then each pixel the mean of its 2 x 2 quarters."""
-    f = apply(fine, params, working_f_number, 0.5 * pixel_pitch_mm)
-    return (0.25 * (f[0::2, 0::2] + f[0::2, 1::2] + f[1::2, 0::2] + f[1::2, 1::2])).astype(np.float32)
+def apply_fine(fine: np.ndarray, params: Diffraction, working_f_number: float, pixel_pitch_mm: float,
+               factor: int = 2) -> np.ndarray:
+    """The image (H, W) or (H, W, C), float32, from its geometric render at ``factor`` times the
+    resolution ``fine`` (kH, kW[, C]): filtered there by each wavelength's transfer function
+    (pitch ``pixel_pitch_mm / k``), then each pixel the mean of its k x k cells."""
+    k = int(factor)
+    f = apply(fine, params, working_f_number, pixel_pitch_mm / k)
+    rows, cols = f.shape[0] // k, f.shape[1] // k
+    return f.reshape(rows, k, cols, k, *f.shape[2:]).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
 
 def seconds(width_px: int, height_px: int, channels: int) -> float:

@@ -35,9 +35,10 @@ class ShotState:
     raw: np.ndarray | None = None
     exposure: Any = None  # the shot's exposure settings (ExposureStage), read out by ReadoutStage
     extra: dict[str, Any] = field(default_factory=dict)
-    #: the geometric render at twice the resolution (quarter pixels), where the renderer gave
-    #: one for diffraction (``synth.render.fine_render``); its 2 x 2 means are ``image``
+    #: the geometric render at ``fine_factor`` times the resolution, where the renderer gave one
+    #: for diffraction (``synth.render.fine_render``); its k x k means are ``image``
     fine: np.ndarray | None = None
+    fine_factor: int = 1
 
     @property
     def effects(self):
@@ -53,15 +54,17 @@ def working_f_number(camera) -> float:
     return camera.sensor_distance_mm / camera.aperture_diameter_mm
 
 
-def fine_possible(method: str, samples_per_pixel: int, supersampling: int) -> bool:
-    """Whether a render method gives the geometric render at twice the resolution at no extra
-    cost: the ray tracer at an even square number of samples per pixel, the convolution
-    renderer at an even supersampling (``synth.render.fine_render`` adds the memory budget;
-    diffraction acts on it, ``synth.effects.diffraction``)."""
-    from synth.raytrace import quadrant_spp
+def fine_factor(method: str, samples_per_pixel: int, supersampling: int) -> int:
+    """The most times the resolution (per axis) a render method gives the geometric render at, at
+    no extra cost, for diffraction to act on (``synth.effects.diffraction``; 1: none): the
+    convolution renderer its sub-pixels (8, 4 or 2 x as many to a pixel's side as divide its
+    supersampling), the ray tracer its strata (``synth.raytrace.cell_factor``: 4 at 16 spp, 8 at
+    64 or 256). ``synth.render.fine_render`` chooses within it. (Until 2026-11-28 both gave 2.)"""
+    from synth.raytrace import cell_factor
 
-    return ((method == "raytrace" and quadrant_spp(samples_per_pixel))
-            or (method == "convolve" and supersampling % 2 == 0))
+    if method == "convolve":
+        return next((k for k in (8, 4, 2) if supersampling % k == 0), 1)
+    return cell_factor(samples_per_pixel) if method == "raytrace" else 1
 
 
 def quantise_16bit(image: np.ndarray) -> np.ndarray:
@@ -97,9 +100,8 @@ class DiffractionStage(Stage):
 
         cam, fx, r = shot.camera, scene.effects, scene.render
         waves = "/".join(f"{w:g}" for w in fx.diffraction.wavelength_nm)
-        fine = fine_possible(method, r.samples_per_pixel, r.supersampling)
-        k = 2 if fine else 1
-        return [(f"diffraction (Airy, {waves} nm{', on the 2x render' if fine else ''})",
+        k = fine_factor(method, r.samples_per_pixel, r.supersampling)
+        return [(f"diffraction (Airy, {waves} nm{f', on the {k}x render' if k > 1 else ''})",
                  diffraction.seconds(k * cam.width_px, k * cam.height_px, fx.channels))]
 
     def apply(self, state):
@@ -108,9 +110,9 @@ class DiffractionStage(Stage):
         fx, cam = state.effects, state.camera
         Nw = working_f_number(cam)
         if state.fine is not None:  # on the irradiance, then integrated over each pixel
-            state.image = diffraction.apply_fine(state.fine, fx.diffraction, Nw, cam.pixel_pitch_mm)
+            state.image = diffraction.apply_fine(state.fine, fx.diffraction, Nw, cam.pixel_pitch_mm, state.fine_factor)
+            applied = diffraction.applied_fine(state.fine_factor)
             state.fine = None
-            applied = diffraction.APPLIED_FINE
         else:
             state.image = diffraction.apply(state.image, fx.diffraction, Nw, cam.pixel_pitch_mm).astype(np.float32)
             applied = diffraction.APPLIED_SAMPLED
