@@ -146,6 +146,11 @@ def _key(*parts: Any) -> str:
 #: same day constant regions taken unsampled, synth.flat, which leaves the images the same except
 #: for the float32 rounding of a mean: 1 DN in 0.2 % of the pixels of a 256-spp stack with diffraction).
 RAYTRACE_SAMPLER = "sobol-digital-shift+constant-regions"
+#: How a render's diffraction met it, in the cache key of an effects set with diffraction: since
+#: 2026-11-28 the transfer function filters the geometric render at 4 or 8 times the resolution
+#: (synth.effects.diffraction), where a render at twice it read a blur far below the Airy pattern
+#: wrong by its phase.
+DIFFRACTION_RENDER = "fine-4-or-8"
 
 
 def _render_parts(task: dict[str, Any]) -> tuple:
@@ -153,6 +158,8 @@ def _render_parts(task: dict[str, Any]) -> tuple:
     parts = (Path(task["scene"]).read_text(), task["render"], task["seed"])
     if task["render"].get("method", "auto") in ("raytrace", "auto"):
         parts += (RAYTRACE_SAMPLER,)
+    if "diffraction" in fx.get("effects", ()) or "diffraction" in parts[0]:  # the set's, or the scene's own
+        parts += (DIFFRACTION_RENDER,)
     return parts if fx == {"name": "scene"} else parts + (fx,)  # runs without effects keep their ids
 
 
