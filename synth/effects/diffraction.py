@@ -182,11 +182,58 @@ def apply_fine(fine: np.ndarray, params: Diffraction, working_f_number: float, p
                factor: int = 2) -> np.ndarray:
     """The image (H, W) or (H, W, C), float32, from its geometric render at ``factor`` times the
     resolution ``fine`` (kH, kW[, C]): filtered there by each wavelength's transfer function
-    (pitch ``pixel_pitch_mm / k``), then each pixel the mean of its k x k cells."""
+    (pitch ``pixel_pitch_mm / k``), then each pixel the mean of its k x k cells.
+
+    Done in the frequency domain, where the filtered image holds nothing beyond the pupil's
+    cut-off ``1 / a`` cycles per pixel: the fine image's spectrum is cut to the band of a grid m
+    times the pixels' (the least m whose Nyquist frequency m/2 exceeds ``1 / a``, at most k; m = 1
+    from ``a`` = 2 px), multiplied by the transfer function, the k cells' mean (``sin(pi nu)
+    / (k sin(pi nu / k))``) and the half cell that takes the cells' centres to the pixel's, and
+    transformed back at that size. The same image as filtering the fine one and averaging its
+    cells (within float32 rounding; tests/test_diffraction.py), with one transform of the fine
+    image's size instead of two a channel: a 1200 x 800 frame at k = 4 and f/11 on 6 um pixels
+    took 0.3 s instead of 0.6-1.5 s in grey, 0.9-1.2 s instead of 1.7-3.9 s at three wavelengths
+    (2026-11-28, another job on the 2 cores)."""
+    import scipy.fft
+
     k = int(factor)
-    f = apply(fine, params, working_f_number, pixel_pitch_mm / k)
-    rows, cols = f.shape[0] // k, f.shape[1] // k
-    return f.reshape(rows, k, cols, k, *f.shape[2:]).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+    channels = fine[..., None] if fine.ndim == 2 else fine
+    waves = params.wavelength_nm
+    if len(waves) not in (1, channels.shape[-1]):
+        raise ValueError(f"{len(waves)} wavelengths for {channels.shape[-1]} channels")
+    H, W = channels.shape[0] // k, channels.shape[1] // k
+    reach_mm = J1_ZEROS[params.reach_rings - 1] / math.pi * max(waves) * 1e-6 * working_f_number
+    h = max(1, int(math.ceil(reach_mm / pixel_pitch_mm)))  # the margin, in pixels
+    band = pixel_pitch_mm / (min(waves) * 1e-6 * working_f_number)  # the cut-off, cycles per pixel
+    m = min(k, math.floor(2.0 * band) + 1)
+    py, px = scipy.fft.next_fast_len(H + 2 * h, real=True), scipy.fft.next_fast_len(W + 2 * h, real=True)
+    ny, nx, cy, cx = k * py, k * px, m * py, m * px
+    rows = np.r_[0:(cy + 1) // 2, ny - cy // 2:ny]
+    nu_y = (scipy.fft.fftfreq(cy) * m).astype(np.float32)[:, None]
+    nu_x = (scipy.fft.rfftfreq(cx) * m).astype(np.float32)[None, :]
+    shift = 0.5 - 0.5 / k  # px: the cells' centres (p - 1/2 + (i + 1/2)/k) to the pixel's
+
+    def mean_of_cells(nu):  # the k cells' mean, with the half cell's shift
+        zero = nu == 0
+        mean = np.where(zero, 1.0, np.sin(np.pi * nu) / (k * np.sin(np.pi * nu / k) + zero))
+        return (mean * np.exp(2j * np.pi * shift * nu)).astype(np.complex64)
+
+    common = mean_of_cells(nu_y) * mean_of_cells(nu_x) * np.float32(cy * cx / (ny * nx))
+    nu = np.hypot(nu_y, nu_x)
+    out = np.empty((H, W, channels.shape[-1]), np.float32)
+    spectrum, source = None, None
+    with scipy.fft.set_workers(os.cpu_count() or 1):
+        for c in range(channels.shape[-1]):
+            plane = channels[..., c]
+            if spectrum is None or not np.array_equal(plane, source):
+                padded = np.pad(plane.astype(np.float32), ((k * h, ny - k * (H + h)), (k * h, nx - k * (W + h))),
+                                mode="edge")
+                spectrum, source = scipy.fft.rfft2(padded)[rows, :cx // 2 + 1], plane
+            wave = waves[c] if len(waves) > 1 else waves[0]
+            transfer = otf(nu, float(wave), float(working_f_number), float(pixel_pitch_mm))
+            coarse = scipy.fft.irfft2(spectrum * (transfer * common), s=(cy, cx))
+            out[..., c] = coarse[m * h:m * (h + H):m, m * h:m * (h + W):m]
+    return out[..., 0] if fine.ndim == 2 else out
 
 
 def seconds(width_px: int, height_px: int, channels: int) -> float:
