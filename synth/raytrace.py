@@ -33,7 +33,7 @@ the background) has that value as its exact mean and is not sampled (``synth.fla
 per 4 px block from the block's corners and the aperture; a thin lens without front stop, from
 4 samples per pixel): 5-35 % of a demo shot's pixels are traced, and the
 images are the same (to the byte on the demo's 16-bit PNGs at 16, 64 and 256 spp; where the
-quarter-pixel image feeds diffraction, a constant quarter is its exact value where the traced
+cell image feeds diffraction, a constant cell is its exact value where the traced
 one was a float32 mean: 1 DN in 0.2 % of a 256-spp stack's pixels). Tiles are lists of the
 pixels to trace. See ``synth bench`` figures in the README (million lens samples
 per second with every pixel traced, and seconds as rendered).
@@ -173,7 +173,7 @@ def sample_table(spp: int) -> np.ndarray:
     """The samples of one pixel before its digital shift: (spp, 4) uint32, 16-bit coordinates
     (pixel x, pixel y, lens x, lens y) of the first spp 4-D Sobol points. Where spp = n^2, the
     renderer puts sample k in cell (k % n, k // n) of an n x n grid over the pixel (as
-    :func:`quadrant_spp` needs) and the pixel coordinates place it within its cell; where n is
+    :func:`cell_factor` needs) and the pixel coordinates place it within its cell; where n is
     a power of 2 too, the pixel coordinates of the Sobol points (a (0, m, 2)-net: one point per
     cell) are sorted by cell and replaced by their positions within it, so that the cells keep
     the sequence's joint stratification with the lens coordinates."""
@@ -273,12 +273,6 @@ def _render_pixels(pixels, cam, planes, rasters, background, seed, warp=None, *,
     return mean, value.reshape(-1, cells, h, cells, h).mean(axis=(2, 4))  # (count, qy, qx)
 
 
-def quadrant_spp(spp: int) -> bool:
-    """Whether ``spp`` samples stratify each quarter of a pixel alike (an even square: 4, 16,
-    64, 256, ...), so that the ray tracer can return the image at twice the resolution."""
-    return cell_factor(spp) > 1
-
-
 def cell_factor(spp: int) -> int:
     """How many times the resolution (per axis) the ray tracer can return its image at from
     ``spp`` samples per pixel, each cell the mean of whole strata of the pixel's n x n
@@ -364,8 +358,8 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
     chromatic aberration); ``aperture``, ``front_stop`` and ``warp`` (here (height, width, 6)) as
     for ``_render_pixels``. ``fine`` (a factor k above 1 that divides n, ``spp = n^2``): returns
     (image, fine image) with the fine image at k times the resolution, each cell the mean of its
-    own samples (no extra rays); its k x k means are the image. Diffraction filters that one, before the
-    pixels integrate it. ``constant_regions``: pixels whose every ray meets one region of
+    own samples (no extra rays); its k x k means are the image. Diffraction filters that one,
+    before the pixels integrate it. ``constant_regions``: pixels whose every ray meets one region of
     constant reflectance (or nothing) take that value without being sampled
     (:mod:`synth.flat`; a thin lens without front stop, from ``flat.MIN_SPP`` samples per
     pixel); the traced pixels are the same either way.

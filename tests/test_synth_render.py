@@ -341,5 +341,5 @@ def test_raytrace_is_independent_of_tiling(monkeypatch):
         images.append(rt.render_raytrace(shot, 0.3, 16, 3, fine=4))
     for image, fine in images[1:]:
         assert np.array_equal(image, images[0][0])
-        # (the quarter pixels' means are summed in another order in another tile shape: float32)
+        # (the cells' means are summed in another order in another tile shape: float32)
         assert np.allclose(fine, images[0][1], rtol=0.0, atol=1e-6)
