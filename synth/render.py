@@ -28,7 +28,7 @@ from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
 from synth.raytrace import cell_factor, render_raytrace
 from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
-from synth.effects.stages import ShotState, fine_factor, quantise_16bit, run_stages, working_f_number
+from synth.effects.stages import ShotState, fine_choice, quantise_16bit, run_stages, working_f_number
 from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan
 from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
 
@@ -132,34 +132,15 @@ def _geometric_key(*parts) -> str | None:
         return None
 
 
-#: The factor a diffraction render asks for (``fine_render``): 4, and 8 where the Airy scale
-#: ``a = lambda N_w / p`` is under FINE_8_BELOW_AIRY_PX (synth.effects.diffraction: at a = 0.22 px
-#: a 0.29 px blur read 0.0-0.36 px by its phase at 4, 0.28-0.32 at 8). The shared renders of
-#: the bench keep at most FINE_SHARED cells a side (at 256 spp 8 would hold 64 floats a pixel).
-FINE_8_BELOW_AIRY_PX = 0.5
+#: The most cells a side the bench's shared renders keep (at 256 spp 8 would hold 64 floats a
+#: pixel); a later render with diffraction that wants more renders again.
 FINE_SHARED = 4
 
 
 def fine_render(scene: Scene, sp: ShotPlan) -> int:
     """How many times the resolution (per axis) a shot's geometric render comes at as well, for
-    diffraction to act on the irradiance before the pixels integrate it
-    (``synth.effects.diffraction``): 4, or 8 under a small Airy pattern (FINE_8_BELOW_AIRY_PX),
-    as far as the method's samples allow (:func:`synth.effects.stages.fine_factor`) and within
-    the memory budget (else the next smaller); 1 where none: diffraction then filters the image
-    as sampled (an approximation; the truth says which)."""
-    from lensfit.limits import RENDER_MEMORY_BYTES
-    from synth.effects import diffraction
-
-    r, cam, params = scene.render, sp.shot.camera, scene.effects.diffraction
-    most = fine_factor(sp.method, r.samples_per_pixel, r.supersampling)
-    airy_px = min(params.wavelength_nm) * 1e-6 * working_f_number(cam) / cam.pixel_pitch_mm
-    wanted = 8 if airy_px < FINE_8_BELOW_AIRY_PX else 4
-    for k in (8, 4, 2):
-        if k <= wanted and most % k == 0 and diffraction.bytes_needed(
-                params, working_f_number(cam), cam.pixel_pitch_mm / k, k * cam.width_px,
-                k * cam.height_px) <= RENDER_MEMORY_BYTES:
-            return k
-    return 1
+    diffraction (:func:`synth.effects.stages.fine_choice`; 1: none)."""
+    return fine_choice(scene, sp.shot.camera, sp.method)
 
 
 def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],

@@ -59,12 +59,40 @@ def fine_factor(method: str, samples_per_pixel: int, supersampling: int) -> int:
     no extra cost, for diffraction to act on (``synth.effects.diffraction``; 1: none): the
     convolution renderer its sub-pixels (8, 4 or 2 x as many to a pixel's side as divide its
     supersampling), the ray tracer its strata (``synth.raytrace.cell_factor``: 4 at 16 spp, 8 at
-    64 or 256). ``synth.render.fine_render`` chooses within it. (Until 2026-11-28 both gave 2.)"""
+    64 or 256). :func:`fine_choice` chooses within it. (Until 2026-11-28 both gave 2.)"""
     from synth.raytrace import cell_factor
 
     if method == "convolve":
         return next((k for k in (8, 4, 2) if supersampling % k == 0), 1)
     return cell_factor(samples_per_pixel) if method == "raytrace" else 1
+
+
+#: The factor a diffraction render asks for (:func:`fine_choice`): 4, and 8 where the Airy scale
+#: ``a = lambda N_w / p`` is under FINE_8_BELOW_AIRY_PX (synth.effects.diffraction: at a = 0.22 px
+#: a 0.29 px blur read 0.0-0.36 px by its phase at 4, 0.28-0.32 at 8).
+FINE_8_BELOW_AIRY_PX = 0.5
+
+
+def fine_choice(scene, camera, method: str) -> int:
+    """How many times the resolution (per axis) a shot's geometric render comes at as well, for
+    diffraction to act on the irradiance before the pixels integrate it
+    (``synth.effects.diffraction``): 4, or 8 under a small Airy pattern (FINE_8_BELOW_AIRY_PX),
+    as far as the method's samples allow (:func:`fine_factor`) and within the memory budget
+    (else the next smaller); 1 where none: diffraction then filters the image as sampled (an
+    approximation; the truth says which)."""
+    from lensfit.limits import RENDER_MEMORY_BYTES
+    from synth.effects import diffraction
+
+    r, params = scene.render, scene.effects.diffraction
+    most = fine_factor(method, r.samples_per_pixel, r.supersampling)
+    airy_px = min(params.wavelength_nm) * 1e-6 * working_f_number(camera) / camera.pixel_pitch_mm
+    wanted = 8 if airy_px < FINE_8_BELOW_AIRY_PX else 4
+    for k in (8, 4, 2):
+        if k <= wanted and most % k == 0 and diffraction.bytes_needed(
+                params, working_f_number(camera), camera.pixel_pitch_mm / k, k * camera.width_px,
+                k * camera.height_px) <= RENDER_MEMORY_BYTES:
+            return k
+    return 1
 
 
 def quantise_16bit(image: np.ndarray) -> np.ndarray:
@@ -98,9 +126,9 @@ class DiffractionStage(Stage):
     def describe(self, scene, shot, method):
         from synth.effects import diffraction
 
-        cam, fx, r = shot.camera, scene.effects, scene.render
+        cam, fx = shot.camera, scene.effects
         waves = "/".join(f"{w:g}" for w in fx.diffraction.wavelength_nm)
-        k = fine_factor(method, r.samples_per_pixel, r.supersampling)
+        k = fine_choice(scene, cam, method)
         return [(f"diffraction (Airy, {waves} nm{f', on the {k}x render' if k > 1 else ''})",
                  diffraction.seconds(k * cam.width_px, k * cam.height_px, fx.channels))]
 
