@@ -536,3 +536,30 @@ def test_the_fine_render_filtered_in_its_band_is_the_fine_image_filtered_and_ave
     got = apply_fine(fine, params, N, 0.003, k)
     assert got.shape == expected.shape
     assert np.max(np.abs(got - expected)) < 2e-5
+
+
+def test_a_round_that_reads_no_edge_is_a_refusal_that_says_why(monkeypatch):
+    # Where every blur sits far below the Airy pattern the fit before a round takes the pattern
+    # for blur and its f-number runs off: a random 9.6 mm f/20 scene (blurs 0.02-0.18 px under a
+    # 1.8 px pattern) was read next at 54 px, where no edge's fit converged, and lensfit fit
+    # stopped with an input error asking for samples. The round's empty reading is a refusal
+    # (not identifiable, exit 3) that names the pattern's scale and what to change.
+    from types import SimpleNamespace
+
+    import lensfit.measure
+    from lensfit.fit import Outcome, prepare
+    from lensfit.pipeline import _rounds
+
+    rows = [{"setting": "a", "distance_mm": d, "coc_diameter_px": c, "sigma_px": 0.05}
+            for d, c in ((800.0, 0.5), (1200.0, 0.4), (2000.0, 0.3))]
+    before = SimpleNamespace(samples=prepare(rows, pixel_pitch_mm=0.006), loss="huber", warnings=["as before"])
+    unread = SimpleNamespace(samples=[SimpleNamespace(coc_diameter_px=None, sigma_px=None)] * 3, diffraction=None)
+    monkeypatch.setattr(lensfit.measure, "measure", lambda *args, **kwargs: unread)
+    calls = []
+    table, result = _rounds(None, SimpleNamespace(diffraction={"modelled": True}), before, {"a": 54.0}, "edge",
+                            550.0, {}, None, calls)
+    assert table is unread and calls == [{"a": 54.0}]
+    assert result.code == Outcome.NOT_IDENTIFIABLE
+    assert result.settings["a"]["f_number"].value is None
+    assert "54 px" in result.reasons[0] and "farther from the focus distance" in result.reasons[0]
+    assert result.warnings == ["as before"]
