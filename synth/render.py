@@ -23,7 +23,7 @@ import numpy as np
 from lensfit import __version__
 from lensfit.errors import InputError
 from lensfit.outputs import provenance
-from synth.convolve import render_convolve
+from synth.convolve import _block_mean, render_convolve
 from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
 from synth.raytrace import cell_factor, render_raytrace
 from synth.scene import Scene, load_scene
@@ -137,12 +137,6 @@ def _geometric_key(*parts) -> str | None:
 FINE_SHARED = 4
 
 
-def fine_render(scene: Scene, sp: ShotPlan) -> int:
-    """How many times the resolution (per axis) a shot's geometric render comes at as well, for
-    diffraction (:func:`synth.effects.stages.fine_choice`; 1: none)."""
-    return fine_choice(scene, sp.shot.camera, sp.method)
-
-
 def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
                 cache: GeometricCache | None = None):
     """One shot through its stages: (linear radiance float32 (H, W) or (H, W, 3), raw DN uint16
@@ -178,13 +172,17 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
         kwargs_rt["warp"] = pixel_warp(cam, fx.distortion)
     planes: list[np.ndarray] = []
     fines: list[np.ndarray | None] = []  # the planes at `factor` times the resolution, for diffraction
-    factor = fine_render(scene, sp) if fx.diffraction is not None else 1
+    factor = fine_choice(scene, cam, sp.method) if fx.diffraction is not None else 1
     fine = factor > 1
     # The ray tracer's cell means (k x k a pixel) cost no rays: a shared render keeps them, at the
     # factor its samples allow, for a later render of the shot with diffraction (the bench's
     # effects sets), whose image they are.
-    cells = (factor if fine else _shared_cells(r.samples_per_pixel) if cache is not None else 1) \
-        if sp.method == "raytrace" else 1
+    if sp.method != "raytrace":
+        cells = 1
+    elif fine:
+        cells = factor
+    else:
+        cells = _shared_cells(r.samples_per_pixel) if cache is not None else 1
     distinct = len({id(c) for c in cameras})
     for c, ccam in enumerate(cameras):
         same = next((j for j in range(c) if cameras[j] is ccam), None)
@@ -253,10 +251,7 @@ def _shared_cells(spp: int) -> int:
 def _cells(fine: np.ndarray, n: int) -> np.ndarray:
     """A copy of ``fine`` with each n x n block of its cells merged into their mean (n = 1: the
     cells as they are)."""
-    if n == 1:
-        return fine.copy()
-    rows, cols = fine.shape[0] // n, fine.shape[1] // n
-    return fine.reshape(rows, n, cols, n, *fine.shape[2:]).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+    return fine.copy() if n == 1 else _block_mean(fine, n)
 
 
 def _mitsuba_version(variant: str) -> str:

@@ -22,9 +22,9 @@ parameter           unit    meaning                                             
 
 Diffraction acts on the irradiance before the pixels integrate it. So the geometric render is
 taken at k = 4 times the resolution, 8 under an Airy pattern smaller than half a pixel, as far
-as the samples allow (each cell integrated over its own area; ``synth.render.fine_render``), the
-transfer function of a circular pupil (incoherent light; Goodman sec.
-6.3)::
+as the samples allow (each cell integrated over its own area;
+``synth.effects.stages.fine_choice``), the transfer function of a circular pupil (incoherent
+light; Goodman sec. 6.3)::
 
     OTF(nu) = (2/pi) (acos(v) - v sqrt(1 - v^2)),   v = nu lambda N_w <= 1, 0 beyond,
 
@@ -53,8 +53,8 @@ transfer-function product (disk x pupil x pixel, tests/test_diffraction.py): 0.1
 contrast RMS at k = 2, under 1 % at most, ray traced or convolved; the image filtered as
 sampled misfits by 0.66 % RMS, 3.5 % at most. The finer grid costs the filtering 4x the memory
 and time of k = 2: a fuzz's 10-shot stack of 1 MP frames rendered in 8.0-9.5 s instead of 5.2,
-its peak memory 0.98 GB instead of 0.69 (``synth.render.fine_render`` takes k = 2 where 4 is
-beyond the memory budget).
+its peak memory 0.98 GB instead of 0.69 (``synth.effects.stages.fine_choice`` takes k = 2
+where 4 is beyond the memory budget).
 
 Where no finer render is to be had (Mitsuba's images, an odd number of samples per pixel or an
 odd supersampling, or a finer FFT beyond the memory budget) the transfer function is applied to

@@ -36,7 +36,7 @@ class ShotState:
     exposure: Any = None  # the shot's exposure settings (ExposureStage), read out by ReadoutStage
     extra: dict[str, Any] = field(default_factory=dict)
     #: the geometric render at ``fine_factor`` times the resolution, where the renderer gave one
-    #: for diffraction (``synth.render.fine_render``); its k x k means are ``image``
+    #: for diffraction (:func:`fine_choice`); its k x k means are ``image``
     fine: np.ndarray | None = None
     fine_factor: int = 1
 
@@ -83,14 +83,15 @@ def fine_choice(scene, camera, method: str) -> int:
     from lensfit.limits import RENDER_MEMORY_BYTES
     from synth.effects import diffraction
 
-    r, params = scene.render, scene.effects.diffraction
+    r, params, n_w = scene.render, scene.effects.diffraction, working_f_number(camera)
     most = fine_factor(method, r.samples_per_pixel, r.supersampling)
-    airy_px = min(params.wavelength_nm) * 1e-6 * working_f_number(camera) / camera.pixel_pitch_mm
+    airy_px = min(params.wavelength_nm) * 1e-6 * n_w / camera.pixel_pitch_mm
     wanted = 8 if airy_px < FINE_8_BELOW_AIRY_PX else 4
     for k in (8, 4, 2):
-        if k <= wanted and most % k == 0 and diffraction.bytes_needed(
-                params, working_f_number(camera), camera.pixel_pitch_mm / k, k * camera.width_px,
-                k * camera.height_px) <= RENDER_MEMORY_BYTES:
+        if k > wanted or most % k:
+            continue
+        if diffraction.bytes_needed(params, n_w, camera.pixel_pitch_mm / k, k * camera.width_px,
+                                    k * camera.height_px) <= RENDER_MEMORY_BYTES:
             return k
     return 1
 
