@@ -150,6 +150,35 @@ def test_resume_keeps_finished_cases_and_refuses_a_used_folder(quick_report, cap
     assert "--resume" in prov["command"] and "--resume" not in prov["first_run"]["command"]
 
 
+def test_seeds_replace_the_suites_and_a_resumed_run_runs_only_the_new_ones(quick_report, tmp_path, capsys):
+    """``--seeds`` runs the suite's grid over other seeds: resumed on a copy of the quick run
+    (seeds 0 and 1) with ``--seeds 1-2``, seed 1's finished cases are kept untouched, seed 2's are
+    rendered and fitted, and the results, report and provenance hold seeds 1 and 2 only."""
+    import shutil
+
+    out = tmp_path / "quick"
+    shutil.copytree(quick_report / "cache", out / "cache")
+    before = {p.name: (json.loads(p.read_text())["seed"], p.stat().st_mtime_ns)
+              for p in (out / "cache" / "cases").glob("*.json")}
+    assert {seed for seed, _ in before.values()} == {0, 1}
+    assert main(["bench", "--suite", "quick", "--out", str(out), "--resume", "--seeds", "1-2", "--allow-fail"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    per_seed = {s: sum(1 for c in doc["cases"] if c["seed"] == s) for s in (0, 1, 2)}
+    assert per_seed[0] == 0 and per_seed[1] == per_seed[2] == sum(1 for s, _ in before.values() if s == 1)
+    after = {p.name: p.stat().st_mtime_ns for p in (out / "cache" / "cases").glob("*.json")}
+    assert all(after[name] == mtime for name, (_, mtime) in before.items())  # nothing redone or dropped
+    assert len(after) == len(before) + per_seed[2]
+    assert doc["provenance"]["seeds"] == [1, 2] and doc["provenance"]["first_run"]["seeds"] == [0, 1]
+
+
+@pytest.mark.parametrize("spec", ["3-1", "a,b", "-1", "0,,2"])
+def test_bad_seeds_are_refused_in_one_line_naming_the_option(spec, tmp_path, capsys):
+    assert main(["bench", "--suite", "quick", "--out", str(tmp_path / "x"), "--seeds", spec]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--seeds" in err and repr(spec) in err and "e.g. 0-9" in err
+    assert not (tmp_path / "x").exists()
+
+
 def test_unknown_suite_names_the_available_ones(tmp_path, capsys):
     assert main(["bench", "--suite", "nonesuch", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err

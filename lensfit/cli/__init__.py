@@ -198,6 +198,10 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--out", required=True, metavar="DIR", help="output folder (new or empty, unless --resume)")
     bs.add_argument("--jobs", type=int, default=1, metavar="N", help="parallel processes or Dask workers (default 1)")
     bs.add_argument("--resume", action="store_true", help="continue a run in --out, keeping finished cases")
+    bs.add_argument("--seeds", metavar="LIST",
+                    help="the seeds to run instead of the suite's, e.g. 0-9 or 0,1,5: more seeds, more cases to "
+                         "tell the intervals' coverage by; with --resume the cases already finished are kept "
+                         "(--seeds 0-9 on a run of seeds 0-3 runs 4-9 only)")
     bs.add_argument("--executor", default="local", metavar="KIND",
                     help="local (process pool, default), dask (a local Dask cluster) or dask://HOST:PORT")
     bs.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")

@@ -191,6 +191,10 @@ def _bench_command(args: argparse.Namespace) -> int:
     except InputError as exc:
         raise CliError(f"--suite {args.suite!r} is not a suite; available: {', '.join(list_suites())} "
                        "(or the path of a suite .toml)") from exc
+    if args.seeds is not None:
+        import dataclasses
+
+        suite = dataclasses.replace(suite, seeds=parse_seeds(args.seeds))
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CliError(f"--out {out} is a file; give a folder")
@@ -229,6 +233,23 @@ def _bench_command(args: argparse.Namespace) -> int:
               "exit status 4 (--allow-fail: 0)", file=sys.stderr)
         return EXIT_BENCH_FAILED
     return EXIT_OK
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """``--seeds``: comma-separated seeds and inclusive ranges (``0-9``, ``4,5,6``, ``0-3,10``),
+    each a non-negative integer, in the order given with repeats dropped."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        lo, dash, hi = part.strip().partition("-")
+        try:
+            first, last = int(lo), int(hi) if dash else int(lo)
+        except ValueError:
+            first = last = -1
+        if first < 0 or last < first:
+            raise CliError(f"--seeds {text!r}: {part.strip()!r} is not a seed or a range; give non-negative integers "
+                           "and ranges low-high, comma-separated (e.g. 0-9 or 0,1,5)")
+        seeds += [s for s in range(first, last + 1) if s not in seeds]
+    return tuple(seeds)
 
 
 def _interval_lines(coverage: dict) -> list[str]:
