@@ -25,7 +25,7 @@ from lensfit.errors import InputError, SpecError
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.sample_table import Sample, SampleTable
 from lensfit.stack import Stack, load_stack
-from lensfit.edge_geometry import edge_tasks, refine_corners
+from lensfit.edge_geometry import bow_margin, edge_tasks, refine_corners, unbowed
 from lensfit.targets import Detection, Target, detection_copies
 
 #: What of an edge task's context the edge estimator reads (the rest, the target's board and
@@ -304,9 +304,12 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         for i in range(n):
             tasks, meta, estimates = first[i]
             refined = []
+            intr = table.intrinsics[stack.images[i].setting]
             for det in detections[i]:
-                lines = {seg.id: (est.line_px, est.coc_diameter_px, est.line_cov_px2)
-                         for (tid, seg, _, _), est in zip(meta, estimates)
+                # each line where distortion bows its edge moved through the edge's true ends
+                lines = {seg.id: (unbowed(est.line_px, seg, pose, intr, bow_margin(task, est)), est.coc_diameter_px,
+                                  est.line_cov_px2)
+                         for task, (tid, seg, _, pose), est in zip(tasks, meta, estimates)
                          if tid == det.target_id and est.line_px is not None}
                 refined.append(refine_corners(det, by_id[det.target_id], lines))
             detections[i] = refined

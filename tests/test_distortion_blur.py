@@ -250,3 +250,55 @@ def test_lensfit_fit_says_when_the_readings_went_through_a_distortion(calibratio
                                       "distortion_opencv": [-0.25, 0.05, 0.0, 0.0, 0.0]}
     _print_fit(result, document)
     assert "lens distortion k1 -0.25, k2 +0.05: each edge's blur is read through it" in capsys.readouterr().out
+
+
+def test_a_bowed_edges_fitted_line_is_moved_through_its_true_ends():
+    """Barrel distortion images a straight target edge as a curve, which the edge estimator fits
+    with a straight line that misses the edge's ends (the corners refined from it) by most of the
+    bow's depth; lensfit.edge_geometry.unbowed moves it through them. The image is drawn here
+    with no renderer: every pixel's sub-samples undistorted by OpenCV, a disk-blurred step at
+    their distance from the straight edge in the undistorted image."""
+    import cv2
+    from types import SimpleNamespace
+
+    from lensfit.edge_geometry import bow_margin, unbowed
+    from lensfit.estimators import EdgeTask, get_estimator
+
+    f_px, centre, dist = 3000.0, (600.0, 400.0), (-0.25, 0.0, 0.0, 0.0, 0.0)
+    intr = Intrinsics(f_px, centre, dist, 0.0, 1, "manifest")
+    z_mm, y_mm, c_px = 1000.0, 110.0, 4.0  # the edge y = 110 mm, x 150-200 mm, 1 m away: r 0.19-0.23
+    pose = SimpleNamespace(to_camera=lambda p: np.column_stack([np.atleast_2d(p)[:, :2], np.full(len(np.atleast_2d(p)), z_mm)]))
+    seg = SimpleNamespace(start_mm=(150.0, y_mm), end_mm=(200.0, y_mm))
+    ends = cv2.projectPoints(np.array([[150.0, y_mm, z_mm], [200.0, y_mm, z_mm]]), np.zeros(3), np.zeros(3),
+                             intr.camera_matrix, np.array(dist))[0].reshape(2, 2)
+    x0, y0 = (np.floor(ends.min(axis=0)) - 40).astype(int)  # drawn where the estimator looks
+    x1, y1 = (np.ceil(ends.max(axis=0)) + 40).astype(int)
+    image = np.zeros((y1 + 20, x1 + 20))
+    sub = (np.arange(4) + 0.5) / 4 - 0.5
+    ys, xs = np.mgrid[y0:y1, x0:x1].astype(np.float64)
+    for dy in sub:
+        for dx in sub:
+            pts = np.column_stack([(xs + dx).ravel(), (ys + dy).ravel()]).reshape(-1, 1, 2)
+            und = cv2.undistortPoints(pts, intr.camera_matrix, np.array(dist),
+                                      criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12))
+            und = und.reshape(*xs.shape, 2)
+            u = np.clip((und[..., 1] - y_mm / z_mm) * f_px / (c_px / 2), -1.0, 1.0)  # across the edge, in radii
+            image[y0:y1, x0:x1] += (0.5 + (u * np.sqrt(1 - u * u) + np.arcsin(u)) / np.pi) / 16
+    image[:y0] = 0.0
+    image[y1:] = 1.0
+    image = 0.2 + 0.6 * image
+    task = EdgeTask(ends[0], ends[1], 25.0, 25.0, context={})
+    est = get_estimator("edge")(image, [task])[0]
+    stretch = distortion_scale(intr, np.array([175.0, y_mm, z_mm]), np.array([1.0, 0.0, 0.0]))
+    assert abs(est.coc_diameter_px / (c_px * stretch) - 1) < 0.01
+
+    def misses(line):
+        q0, q1 = (np.asarray(q, float) for q in line)
+        n = np.array([-(q1 - q0)[1], (q1 - q0)[0]]) / np.linalg.norm(q1 - q0)
+        return np.array([(ends[0] - q0) @ n, (ends[1] - q0) @ n])
+
+    before = misses(est.line_px)
+    after = misses(unbowed(est.line_px, seg, pose, intr, bow_margin(task, est)))
+    assert np.all(np.abs(before) > 0.03), before  # seen: 0.035 and 0.041 px; after, 0.005 and 0.001
+    assert np.all(np.abs(after) < 0.2 * np.abs(before)), (before, after)
+    assert unbowed(est.line_px, seg, pose, intrinsics((0.0,) * 5), 10.0) is est.line_px
