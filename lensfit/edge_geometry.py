@@ -114,6 +114,8 @@ def unbowed(line_px, seg, pose: TargetPose, intr: Intrinsics, margin_px: float):
     if keep.sum() < 3:
         keep = np.ones_like(s, bool)
     slope, offset = np.polyfit(s[keep], bow[keep], 1)
+    if not (np.isfinite(slope) and np.isfinite(offset)):
+        return line_px
     q0, q1 = (np.asarray(q, np.float64) for q in line_px)
     m = (q1 - q0) / max(float(np.linalg.norm(q1 - q0)), 1e-12)
     m = np.array([-m[1], m[0]])
