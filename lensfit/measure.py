@@ -301,20 +301,22 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         for i in range(n):
             first[i] = (work[i][0], work[i][1], per_image[i])
     if refine:
+        before = dict(table.intrinsics)
         for i in range(n):
-            tasks, meta, estimates = first[i]
-            refined = []
-            intr = table.intrinsics[stack.images[i].setting]
-            for det in detections[i]:
-                # each line where distortion bows its edge moved through the edge's true ends
-                lines = {seg.id: (unbowed(est.line_px, seg, pose, intr, bow_margin(task, est)), est.coc_diameter_px,
-                                  est.line_cov_px2)
-                         for task, (tid, seg, _, pose), est in zip(tasks, meta, estimates)
-                         if tid == det.target_id and est.line_px is not None}
-                refined.append(refine_corners(det, by_id[det.target_id], lines))
-            detections[i] = refined
+            detections[i] = _refined(detections[i], first[i], table.intrinsics[stack.images[i].setting], by_id)
         with clock.stage("calibrate"):
             table.intrinsics = calibrate_all()
+        # A distortion the corners as detected did not show (OpenCV's carry ~0.1 px) but the refined
+        # ones do: the lines are moved through their edges' ends again, through that distortion.
+        found = {k for k, v in table.intrinsics.items()
+                 if np.any(v.distortion) and k in before and not np.any(before[k].distortion)}
+        if found:
+            for i in range(n):
+                if stack.images[i].setting in found:
+                    detections[i] = _refined(detections[i], first[i], table.intrinsics[stack.images[i].setting],
+                                             by_id, fresh_poses=True)
+            with clock.stage("calibrate"):
+                table.intrinsics = calibrate_all()
     table.warnings.extend(few_informative_views(table.intrinsics))
     for i in range(n):
         entry = stack.images[i]
@@ -377,6 +379,25 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
 #: The distortion scales (lensfit.edge_geometry.distortion_scale) a blur reading is taken through:
 #: beyond them the calibrated model is folding or far outside what it was fitted on.
 DISTORTION_SCALE_RANGE = (0.2, 5.0)
+
+
+def _refined(detections: list[Detection], first: tuple[list, list, list], intr, by_id: dict[str, Target],
+             fresh_poses: bool = False) -> list[Detection]:
+    """An image's detections with their corners refined from the edge lines of the first pass
+    (``first``: its tasks, their (target, segment, depths, pose) and the readings), each line
+    moved through its edge's true ends where ``intr``'s distortion bows the edge
+    (:func:`lensfit.edge_geometry.unbowed`), through the pose the edge was measured with or, with
+    ``fresh_poses``, the detection's pose under ``intr``."""
+    tasks, meta, estimates = first
+    out = []
+    for det in detections:
+        pose_now = estimate_pose(det, intr) if fresh_poses else None
+        lines = {seg.id: (unbowed(est.line_px, seg, pose_now or pose, intr, bow_margin(task, est)), est.coc_diameter_px,
+                          est.line_cov_px2)
+                 for task, (tid, seg, _, pose), est in zip(tasks, meta, estimates)
+                 if tid == det.target_id and est.line_px is not None}
+        out.append(refine_corners(det, by_id[det.target_id], lines))
+    return out
 
 
 def _undistorted_blur(est: Any, scale: float, flags: list[str]) -> Any:

@@ -302,3 +302,36 @@ def test_a_bowed_edges_fitted_line_is_moved_through_its_true_ends():
     assert np.all(np.abs(before) > 0.03), before  # seen: 0.035 and 0.041 px; after, 0.005 and 0.001
     assert np.all(np.abs(after) < 0.2 * np.abs(before)), (before, after)
     assert unbowed(est.line_px, seg, pose, intrinsics((0.0,) * 5), 10.0) is est.line_px
+
+
+def test_a_distortion_only_the_refined_corners_show_moves_the_lines_again(calibration_stack, monkeypatch):
+    """Where the calibration from OpenCV's corners (about 0.1 px) finds no distortion and the one
+    from the refined corners does, measure refines the corners again, each line moved through that
+    distortion with the views' poses under it, and calibrates once more; where neither finds
+    one (this stack has none), twice."""
+    import dataclasses
+
+    import lensfit.measure as m
+
+    real_calibrate, real_refined = m.calibrate, m._refined
+    for inject in (False, True):
+        calls, fresh = [], []
+
+        def calibrate(dets, shape, **kw):
+            out = real_calibrate(dets, shape, **kw)
+            calls.append(out)
+            if inject and len(calls) == 2:  # the refined corners' calibration finds a barrel
+                out = {k: dataclasses.replace(v, distortion=(-0.1, 0.0, 0.0, 0.0, 0.0)) for k, v in out.items()}
+            return out
+
+        def refined(*args, fresh_poses=False, **kw):
+            fresh.append(fresh_poses)
+            return real_refined(*args, fresh_poses=fresh_poses, **kw)
+
+        monkeypatch.setattr(m, "calibrate", calibrate)
+        monkeypatch.setattr(m, "_refined", refined)
+        table = m.measure(calibration_stack)
+        assert not any(np.any(v.distortion) for v in calls[0].values())
+        images = len(table.corners_px)
+        assert len(calls) == (3 if inject else 2)
+        assert fresh == [False] * images + ([True] * images if inject else [])
