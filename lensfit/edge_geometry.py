@@ -117,9 +117,9 @@ def unbowed(line_px, seg, pose: TargetPose, intr: Intrinsics, margin_px: float):
     if not (np.isfinite(slope) and np.isfinite(offset)):
         return line_px
     q0, q1 = (np.asarray(q, np.float64) for q in line_px)
-    m = (q1 - q0) / max(float(np.linalg.norm(q1 - q0)), 1e-12)
-    m = np.array([-m[1], m[0]])
-    return (q0 - offset * m, q1 - (offset + slope * L) * m)
+    along = (q1 - q0) / max(float(np.linalg.norm(q1 - q0)), 1e-12)
+    normal = np.array([-along[1], along[0]])
+    return (q0 - offset * normal, q1 - (offset + slope * L) * normal)
 
 
 def bow_margin(task: EdgeTask, est) -> float:

@@ -392,8 +392,8 @@ def _refined(detections: list[Detection], first: tuple[list, list, list], intr, 
     out = []
     for det in detections:
         pose_now = estimate_pose(det, intr) if fresh_poses else None
-        lines = {seg.id: (unbowed(est.line_px, seg, pose_now or pose, intr, bow_margin(task, est)), est.coc_diameter_px,
-                          est.line_cov_px2)
+        lines = {seg.id: (unbowed(est.line_px, seg, pose if pose_now is None else pose_now, intr, bow_margin(task, est)),
+                          est.coc_diameter_px, est.line_cov_px2)
                  for task, (tid, seg, _, pose), est in zip(tasks, meta, estimates)
                  if tid == det.target_id and est.line_px is not None}
         out.append(refine_corners(det, by_id[det.target_id], lines))
