@@ -1,12 +1,13 @@
 # Two commands on a fresh machine with only python3 and make:
 #   make demo   set-up, then the main job on the embedded default scene
-#   make test   set-up, then the whole test suite
+#   make test   set-up, then the whole test suite (the documentation site included)
+#   make docs   the documentation site into build/docs
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test clean
+.PHONY: setup demo test docs docs-figures readme-table clean
 
 setup: $(STAMP)
 
@@ -15,7 +16,7 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || { echo "could not create a virtual environment with '$(PYTHON) -m venv'; on Debian/Ubuntu install python3-venv"; exit 1; }
 	@echo "installing lensfit and its dependencies into $(VENV) (log: $(VENV)/pip.log) ..."
 	@$(PY) -m pip install --quiet --upgrade pip > $(VENV)/pip.log 2>&1 || { cat $(VENV)/pip.log; exit 1; }
-	@$(PY) -m pip install --quiet -e '.[test]' >> $(VENV)/pip.log 2>&1 || { cat $(VENV)/pip.log; exit 1; }
+	@$(PY) -m pip install --quiet -e '.[test,docs]' >> $(VENV)/pip.log 2>&1 || { cat $(VENV)/pip.log; exit 1; }
 	@touch $(STAMP)
 
 demo: setup
@@ -25,6 +26,19 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q
+
+# the documentation site into build/docs (strict: a warning fails); tests/test_docs.py builds it too
+docs: setup
+	$(VENV)/bin/mkdocs build --strict --config-file docs/mkdocs.yml --site-dir ../build/docs
+
+# every example run again into out/examples/NAME/, its figure copied into its page
+docs-figures: setup
+	@for f in docs/examples/*.py; do n=$$(basename $$f .py); echo "$$f"; \
+	  $(PY) $$f out/examples/$$n > /dev/null && cp out/examples/$$n/$$n.png docs/src/examples/img/ || exit 1; done
+
+# the README's accuracy table again from the latest benchmark records (docs/validation/records/)
+readme-table: setup
+	$(PY) -m lensfit.bench.records --readme README.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -272,7 +272,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         1.17-1.27x the spread of 80 draws, the weighted one 0.97-1.08x
         (tests/test_calibration_sigma.py). That variance is pooled with the model's, the residuals
         read through the corners' covariance, as a prior worth ``MODEL_PRIOR_DOF`` degrees of
-        freedom (since 2026-11-28).
+        freedom.
         """
         usable = _usable(dets)
         n = len(usable)
@@ -286,8 +286,8 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
             return (sigma_opencv if model is None else model), method, 0.0, 0.0
         # each leave-one-out calibration started from the whole one's intrinsics: the same
         # minimum (sigma within 1e-7), 13 % less time than OpenCV's own start from homographies;
-        # the leverages from the inverse information equilibrated (OpenCV's reported sigma, from
-        # which they were read until 2026-11-28, truncates it on narrow views: _correlated_sigma)
+        # the leverages from the inverse information equilibrated (OpenCV's reported sigma
+        # truncates it on narrow views: _correlated_sigma)
         weighted, guess = 0.0, extra | cv2.CALIB_USE_INTRINSIC_GUESS
         unit = _focal_information_inverse(usable, *solution, flags | extra) or unit
         leverages = []

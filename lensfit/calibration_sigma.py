@@ -17,10 +17,10 @@ def jackknife_dof(leverages: list[float]) -> float:
     has an expectation in proportion to its leverage ``h_i`` (its share of what is known of the
     focal length), so the sum is a Satterthwaite mix of ``(sum h)^2 / sum h^2`` views' chi-squares,
     less one for the estimate (Bell and McCaffrey's correction, in its simplest form): ``n - 1``
-    where the views inform it alike, about 1.7 where 4 of 10 do and one most (until 2026-11-28
-    always the views less one: on such a random scene, 12 renders, the jackknife's sigma read
-    0.1-2x the spread and the focal length's 95 % intervals, taking t(9), missed at 3-7 sigma). At
-    least 1; the views less one at most."""
+    where the views inform it alike, about 1.7 where 4 of 10 do and one most (the views less one
+    would overstate it there: on such a random scene, 12 renders, the jackknife's sigma read
+    0.1-2x the spread, and t(9) intervals missed at 3-7 sigma). At least 1; the views less one at
+    most."""
     h = np.clip(np.asarray(leverages, float), 0.0, 1.0)
     n = len(h)
     if n < 2 or not np.any(h > 0):
@@ -43,11 +43,11 @@ def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, po
     image point in the poses and the free intrinsics, ``H = J^T J``, ``S`` the points' covariance
     up to a scale), the scale read from the residuals: ``r^T r = s^2 tr((I - J H^-1 J^T) S)``.
     With ``S`` the identity this is OpenCV's sigma, computed as it should be: ``H`` is inverted
-    with its columns equilibrated (:func:`_information_inverse`). OpenCV's own reported sigma, and
-    this one before 2026-11-28, truncated it: on a 71 mm lens's 3-degree views (a random scene of
-    an end-to-end fuzz) ``H``'s condition number is 1e15, the near-degenerate direction along
-    which the focal length trades with the boards' distances was dropped, and a sigma of 0.5 px
-    was reported for an error of 217 px (0.9 %); equilibrated, 203 px.
+    with its columns equilibrated (:func:`_information_inverse`). OpenCV's own reported sigma
+    truncates it: on a 71 mm lens's 3-degree views ``H``'s condition number is 1e15, mostly the
+    scales of poses beside a focal length of 24000 px, and the pseudo-inverse drops the direction
+    along which the focal length trades with the boards' distances (a sigma of 0.5 px for an error
+    of 217 px); equilibrated, 203 px.
     """
     if not dets or (not independent and any(d.point_cov_px2 is None for d in dets)):
         return None
@@ -98,7 +98,7 @@ def _variance_components(rss: float, rwr: float, tr_rs: float, tr_r: float, tr_w
     corners' own localisation, a profile the edge fit read with a bias of its own), by the method
     of moments from the residuals ``r = R e``: ``E[r'r] = a tr(RS) + b tr(R)`` and
     ``E[r'Wr] = a tr(WRSR) + b tr(WR)``, ``W`` the pseudo-inverse of ``S``. Both at least 0;
-    ``b = 0`` gives the lines' covariance alone with its scale from ``r'r`` (as before 2026-11-28).
+    ``b = 0`` gives the lines' covariance alone with its scale from ``r'r``.
     On an end-to-end fuzz's focus bracket (18.8 mm f/6.2, five 15-corner views a setting, 16 spp,
     8 renders): the focal length's error over its sigma RMS 1.37 -> 0.86, the largest 4.7 -> 2.4;
     OpenCV's model (every coordinate alone) 0.52, 1.25."""

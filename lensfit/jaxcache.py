@@ -1,9 +1,10 @@
-"""JAX's persistent compilation cache, switched on by the command-line tools (not on import).
+"""JAX's persistent compilation cache, on for the command-line tools and the library alike.
 
 Compiled kernels are stored under ``$LENSFIT_JAX_CACHE`` (default
 ``~/.cache/lensfit/jax``), so that a second run of a CLI skips compilation, and the exported
 traces of the batched solvers under its ``traces/`` (``lensfit.aot``), so that it skips tracing
-too. Set ``LENSFIT_JAX_CACHE=off`` to disable both.
+too. Set ``LENSFIT_JAX_CACHE=off`` to disable both. ``import lensfit`` switches it on
+(:func:`enable_by_default`) unless the program has set JAX's own cache folder.
 """
 
 from __future__ import annotations
@@ -50,3 +51,20 @@ def enable_compilation_cache() -> Path | None:
     except OSError:
         aot.set_store(None)
     return path
+
+
+def enable_by_default() -> Path | None:
+    """The library's default (``import lensfit``, and so ``import synth``): the cache on, as the
+    programs have it, so that a script's second run skips compilation too. Left off where
+    ``LENSFIT_JAX_CACHE=off``, and where the program has pointed JAX's own cache somewhere
+    (``JAX_COMPILATION_CACHE_DIR``, or ``jax_compilation_cache_dir`` set before lensfit's import)."""
+    if os.environ.get("LENSFIT_JAX_CACHE", "").lower() == "off":
+        return None
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR") and "JAX_COMPILATION_CACHE_DIR" not in _SET_IN_ENVIRONMENT:
+        return None
+    if "jax" in sys.modules:
+        import jax
+
+        if jax.config.jax_compilation_cache_dir:
+            return None
+    return enable_compilation_cache()

@@ -122,6 +122,12 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     ------
     lensfit.errors.SpecError, lensfit.errors.InputError
         Unreadable or inconsistent input, saturated targets, a setting that cannot be calibrated.
+
+    Examples
+    --------
+    >>> from lensfit.measure import measure
+    >>> table = measure("out/demo")                     # doctest: +SKIP
+    >>> table.write("samples.csv")                      # doctest: +SKIP
     """
     fn = get_estimator(estimator)
     if airy_px is not None and estimator not in ("edge", "edge-disk"):

@@ -117,20 +117,46 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
                     fit_options: dict[str, Any] | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     auto_diffraction: bool = False) -> tuple[Any, Any, list[dict[str, float]]]:
-    """Measure ``stack`` and fit it; with ``wavelength_nm`` (the light's effective wavelength, e.g.
-    550 for a grey or green-weighted image) model diffraction in the blur readings; without it
-    but with ``auto_diffraction``, model it (at 550 nm) where the edges show it
-    (:func:`diffraction_test`; its evidence is left in the samples' ``diffraction``). Where the
-    test finds no Airy pattern, the samples are flagged ``airy_not_seen`` and the fit reads the
-    spots' shapes; where it cannot test, the fit decides by itself (``lensfit.fit.spots``).
+    """Measure ``stack`` and fit it: what ``lensfit fit`` runs.
 
-    Returns (samples, fit result, rounds): ``rounds`` lists the Airy scales (px per setting) each
-    diffraction round measured with (empty without diffraction).
+    With ``wavelength_nm`` (the light's effective wavelength, e.g. 550 for a grey or
+    green-weighted image) diffraction is modelled in the blur readings; without it but with
+    ``auto_diffraction``, it is modelled (at 550 nm) where the edges show it
+    (:func:`diffraction_test`; its evidence is left in the samples' ``diffraction``): the
+    command line's default. Where the test finds no Airy pattern, the samples are flagged
+    ``airy_not_seen`` and the fit reads the spots' shapes; where it cannot test, the fit
+    decides by itself (``lensfit.fit.spots``). Forcing the model on a geometric render (which
+    has no Airy pattern) reads its f-number high.
+
+    Parameters
+    ----------
+    stack : a :class:`~lensfit.stack.Stack` or the path of a stack folder
+    estimator : a name from ``lensfit.estimators.ESTIMATORS`` ("edge", "edge-disk", "target")
+    wavelength_nm : model diffraction at this wavelength (200-2000 nm); None: do not force it
+    fit_options : keyword arguments of :func:`lensfit.fit.fit` (``loss``, ``blur_floor_px``,
+        ``pupil_magnification``, ...)
+    progress : callable(stage, done, total), optional
+    auto_diffraction : test the images for the Airy pattern and model it where they show it
+
+    Returns
+    -------
+    tuple
+        (samples, fit result, rounds): the :class:`~lensfit.sample_table.SampleTable` as fitted,
+        the :class:`~lensfit.fit.FitResult`, and the Airy scales (px per setting) each
+        diffraction round measured with (empty without diffraction).
 
     Raises
     ------
     InputError
         A wavelength outside 200-2000 nm, or an estimator without a diffraction model.
+
+    Examples
+    --------
+    >>> from lensfit.pipeline import measure_and_fit
+    >>> samples, result, rounds = measure_and_fit("out/demo", auto_diffraction=True)  # doctest: +SKIP
+    >>> N = result.settings["a"]["f_number"]                                           # doctest: +SKIP
+    >>> N.value, N.ci95, N.shares["calibration"]                                       # doctest: +SKIP
+    (11.0023, (10.987, 11.018), 0.12)
     """
     from lensfit.measure import HOLD_BYTES, in_background, measure
     from lensfit.stack import Stack, load_stack
@@ -156,8 +182,8 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
 
     def on_edges(settings: int, edges: int) -> None:
         # Queued behind the edge fits' loading (lensfit.measure.in_background) while the edges are
-        # measured: the CoC fit's functions, then the Airy fits (until 2026-11-28 these waited for
-        # the measuring to end, and the diffraction test for them after the first fit).
+        # measured: the CoC fit's functions, then the Airy fits, so that neither waits for the
+        # measuring to end.
         ahead.append(_fit_ahead(settings, edges))
         if auto or wavelength_nm:
             ahead.append(airy_ahead())
@@ -305,10 +331,9 @@ def _settled(rounds: list[dict[str, float]], following: dict[str, float], change
     (``changes``), or would in the next (:func:`_settled_next`); ``rounds`` the Airy scales read
     with so far, ``following`` the next round's. A setting without two f-numbers to compare (the
     fit before refused it: the pattern's tails taken for blur can leave the first fit's aperture
-    undetermined) is settled when its Airy scale is. (Until 2026-11-28 it counted as settled: a
-    fuzz stack at f/30, Airy scale 2.9 px, read once at 4.3 px, stopped there with N 17 % low at
-    3.5 sigma and the focus distance 25 % far at 6.2; after four rounds, 2.4 to 3.4 px, two focus
-    distances fit it about equally well, 417 and 469 mm for 432, which is said.)"""
+    undetermined) is settled when its Airy scale is: counted as settled at once, a stack at f/30
+    whose first fit put the pattern at 4.3 px for 2.9 stopped there with N 17 % low at 3.5 sigma;
+    read on, two focus distances fit it about equally well, which is then said."""
     last = rounds[-1]
     if any(k not in changes and last.get(k) and following.get(k) and abs(following[k] / last[k] - 1.0) >= SETTLED_REL
            for k in labels):

@@ -18,7 +18,7 @@ from synth.scene import Scene, Shot
 METHODS = ("auto", "raytrace", "convolve", "mitsuba")
 
 #: Rough throughputs on a 2-core machine, used only for the cost estimates of ``synth plan``.
-# synth bench (2026-11-27): ~320 M/s on a flat board, ~260 on a tilted one, compiled, every pixel traced; an upper
+# synth bench: ~320 M/s on a flat board, ~260 on a tilted one, compiled, every pixel traced; an upper
 # bound on a render's time, which samples only the pixels outside constant regions (synth.flat: 5-35 % on the demo)
 RAYTRACE_SAMPLES_PER_S = 250e6
 CONVOLVE_SUBPIXELS_PER_S = 25e6

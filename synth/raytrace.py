@@ -19,10 +19,9 @@ pixel's copy given a random digital shift (its coordinates' 16 bits XORed with a
 and dimension, Kollig & Keller 2002), so that each sample is uniform on its own and the pixel's
 set keeps the sequence's joint stratification. The masks come from a counter-based hash (PCG,
 O'Neill 2014) of (seed, pixel): deterministic for a seed, independent of tiling and thread
-count. Against per-sample hashed jitter with the lens strata randomly permuted per pixel (the
-method before 2026-11-27), measured on the demo's fronto-parallel shot: RMS error 21-24 % lower
-at 4-256 spp (2.7x lower at 32 spp), and 1.5x the samples per second (1.2-1.6x on a tilted
-board; the hashes were most of the per-sample arithmetic, which XLA repeats in each fused
+count. Against per-sample hashed jitter with the lens strata randomly permuted per pixel, on the
+demo's fronto-parallel shot: RMS error 21-24 % lower at 4-256 spp, and 1.5x the samples per
+second (per-sample hashes would be most of the arithmetic, which XLA repeats in each fused
 loop). Computation runs in float32 (the geometry in pixel and millimetre units stays well within
 its precision); compiled once per scene structure (target kinds) and image width, and kept as
 an executable (``lensfit.aot``) where the command-line tools keep a store.

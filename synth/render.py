@@ -292,6 +292,14 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     Returns
     -------
     RenderResult
+
+    Examples
+    --------
+    >>> import synth
+    >>> result = synth.render("data_specs/scenes/demo.toml", samples_per_pixel=16, seed=1)  # doctest: +SKIP
+    >>> sorted(result.images)[:2], result.truth["focal_length_mm"]                         # doctest: +SKIP
+    (['shot_000.png', 'shot_001.png'], 25.0)
+    >>> synth.write_stack(result, "out/my_stack")                                            # doctest: +SKIP
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)

@@ -120,6 +120,12 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
     The folder is written as a temporary sibling and renamed into place. An existing folder is
     replaced only with ``force`` and only when it holds nothing but a stack synth wrote (checked
     again just before the swap); its old contents are removed only then.
+
+    Examples
+    --------
+    >>> import synth
+    >>> synth.write_stack(synth.render("data_specs/scenes/demo.toml"), "out/demo", force=True)  # doctest: +SKIP
+    PosixPath('out/demo')
     """
     from lensfit.outputs import write_folder
 

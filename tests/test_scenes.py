@@ -15,7 +15,7 @@ from synth.stack import write_stack
 
 SCENES = sorted(p.stem for p in (specs_dir() / "scenes").glob("*.toml"))
 #: Scenes that fit, and where that is tested.
-FITTED = {"demo": "tests/test_readme.py", "focus_bracket": "tests/test_fit_pipeline.py",
+FITTED = {"demo": "tests/test_docs.py (the README's example)", "printed_target": "docs/examples/real_camera.py", "focus_bracket": "tests/test_fit_pipeline.py",
           "bench_calibration": "tests/test_bench.py (quick suite)", "camera_raw": "this file",
           "stopped_down": "tests/test_diffraction.py"}
 

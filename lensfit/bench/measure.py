@@ -139,7 +139,7 @@ def exact_edge(c_px: float, slant_deg: float, offset_px: float = 0.0, supersampl
 
     Gauss-Legendre, not an even grid of sub-pixel centres: an n x n grid's pixel lacks
     ``1 / (12 n^2)`` px^2 of the square's variance, which reads a blur of c px low by about
-    ``0.67 / (n c)^2`` (-0.46 % at 1 px with n = 12, the grid used until 2026-11-28); these nodes
+    ``0.67 / (n c)^2`` (-0.46 % at 1 px with n = 12); these nodes
     hold the square's moments to the 23rd."""
     import math
 

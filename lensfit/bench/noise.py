@@ -1,7 +1,7 @@
 """Benchmark of the whole chain on a rendered stack: accuracy of f, N and focus distance, and
 whether the stated sigma matches the scatter over repeated noise draws.
 
-Noise (until synth simulates sensors itself): each image's linear values are taken as a
+Noise (added to a stack rendered without synth's sensor effects): each image's linear values are taken as a
 fraction of a full well (``full_well_e`` electrons at 1.0), photon noise is drawn as Poisson,
 read noise as Gaussian (``read_noise_e``), then clipped and quantised to 16 bits. Each draw
 is seeded (``numpy.random.default_rng(seed)``); the noisy stack is written to a temporary

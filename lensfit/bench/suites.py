@@ -142,14 +142,12 @@ def _key(*parts: Any) -> str:
 
 
 #: What a ray-traced render's samples are, in its cache key: a run resumed over renders of another
-#: sampler would mix them (since 2026-11-27 digitally shifted Sobol points, synth.raytrace; and the
-#: same day constant regions taken unsampled, synth.flat, which leaves the images the same except
-#: for the float32 rounding of a mean: 1 DN in 0.2 % of the pixels of a 256-spp stack with diffraction).
+#: sampler would mix them (digitally shifted Sobol points, synth.raytrace; constant regions taken
+#: unsampled, synth.flat).
 RAYTRACE_SAMPLER = "sobol-digital-shift+constant-regions"
-#: How a render's diffraction met it, in the cache key of an effects set with diffraction: since
-#: 2026-11-28 the transfer function filters the geometric render at 4 or 8 times the resolution
-#: (synth.effects.diffraction), where a render at twice it read a blur far below the Airy pattern
-#: wrong by its phase.
+#: How a render's diffraction met it, in the cache key of an effects set with diffraction: the
+#: transfer function filters the geometric render at 4 or 8 times the resolution
+#: (synth.effects.diffraction); a render filtered otherwise must not be reused.
 DIFFRACTION_RENDER = "fine-4-or-8"
 
 

@@ -14,7 +14,7 @@ from typing import Sequence
 from lensfit import __version__
 from lensfit.errors import InputError
 from lensfit.cli.bench import (_bench_command, _bench_fit_command, _bench_lenses_command, _bench_measure_command,
-                               _bench_stages_command)
+                               _bench_stages_command, _bench_api_command)
 from lensfit.cli.capture import _init_command, _plan_command, _target_command
 from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
                                 _diffraction, _input_options, _number, _pupil)
@@ -207,6 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     bs.add_argument("--allow-fail", action="store_true",
                     help="exit 0 even when estimates miss the suite's tolerances (default: exit status 4)")
+    bs.add_argument("--record", metavar="DIR",
+                    help="also write the suite's record (DIR/SUITE.json: headline figures, date, command) that the "
+                         "documentation's validation page and the README's accuracy table are made from, replacing "
+                         "the suite's earlier record there (e.g. docs/validation/records)")
     bs.set_defaults(func=_bench_command, prog="lensfit bench")
 
     bf = sub.add_parser("bench-fit", help="accuracy of f, N, focus distance and honesty of sigma under noise",
@@ -265,6 +269,18 @@ def build_parser() -> argparse.ArgumentParser:
                     help="warm calls per configuration after the cold one; each stage's median (default 3)")
     bs.add_argument("--json", action="store_true", help="print JSON")
     bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
+
+    ba = sub.add_parser("bench-api", help="the README's Python example against lensfit fit, fresh processes",
+                        description="Benchmark: a fresh `lensfit fit STACK` process against a fresh Python process "
+                                    "running the README's measure_and_fit on the same stack, alternating pairs after "
+                                    "a warm-up; the median of the pairs' ratios.")
+    ba.add_argument("stack", metavar="STACK", help="a stack folder (e.g. out/demo after make demo)")
+    ba.add_argument("--pairs", type=int, default=3, metavar="N", help="alternating pairs (default 3)")
+    ba.add_argument("--record", metavar="DIR",
+                    help="also write the figures to DIR/api_vs_cli.json for the documentation's validation page "
+                         "(e.g. docs/validation/records)")
+    ba.add_argument("--json", action="store_true", help="print JSON")
+    ba.set_defaults(func=_bench_api_command, prog="lensfit bench-api")
     return parser
 
 

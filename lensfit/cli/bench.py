@@ -36,6 +36,36 @@ def _bench_stages_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _bench_api_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from lensfit.bench.api import run
+
+    if not (Path(args.stack) / "stack.toml").is_file():
+        raise CliError(f"STACK {args.stack}: no stack.toml there; give a stack folder (e.g. out/demo after make demo)")
+    if args.pairs < 1:
+        raise CliError(f"--pairs must be at least 1, got {args.pairs}")
+    if args.record and Path(args.record).exists() and not Path(args.record).is_dir():
+        raise CliError(f"--record {args.record} is a file; give the records' folder (e.g. docs/validation/records)")
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        try:
+            result = run(args.stack, pairs=args.pairs, progress=lambda m: status.update(f"benchmarking: {m}"))
+        except RuntimeError as exc:
+            raise CliError(f"STACK {args.stack}: {exc}") from exc
+    if args.record:
+        from lensfit.outputs import write_text
+
+        Path(args.record).mkdir(parents=True, exist_ok=True)
+        write_text(Path(args.record) / "api_vs_cli.json", json.dumps(result, indent=1) + "\n")
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return EXIT_OK
+    print(f"lensfit fit {result['median_seconds_cli']:.2f} s, the README's measure_and_fit in a script "
+          f"{result['median_seconds_api']:.2f} s (medians of {args.pairs}); ratio {result['median_ratio']:.2f}x")
+    return EXIT_OK
+
+
 def _bench_measure_command(args: argparse.Namespace) -> int:
     import json
 
@@ -200,6 +230,8 @@ def _bench_command(args: argparse.Namespace) -> int:
         raise CliError(f"--out {out} is a file; give a folder")
     if out.exists() and any(out.iterdir()) and not args.resume:
         raise CliError(f"--out {out} is not empty; pass --resume to continue the run there, or choose another folder")
+    if args.record and Path(args.record).exists() and not Path(args.record).is_dir():
+        raise CliError(f"--record {args.record} is a file; give the records' folder (e.g. docs/validation/records)")
     from lensfit.outputs import OutputLock
 
     console = Console(stderr=True)
@@ -219,6 +251,10 @@ def _bench_command(args: argparse.Namespace) -> int:
         else:
             first.write_text(json.dumps(prov, indent=1))
         files = write_report(records, suite, prov, out)
+        if args.record:
+            from lensfit.bench.records import write_record
+
+            files["record"] = write_record(json.loads(files["json"].read_text()), args.record)
     from lensfit.bench.report import summarise
 
     summary = summarise(records, suite)

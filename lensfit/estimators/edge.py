@@ -17,7 +17,7 @@ What "blur diameter" means
     ``sqrt((A S |1/D - 1/d| / p)^2 + b^2)`` describes; far from focus it grows as the real
     entrance pupil's cone, and its V's vertex is the lens's best (least-RMS) focus. A
     uniform-disk fit to an aberrated spot misses it by up to 10 %, a one-parameter rim/core
-    profile ``1 + beta (2 rho^2 - 1)`` (tried) by up to 8 % on a bright core in a wide halo;
+    profile ``1 + beta (2 rho^2 - 1)`` by up to 8 % on a bright core in a wide halo;
     two disks follow both within 0.5 % noise-free (``edge-disk`` keeps the uniform disk).
 Method
     Pixels near a straight target edge are projected onto the edge normal, which super-samples

@@ -166,9 +166,9 @@ def _band_variance(d: np.ndarray, sq_dev: np.ndarray, count: np.ndarray) -> np.n
     shows in the profile's tails, which these weights favour (noise-free, the spread of a bin is
     mostly the profile's slope across it); with the smooth weights the shaped reading of a
     retrofocus lens's core-and-halo spot came out 2.6 % low (``tests/test_compound_render.py``).
-    Every spot of 2 px or more is shaped since 2026-11-25; on exact 2-6 px disks under a render's
-    Monte-Carlo noise (32 spp) the shaped readings stay within 0.2 % (0.4 % low at 2 px), where
-    these weights had read 1-3 px blurs 1-1.5 % low in the uniform disk's fit."""
+    On exact 2-6 px disks under a render's Monte-Carlo noise (32 spp) the shaped readings stay
+    within 0.2 % (0.4 % low at 2 px); in the uniform disk's fit these weights would read 1-3 px
+    blurs 1-1.5 % low, which is why that fit takes :func:`_noise_variance`'s."""
     band = np.floor(d).astype(int)
     return _pooled(band - band.min(), sq_dev, count - 1.0)
 

@@ -19,9 +19,7 @@ Uncertainty
     (a blur below a sub-pixel), how far c rises before the RSS rises by s^2. Against synth's
     truth maps (noise-free; tests/test_measure.py): the calibration stack's 121 edges at 0-5 px,
     error over sigma 1.06 RMS, 93 % within 2 sigma; the demo's 264 at 0-20 px, 1.54 RMS (a few
-    near-focus edges), 77 % within 1 sigma, bias +0.005 px from 1.5 px up. (With one texture
-    sample per sub-pixel, before 2026-11-27: 6.3 RMS and 52 % within 2 sigma; the demo 4.9 RMS
-    and 47 % within 1 sigma, near-focus edges read 0.3 px with 0.02 px sigmas.)
+    near-focus edges), 77 % within 1 sigma, bias +0.005 px from 1.5 px up.
 Valid range
     c from about 0.5 px to a few square widths; blur that varies strongly across the patch
     (steep tilt) is averaged.
@@ -44,10 +42,9 @@ from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.psf import disk_kernel
 
 SUB = 4
-#: Texture samples per sub-pixel, along each axis (see _measure_one). Against the truth maps of
-#: the demo stack (noise-free; 2026-11-27): one sample per sub-pixel read 3-20 px blurs +0.01 px
-#: high with 31-64 % of them within 1 sigma and near-focus edges 0.3 px high; four, -0.003 to
-#: -0.001 px with 77-100 % (without CELL_VARIANCE_PX2; with it, below).
+#: Texture samples per sub-pixel, along each axis (see _measure_one): one sample puts the
+#: squares' edges on a 1/SUB px staircase that the fit reads as blur (near-focus edges 0.3 px
+#: high on the demo stack); four read 3-20 px blurs within 0.003 px of the truth maps.
 POINTS = 4
 #: The variance per axis (px^2) taken off the disk for the model's own discretisation, which
 #: adds that of one to two boxes of 1/SUB px (the sub-pixels' areas, the area-weighted kernel's

@@ -91,6 +91,22 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     ------
     InputError
         No usable sample, a bad pixel pitch, focal length, loss or floor.
+
+    Examples
+    --------
+    Fit the samples of a stack measured with :func:`lensfit.measure.measure` (no diffraction
+    test: :func:`lensfit.pipeline.measure_and_fit` is what ``lensfit fit`` runs):
+
+    >>> from lensfit.measure import measure
+    >>> result = fit(measure("out/demo"))                       # doctest: +SKIP
+    >>> result.settings["a"]["f_number"].ci95                   # doctest: +SKIP
+    (10.987, 11.018)
+
+    Or rows of your own, with the pixel pitch and the calibrated focal length in px:
+
+    >>> rows = [{"setting": "a", "distance_mm": d, "coc_diameter_px": c, "sigma_px": 0.05}
+    ...         for d, c in [(500, 9.5), (700, 3.9), (1400, 2.8), (2000, 4.7), (3000, 6.3)]]
+    >>> result = fit(rows, pixel_pitch_mm=0.006, focal_length_px=4188.0)   # doctest: +SKIP
     """
     if loss not in LOSSES:
         raise InputError("loss", loss, "one of: " + ", ".join(LOSSES))
@@ -407,15 +423,12 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # The blur rows' variance is scaled by their own reduced chi-square, up where they scatter more
     # than their sigmas say and down where less (a Type A evaluation from some hundred degrees of
     # freedom: their stated sigmas carry the estimator's model floor, which on clean stacks is
-    # twice their scatter); the calibration's rows and the priors keep their own sigmas. Until
-    # 2026-11-25 max(1, chi-square) scaled all of them.
+    # twice their scatter); the calibration's rows and the priors keep their own sigmas.
     # Where the images scatter along the blur's slope beyond what their readings explain (an error
     # of each image's pose: tau > 0), that scatter is a term of its own, shared by each image's
     # edges (_images_part, pooled over the images; the images' spread is then not taken), and
-    # the readings' chi-square is taken about each image's shared error. (Until 2026-11-25 only
-    # the image jackknife carried it; with a few images near the focus plane setting the focus
-    # distance, its variance rested on those alone: 1 % pose errors, 95 % intervals held the
-    # focus distance in 91 % of captures.)
+    # the readings' chi-square is taken about each image's shared error. Pooled over all the
+    # images, it does not rest on the few near the focus plane that set the focus distance.
     named = bool(free_idx.size) and bool(np.all(data.group[used] >= 0))
     cov_fit, cond = _covariance(jac, 1.0)  # (J'J)^-1 of the fit as weighted: the images' terms' H^-1
     scatter = _image_scatter(theta, m, data, weights * row_on, jac, cov_fit) if named else None

