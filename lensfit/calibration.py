@@ -337,8 +337,8 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
 #: 95 % coverage 99 % and 83 % -> 97 % and 92 %, the mean half-width 15.9x -> 4.7x the error
 #: (27 standard-suite demo calibrations: 100 % either way, 4.5x -> 3.8x); with 4 or more the
 #: fuzz's coverage falls below 95 %. The fitted focal lengths of those random scenes: 95 %
-#: intervals 8.0x -> 2.7x the error on average, holding the truth in 86 % -> 84.5 % of 97 (README,
-#: "Random scenes, end to end").
+#: intervals 8.0x -> 2.7x the error on average, holding the truth in 86 % -> 84.5 % of 97
+#: (tests/test_random_scenes.py draws such scenes).
 MODEL_PRIOR_DOF = 2.0
 #: Below these degrees of freedom a calibration's jackknife says so (:func:`few_informative_views`).
 FEW_VIEWS_DOF = 3.0

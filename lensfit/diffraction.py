@@ -7,7 +7,7 @@ diameter; first dark ring at ``1.22 a``). Its line-spread function (LSF) falls o
 ``1 / x^2``, so its variance is unbounded and no floor added in quadrature describes it: a
 uniform-disk fit to an edge blurred by a disk of ``c`` px and an Airy pattern of ``a = 1.5 px``
 reads 3.1 px at ``c = 0`` and ``c + 1.2 px`` at ``c = 24`` (the excess grows with the window the
-blur asks for), which leaves the f-number several per cent off (README, "Diffraction").
+blur asks for), which leaves the f-number several per cent off (docs/src/explanation/lens-models.md, "Diffraction").
 
 The edge estimator therefore convolves its model profile with the Airy LSF where the caller
 gives ``a``. Per edge, the kernel that does not change while the edge is fitted -- the Airy LSF

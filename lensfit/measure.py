@@ -96,23 +96,31 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
 
     Parameters
     ----------
-    stack : a :class:`~lensfit.stack.Stack` or the path of a stack folder
-    estimator : a name from ``lensfit.estimators.ESTIMATORS``
-    refine : refine the detected corners by intersecting the measured edge lines, then
-        calibrate and solve the poses again (more precise intrinsics and distances)
-    progress : callable(stage, done, total), optional
-    airy_px : per setting label, the Airy pattern's scale ``lambda N_w / p`` in px: the edge
-        estimators then model diffraction and read the defocus blur alone (flag
-        ``diffraction_modelled``; ``lensfit.diffraction``, ``lensfit.pipeline``)
-    detected : a table this process measured of the same stack: its targets as detected are
-        taken instead of detecting them again (the diffraction rounds of ``lensfit.pipeline``;
-        the corners are refined, the intrinsics calibrated and the blur read afresh: from its
-        edge profiles where it kept them and its edges are these, ``keep_profiles``)
-    on_edges : called with the number of settings and of edges once the edges are known, before
-        they are measured (``lensfit.pipeline`` starts loading the fit's compiled functions for
-        them there, in the background)
-    keep_profiles : keep the edge estimator's profiles in the table (``SampleTable.profiles``)
-        for a later measure with the Airy pattern (``detected``); memory: about 4 kB an edge
+    stack : Stack or str or Path
+        A :class:`~lensfit.stack.Stack`, or the path of a stack folder.
+    estimator : str
+        A name from ``lensfit.estimators.ESTIMATORS``.
+    refine : bool
+        Refine the detected corners by intersecting the measured edge lines, then calibrate and
+        solve the poses again (more precise intrinsics and distances).
+    progress : callable, optional
+        Called as ``progress(stage, done, total)``.
+    airy_px : dict, optional
+        Per setting label, the Airy pattern's scale ``lambda N_w / p`` in px: the edge estimators
+        then model diffraction and read the defocus blur alone (flag ``diffraction_modelled``;
+        ``lensfit.diffraction``, ``lensfit.pipeline``).
+    detected : SampleTable, optional
+        A table this process measured of the same stack: its targets as detected are taken
+        instead of detecting them again (the diffraction rounds of ``lensfit.pipeline``; the
+        corners are refined, the intrinsics calibrated and the blur read afresh: from its edge
+        profiles where it kept them and its edges are these, ``keep_profiles``).
+    on_edges : callable, optional
+        Called with the number of settings and of edges once the edges are known, before they
+        are measured (``lensfit.pipeline`` starts loading the fit's compiled functions for them
+        there, in the background).
+    keep_profiles : bool
+        Keep the edge estimator's profiles in the table (``SampleTable.profiles``) for a later
+        measure with the Airy pattern (``detected``); memory: about 4 kB an edge.
 
     Returns
     -------

@@ -130,13 +130,20 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
 
     Parameters
     ----------
-    stack : a :class:`~lensfit.stack.Stack` or the path of a stack folder
-    estimator : a name from ``lensfit.estimators.ESTIMATORS`` ("edge", "edge-disk", "target")
-    wavelength_nm : model diffraction at this wavelength (200-2000 nm); None: do not force it
-    fit_options : keyword arguments of :func:`lensfit.fit.fit` (``loss``, ``blur_floor_px``,
-        ``pupil_magnification``, ...)
-    progress : callable(stage, done, total), optional
-    auto_diffraction : test the images for the Airy pattern and model it where they show it
+    stack : Stack or str or Path
+        A :class:`~lensfit.stack.Stack`, or the path of a stack folder.
+    estimator : str
+        A name from ``lensfit.estimators.ESTIMATORS``: "edge" (default), "edge-disk", "target".
+    wavelength_nm : float, optional
+        Model diffraction at this wavelength (200-2000 nm). None: do not force it.
+    fit_options : dict, optional
+        Keyword arguments of :func:`lensfit.fit.fit` (``loss``, ``blur_floor_px``,
+        ``pupil_magnification``, ...).
+    progress : callable, optional
+        Called as ``progress(stage, done, total)``.
+    auto_diffraction : bool
+        Test the images for the Airy pattern and model it where they show it (the command line's
+        default).
 
     Returns
     -------

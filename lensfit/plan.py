@@ -21,7 +21,7 @@ printed board, the plan
 It is a lower bound for a fronto-parallel, unbiased capture: the intervals the fit reports
 also carry the calibration and the estimator's systematic terms, and calibration itself wants
 some shots tilted by 20-40 degrees. Defaults of the edge noise follow the edge estimator's
-figures in the README (about 0.03-0.05 px on clean edges, a few per cent of the blur on noisy
+figures of `lensfit bench-measure` (about 0.03-0.05 px on clean edges, a few per cent of the blur on noisy
 ones); state your own with the arguments.
 """
 

@@ -44,7 +44,7 @@ import numpy as np
 #: trace, decided in 10-30 ms a shot (2 px: 3-30 %, 35-90 ms; 8 px: 11-42 %, 4-23 ms).
 BLOCK = 4
 #: Below this many samples per pixel deciding costs more than the samples it saves (measured on
-#: the demo stack: README, "synth bench").
+#: the demo stack by `synth bench`).
 MIN_SPP = 4
 _NV = 8
 _ANGLES = (np.arange(_NV) + 0.5) * (2 * math.pi / _NV)

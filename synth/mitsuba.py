@@ -34,7 +34,7 @@ after ``convolve``.
 Mitsuba is a test dependency (``pip install mitsuba``; its ``llvm_ad_rgb`` variant finds the
 libLLVM of ``pip install karellen-llvm-core``), not a core one. Here, on 2 cores, ``scalar_rgb``
 renders about 4.6 M samples per second and ``llvm_ad_rgb`` about 25 M, against synth's own
-tracer's 85 M or more (whole processes: ``synth bench --against-mitsuba``, README).
+tracer's 85 M or more (whole processes: ``synth bench --against-mitsuba``).
 """
 
 from __future__ import annotations

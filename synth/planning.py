@@ -22,7 +22,7 @@ METHODS = ("auto", "raytrace", "convolve", "mitsuba")
 # bound on a render's time, which samples only the pixels outside constant regions (synth.flat: 5-35 % on the demo)
 RAYTRACE_SAMPLES_PER_S = 250e6
 CONVOLVE_SUBPIXELS_PER_S = 25e6
-MITSUBA_SAMPLES_PER_S = 4.5e6  # Mitsuba 3 scalar_rgb, thinlens, direct (synth.mitsuba; README)
+MITSUBA_SAMPLES_PER_S = 4.5e6  # Mitsuba 3 scalar_rgb, thinlens, direct (synth.mitsuba; synth bench --against-mitsuba)
 
 
 @dataclass(frozen=True)

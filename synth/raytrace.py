@@ -34,7 +34,7 @@ per 4 px block from the block's corners and the aperture; a thin lens without fr
 images are the same (to the byte on the demo's 16-bit PNGs at 16, 64 and 256 spp; where the
 cell image feeds diffraction, a constant cell is its exact value where the traced
 one was a float32 mean: 1 DN in 0.2 % of a 256-spp stack's pixels). Tiles are lists of the
-pixels to trace. See ``synth bench`` figures in the README (million lens samples
+pixels to trace. ``synth bench`` measures it (million lens samples
 per second with every pixel traced, and seconds as rendered).
 """
 

@@ -280,14 +280,25 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
 
     Parameters
     ----------
-    scene : Scene or path to a scene TOML file.
-    method, samples_per_pixel, seed, supersampling, image_format, mitsuba_variant : optional
-        overrides of ``[render]`` (``image_format`` overrides ``render.format``: one of
-        ``IMAGE_FORMATS``; ``mitsuba_variant``: one of ``synth.mitsuba.VARIANTS``).
-    progress : callable(shot_name, done_rows, total_rows), optional; called as rows finish.
-    geometric_cache : a :class:`GeometricCache` shared by renders of one scene with different
-        later stages (effects after the geometric render): each shot's geometric image is
-        rendered once and handed out again, bit for bit.
+    scene : Scene or str or Path
+        A loaded scene, or the path of a scene TOML file.
+    method : str, optional
+        Overrides ``render.method``: "auto", "raytrace", "convolve" or "mitsuba".
+    samples_per_pixel : int, optional
+        Overrides ``render.samples_per_pixel`` (ray tracing; a square number stratifies best).
+    seed : int, optional
+        Overrides ``render.seed``.
+    supersampling : int, optional
+        Overrides ``render.supersampling`` (the convolution renderer's sub-pixels a side).
+    image_format : str, optional
+        Overrides ``render.format``: one of ``IMAGE_FORMATS``.
+    mitsuba_variant : str, optional
+        One of ``synth.mitsuba.VARIANTS``.
+    progress : callable, optional
+        Called as ``progress(shot_name, done_rows, total_rows)`` as rows finish.
+    geometric_cache : GeometricCache, optional
+        Shared by renders of one scene with different later stages (effects after the geometric
+        render): each shot's geometric image is rendered once and handed out again, bit for bit.
 
     Returns
     -------

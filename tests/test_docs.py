@@ -171,9 +171,10 @@ def test_python_blocks_and_commands_run_as_written(work, monkeypatch, capsys):
             required = [a.replace("out/demo", "out/api_demo") for a in required]
         if program == "lensfit" and name == "fit" and required[1] == "samples.json":
             assert lensfit_main(["measure", "out/api_demo", "--out", "samples.json", "--force"]) == 0
-        if program == "lensfit" and name in ("target", "measure"):  # several pages show them: each as if first
-            for f in ("board.pdf", "board.toml", "samples.csv"):
-                Path(f).unlink(missing_ok=True)
+        if program == "lensfit" and name in ("target", "measure", "init"):  # several pages show them: each as if first
+            for f in ("board.pdf", "board.toml", "samples.csv", "photos/stack.toml"):
+                if not (name == "init" and f == "board.toml"):
+                    Path(f).unlink(missing_ok=True)
         main = lensfit_main if program == "lensfit" else synth_main
         code = main(required)
         out = capsys.readouterr()

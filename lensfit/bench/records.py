@@ -115,17 +115,20 @@ def suite_table(record: dict[str, Any]) -> str:
 
 
 def headline_table(records: list[dict[str, Any]]) -> str:
-    """Markdown: the README's accuracy table, one row per suite."""
+    """Markdown: the README's accuracy table, one row per suite, then when and how each was made."""
     qs = QUANTITIES
-    lines = ["| suite | cases | measured | RMS error: f / N / focus distance | 95 % intervals holding the truth "
-             "| error / sigma, RMS (1 if right) |", "|---|---|---|---|---|---|"]
+    lines = ["| suite | what is in it | RMS error: f / N / focus distance | 95 % intervals holding the truth "
+             "| error / sigma, RMS (1 if right) |", "|---|---|---|---|---|"]
     for r in records:
         v = r["quantities"]
         lines.append(
-            f"| `{r['suite']}` | {r['cases']} | {_when(r)}, `{r.get('command')}` | "
-            + " / ".join(_pct(v[q]["rms_relative_error"]) .replace(" %", "") for q in qs) + " % | "
+            f"| `{r['suite']}` | {r.get('description', '').strip()} ({r['cases']} cases) | "
+            + " / ".join(_pct(v[q]["rms_relative_error"]).replace(" %", "") for q in qs) + " % | "
             + " / ".join(_pct(v[q]["coverage95"], 0).replace(" %", "") for q in qs) + " % | "
             + " / ".join(_num(v[q]["rms_error_over_sigma"]) for q in qs) + " |")
+    lines.append("")
+    lines += [f"- `{r['suite']}`: {_when(r)}, `{r.get('command')}` ({r.get('cores')} cores, {_minutes(r)})"
+              for r in records]
     return "\n".join(lines)
 
 

@@ -84,7 +84,7 @@ Valid range
     a blur of 1 px fitting less than 4 in chi-square worse (the rest held: a lenient test).
 Cost
     About 1.4-1.9 ms per edge warm on 2 cores (12 images of 0.96-1.5 MP; 2.1 ms on 3 images), all
-    passes and profiles, every edge's shape read (README, "Where the time goes"); with diffraction
+    passes and profiles, every edge's shape read (lensfit bench-stages); with diffraction
     modelled the second pass costs 6-9 times the disk's.
 Reference
     ISO 12233:2017; F. van den Bergh, MTF Mapper (slanted-edge projection); the disk ESF, e.g.
@@ -114,7 +114,7 @@ PROBE_DCHI2 = 4.0
 AXIS_ALIGNED_DEG = 2.0  # edges closer than this to a pixel axis are barely super-sampled
 #: Smallest blur diameter (disk reading) whose spot shape is read (from it, on every edge where
 #: the blur is even along it): below it the pixel footprint dominates the profile and two disks
-#: are not told from one (a 2 px core-and-halo spot in 1 % noise reads 12 % low, see the README).
+#: are not told from one (a 2 px core-and-halo spot in 1 % noise reads 12 % low, docs/src/explanation/estimators.md).
 SHAPE_MIN_PX = 2.0
 #: Largest relative change of depth along an edge that counts as one depth: on such an edge the
 #: spot's shape is read at once.

@@ -130,13 +130,13 @@ def _noise_variance(d: np.ndarray, sq_dev: np.ndarray, count: np.ndarray,
     came out further from its level, as if the blur were wider there, came out noisier too, took
     less weight, and the blur read low: on 32-spp renders of 1-3 px blurs by 1-1.5 %, which took
     N 1.6 % high with a 95 % interval that excluded the truth (synth's and Mitsuba's renders
-    alike; README). Instead the variance is a function of where the bin lies, fitted to all
+    alike). Instead the variance is a function of where the bin lies, fitted to all
     bins at once: with ``expected`` (offset and radius of an earlier disk fit), a quadratic in
     the expected level ``m`` in [0, 1] (``a + b m + c m^2``: read noise, photon noise, and the
     ``m (1 - m)`` of Monte-Carlo noise), never below the variance pooled over the bin's side of
     the edge, so that the weights keep the noise's shape across the edge but depend on no bin's
     own deviation; without ``expected`` (the first pass) that side's variance alone. Measured on
-    24 Mitsuba stacks at 32 spp (README): N's bias +0.14..0.20 % -> +0.04..0.08 %.
+    24 Mitsuba stacks at 32 spp (lensfit bench --suite independent): N's bias +0.14..0.20 % -> +0.04..0.08 %.
     """
     dof = count - 1.0
     by_side = _pooled((d >= 0.0).astype(int), sq_dev, dof)

@@ -24,7 +24,7 @@ Valid range
     c from about 0.5 px to a few square widths; blur that varies strongly across the patch
     (steep tilt) is averaged.
 Cost
-    Tens of FFTs per edge: roughly 100-200 times the ``edge`` estimator (README benchmark).
+    Tens of FFTs per edge: roughly 100-200 times the ``edge`` estimator (lensfit bench-measure).
 Reference
     Analysis by synthesis for defocus, e.g. Favaro & Soatto, *3-D Shape Estimation and Image
     Restoration*, Springer 2007, ch. 4.

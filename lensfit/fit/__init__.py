@@ -28,7 +28,7 @@ Why this form:
 - The floor is fitted per setting with a weak prior ``b_k ~ 0 +- 1 px`` (a regulariser that
   matters only when no sample lies near the focus plane), or fixed by the caller.
 
-Thick lenses (README, "Compound (real) lenses"; data_specs/CONVENTIONS.md): with ``A`` the
+Thick lenses (docs/src/explanation/lens-models.md; data_specs/CONVENTIONS.md): with ``A`` the
 entrance-pupil diameter, ``P`` the exit/entrance pupil ratio and ``s_x`` the exit pupil's
 distance from the sensor, the blur is
 ``(A s_x / P) |1/D - 1/d|`` and a pinhole calibration centred on the entrance pupil measures

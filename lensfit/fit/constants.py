@@ -111,7 +111,7 @@ QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distanc
 #: Field curvature (``lensfit.fit.fit``'s ``field_curvature``): the modes; the significance
 #: (|kappa| / sigma) at which "auto" keeps it; the fewest samples and the least spread of the
 #: squared field tangent (tan^2 of the field angle) over a setting's samples for it to be fitted.
-#: Measured on stacks ray traced through the shipped designs (README, "Real (thick) lenses"):
+#: Measured on stacks ray traced through the shipped designs (lensfit bench-lenses; docs/src/guides/real-lenses.md):
 #: kappa at 11-22 sigma on the retrofocus and the telephoto at f/11, 0.4 sigma on synth's
 #: thin-lens demo stack.
 FIELD_CURVATURE_MODES = ("auto", "on", "off")

@@ -44,48 +44,49 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
 
     Parameters
     ----------
-    samples : a :class:`~lensfit.measure.SampleTable`, the path of a samples JSON/CSV written
+    samples : SampleTable or str or Path or sequence
+        A :class:`~lensfit.measure.SampleTable`, the path of a samples JSON/CSV written
         by ``lensfit measure``, or a sequence of rows (dicts or ``Sample``) with ``setting``,
         ``distance_mm``, ``coc_diameter_px``, ``sigma_px`` and optionally
         ``distance_start_mm``/``distance_end_mm`` (the edge's ends, for tilted edges)
-    pixel_pitch_mm : sensor pixel pitch (default: the SampleTable's)
-    focal_length_px : calibrated focal length in px (= sensor distance / pitch), one number or
+    pixel_pitch_mm : float, optional
+        Sensor pixel pitch (default: the SampleTable's)
+    focal_length_px : float or dict, optional
+        Calibrated focal length in px (= sensor distance / pitch), one number or
         per setting label (default: the SampleTable's intrinsics). Without it f and N cannot
         be separated and are reported as not identifiable.
-    focal_length_sigma_px : its 1 sigma (default: the calibration's; 0 = exact)
-    loss : "huber" (default), "cauchy" (many outliers) or "linear"
-    blur_floor_px : fix the blur floor (px) instead of fitting it per setting
-    floor_prior_sigma_px : width of the weak prior on a fitted floor (about 0)
-    max_irls : robust solves at most (least squares, then the loss itself with the residuals'
-        scales of the solve before, until they settle)
-    pupil_magnification : how P is treated. None (default): fitted where two or more calibrated
-        settings focus at different distances (unit focusing: they share f and P), otherwise
-        assumed 1 (the thin lens) with a warning that says so and what it costs. A number:
-        assumed at that value. A range ``(lo, hi)``: a prior on P (log-normal, the range its
-        95 % interval), which the data may sharpen and which widens the intervals of f and N
-        honestly where they cannot.
-    field_curvature : "auto" (default), "on" or "off". A real lens focuses the edge of the field
-        at another distance than the centre (field curvature): per setting the in-focus inverse
-        distance is ``1/X + kappa tan^2(field angle)``, the field angle from each sample's
-        ``field_radius_px`` over the setting's focal length in px, and the reported focus distance
-        X is the one on the axis. "on" fits kappa in every setting whose samples give their field
-        radius and spread over the field; "auto" keeps it only where it differs from 0 by
-        ``FIELD_CURVATURE_Z`` sigma (elsewhere the fit is the one "off" gives: kappa = 0, as for
-        a thin lens).
-    floor_choice : where every sample of a setting lies on one side of its focus distance and
-        its fitted floor is above 0, fit again without the floor and widen that setting's
-        intervals to span both fits (lensfit.fit.floor_choice; default True). The pipeline's
-        diffraction rounds turn it off and compare their own rounds without the floor.
-    spot_shape : "auto" (default), "shaped" or "disk": which reading to take where a sample
-        gives two, its spot's second moment through the shaped-spot model or the uniform disk's
-        (``disk_diameter_px``). "auto" takes the second moment unless the Airy pattern at the
-        fitted aperture is ``AUTO_MIN_AIRY_PX`` or more and the samples were neither read through
-        it nor found without it (lensfit.fit.spots); then it fits again with the disk's readings
-        on those settings, and a warning says so.
+    focal_length_sigma_px : float or dict, optional
+        Its 1 sigma (default: the calibration's; 0 = exact)
+    loss : str
+        "huber" (default), "cauchy" (many outliers) or "linear"
+    blur_floor_px : float, optional
+        Fix the blur floor (px) instead of fitting it per setting
+    floor_prior_sigma_px : float
+        Width of the weak prior on a fitted floor (about 0)
+    max_irls : int
+        Robust solves at most (least squares, then the loss until estimates and weights settle)
+    pupil_magnification : float or tuple, optional
+        None (default): fitted where two or more calibrated settings focus at different distances,
+        else assumed 1 (a thin lens) with a warning. A number: assumed. A range ``(lo, hi)``: a
+        log-normal prior whose 95 % interval it is, which widens the intervals of f and N honestly.
+    field_curvature : str
+        "auto" (default), "on" or "off": fit each setting's field curvature, the in-focus inverse
+        distance ``1/X + kappa tan^2(field angle)`` (X then the focus distance on the axis). "auto"
+        keeps kappa only where it differs from 0 by ``FIELD_CURVATURE_Z`` sigma.
+    floor_choice : bool
+        Where every sample of a setting lies on one side of its focus and its floor is above 0,
+        fit again without the floor and widen its intervals to span both (lensfit.fit.floor_choice;
+        default True). The pipeline's diffraction rounds compare their own rounds instead.
+    spot_shape : str
+        "auto" (default), "shaped" or "disk": where a sample gives two readings, take its spot's
+        second moment or the uniform disk's (``disk_diameter_px``); "auto" takes the disk's on
+        settings where an Airy pattern the samples were not tested for may be in the blur
+        (lensfit.fit.spots), with a warning.
 
     Returns
     -------
-    FitResult (``code`` "ok" or "not_identifiable"; never NaN or inf in it)
+    FitResult
+        ``code`` "ok" or "not_identifiable"; never NaN or inf in it.
 
     Raises
     ------
@@ -94,16 +95,10 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
 
     Examples
     --------
-    Fit the samples of a stack measured with :func:`lensfit.measure.measure` (no diffraction
-    test: :func:`lensfit.pipeline.measure_and_fit` is what ``lensfit fit`` runs):
+    A stack's samples (``lensfit fit`` runs :func:`lensfit.pipeline.measure_and_fit`), or rows:
 
     >>> from lensfit.measure import measure
     >>> result = fit(measure("out/demo"))                       # doctest: +SKIP
-    >>> result.settings["a"]["f_number"].ci95                   # doctest: +SKIP
-    (10.987, 11.018)
-
-    Or rows of your own, with the pixel pitch and the calibrated focal length in px:
-
     >>> rows = [{"setting": "a", "distance_mm": d, "coc_diameter_px": c, "sigma_px": 0.05}
     ...         for d, c in [(500, 9.5), (700, 3.9), (1400, 2.8), (2000, 4.7), (3000, 6.3)]]
     >>> result = fit(rows, pixel_pitch_mm=0.006, focal_length_px=4188.0)   # doctest: +SKIP
