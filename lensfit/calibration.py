@@ -329,16 +329,12 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
 #: OpenCV's model of independent points) as a prior worth this many degrees of freedom:
 #: ``(nu s_jk^2 + MODEL_PRIOR_DOF s_model^2) / (nu + MODEL_PRIOR_DOF)`` with ``nu +
 #: MODEL_PRIOR_DOF`` degrees of freedom (the conjugate update of a scaled inverse chi-square).
-#: A jackknife on few informative views is as variable as they are few, and on its own fell
-#: to 1/50 of the error (a random scene's 8 views, 1 degree of freedom: 2.8 px against 141 px)
-#: or stated intervals 16x the error through t(1); the model alone missed where the views
-#: disagree by more than the corners' noise says (coverage 85-87 % on such scenes). Measured
-#: on an end-to-end fuzz's calibrations of 6-10 views (69 random scenes and 12 renders of one):
-#: 95 % coverage 99 % and 83 % -> 97 % and 92 %, the mean half-width 15.9x -> 4.7x the error
-#: (27 standard-suite demo calibrations: 100 % either way, 4.5x -> 3.8x); with 4 or more the
-#: fuzz's coverage falls below 95 %. The fitted focal lengths of those random scenes: 95 %
-#: intervals 8.0x -> 2.7x the error on average, holding the truth in 86 % -> 84.5 % of 97
-#: (tests/test_random_scenes.py draws such scenes).
+#: Why pool: a jackknife on few informative views is as variable as they are few (on its own it
+#: can fall to 1/50 of the error, or state intervals 16x the error through t(1)), and the model
+#: alone misses where the views disagree by more than the corners' noise says. Why 2: on the
+#: calibrations of 6-10 views of random scenes (tests/test_random_scenes.py draws such scenes)
+#: it brings 95 % coverage to 92-97 % at a half-width about 4.7x the error; with 4 or more the
+#: coverage falls below 95 %.
 MODEL_PRIOR_DOF = 2.0
 #: Below these degrees of freedom a calibration's jackknife says so (:func:`few_informative_views`).
 FEW_VIEWS_DOF = 3.0

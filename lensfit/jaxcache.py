@@ -16,6 +16,12 @@ from pathlib import Path
 _SET_IN_ENVIRONMENT: set[str] = set()
 
 
+def cache_folder() -> Path:
+    """``$LENSFIT_JAX_CACHE``, else ``~/.cache/lensfit/jax`` (whether or not it is on)."""
+    setting = os.environ.get("LENSFIT_JAX_CACHE", "")
+    return Path(setting) if setting and setting.lower() != "off" else Path.home() / ".cache" / "lensfit" / "jax"
+
+
 def enable_compilation_cache() -> Path | None:
     """Point JAX's persistent cache at the lensfit cache folder; returns it (None if disabled)."""
     setting = os.environ.get("LENSFIT_JAX_CACHE", "")
@@ -24,7 +30,7 @@ def enable_compilation_cache() -> Path | None:
             os.environ.pop(name, None)
         _SET_IN_ENVIRONMENT.clear()
         return None
-    path = Path(setting) if setting else Path.home() / ".cache" / "lensfit" / "jax"
+    path = cache_folder()
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
@@ -56,15 +62,17 @@ def enable_compilation_cache() -> Path | None:
 def enable_by_default() -> Path | None:
     """The library's default (``import lensfit``, and so ``import synth``): the cache on, as the
     programs have it, so that a script's second run skips compilation too. Left off where
-    ``LENSFIT_JAX_CACHE=off``, and where the program has pointed JAX's own cache somewhere
-    (``JAX_COMPILATION_CACHE_DIR``, or ``jax_compilation_cache_dir`` set before lensfit's import)."""
+    ``LENSFIT_JAX_CACHE=off``, and where the program has pointed JAX's own cache elsewhere
+    (``JAX_COMPILATION_CACHE_DIR``, or ``jax_compilation_cache_dir`` set before lensfit's import);
+    a child of a lensfit process, which inherits lensfit's setting, takes it as its own."""
     if os.environ.get("LENSFIT_JAX_CACHE", "").lower() == "off":
         return None
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR") and "JAX_COMPILATION_CACHE_DIR" not in _SET_IN_ENVIRONMENT:
+    ours = str(cache_folder())
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR", ours) != ours:
         return None
     if "jax" in sys.modules:
         import jax
 
-        if jax.config.jax_compilation_cache_dir:
+        if jax.config.jax_compilation_cache_dir not in (None, "", ours):
             return None
     return enable_compilation_cache()

@@ -172,9 +172,9 @@ def test_python_blocks_and_commands_run_as_written(work, monkeypatch, capsys):
         if program == "lensfit" and name == "fit" and required[1] == "samples.json":
             assert lensfit_main(["measure", "out/api_demo", "--out", "samples.json", "--force"]) == 0
         if program == "lensfit" and name in ("target", "measure", "init"):  # several pages show them: each as if first
-            for f in ("board.pdf", "board.toml", "samples.csv", "photos/stack.toml"):
-                if not (name == "init" and f == "board.toml"):
-                    Path(f).unlink(missing_ok=True)
+            writes = [required[i + 1] for i, a in enumerate(required[:-1]) if a in ("--out", "--entry")]
+            for f in writes if name != "init" else ["photos/stack.toml"]:  # what this command writes
+                Path(f).unlink(missing_ok=True)
         main = lensfit_main if program == "lensfit" else synth_main
         code = main(required)
         out = capsys.readouterr()
