@@ -29,7 +29,7 @@ test: setup
 
 # the documentation site into build/docs (strict: a warning fails); tests/test_docs.py builds it too
 docs: setup
-	$(VENV)/bin/mkdocs build --strict --config-file docs/mkdocs.yml --site-dir ../build/docs
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --config-file docs/mkdocs.yml --site-dir ../build/docs
 
 # every example run again into out/examples/NAME/, its figure copied into its page
 docs-figures: setup

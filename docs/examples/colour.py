@@ -44,7 +44,7 @@ for channel, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
     right.plot(xs - x0, image[row, xs, channel], color=colour, label=("red", "green", "blue")[channel])
 right.set_xlabel("pixels from the corner's column")
 right.set_ylabel("linear intensity")
-right.set_title("along the white line: each channel shifted and blurred")
+right.set_title("along the red line: each channel shifted and blurred")
 right.legend()
 fig.savefig(out / "colour.png", dpi=80)
 print("figure:", out / "colour.png")

@@ -27,13 +27,13 @@ lensfit(["target", "--out", str(out / "board.png"), "--dpi", "150", "--entry", s
 shots = synth.render("data_specs/scenes/printed_target.toml")
 synth.write_stack(shots, out / "camera", force=True)
 photos = out / "photos"
-shutil.rmtree(photos, ignore_errors=True)       # this example's own folder, from an earlier run
-photos.mkdir()
+photos.mkdir(exist_ok=True)
 for jpeg in sorted((out / "camera").glob("*.jpg")):
     shutil.copy(jpeg, photos / jpeg.name)
 
-# 3. draft stack.toml from the EXIF: pixel pitch, one setting, the board
-assert lensfit(["init", str(photos), "--target", str(out / "board.toml")]) == 0
+# 3. draft stack.toml from the EXIF: pixel pitch, one setting, the board (--force replaces only
+#    a stack.toml that init wrote, from an earlier run)
+assert lensfit(["init", str(photos), "--target", str(out / "board.toml"), "--force"]) == 0
 manifest = tomllib.loads((photos / "stack.toml").read_text())
 print("init read: pixel pitch", manifest["camera"]["pixel_pitch_mm"], "mm,", len(manifest["image"]), "photos, settings",
       sorted({image["setting"] for image in manifest["image"]}))
