@@ -35,7 +35,7 @@ TEXTS = {p: p.read_text() for p in PAGES}
 PLACEHOLDERS = {"MM": "0.005", "N": "2", "PX": "1.5", "MP": "50", "NAME": "full-frame", "FILE": "x.json",
                 "PCT": "1", "HOST:PORT": "localhost:8786", "NM": "550", "DIR": "records"}
 #: Commands that take minutes: parsed, not run here.
-SLOW = ("bench", "bench-fit", "bench-lenses", "bench-measure", "bench-api")
+SLOW = ("bench", "bench-fit", "bench-lenses", "bench-measure", "bench-api", "bench-stages")
 EXAMPLES = sorted((DOCS / "examples").glob("*.py"))
 
 
@@ -163,12 +163,8 @@ def test_python_blocks_and_commands_run_as_written(work, monkeypatch, capsys):
             continue  # minutes; or the demo scene, which the README's Python example rendered
         if program == "lensfit" and name == "fit" and required[1] == "photos":
             continue  # one synthetic JPEG is no calibration stack; docs/examples/real_camera.py fits one
-        if program == "lensfit" and name == "fit" and required[1] == "out/demo" or name == "bench-stages":
+        if program == "lensfit" and name in ("fit", "measure") and required[1] == "out/demo":
             required = [a.replace("out/demo", "out/api_demo") for a in required]  # the stack rendered above
-            if name == "bench-stages":
-                continue  # minutes (fresh processes against OpenCV's)
-        if program == "lensfit" and name in ("measure",) and required[1] == "out/demo":
-            required = [a.replace("out/demo", "out/api_demo") for a in required]
         if program == "lensfit" and name == "fit" and required[1] == "samples.json":
             assert lensfit_main(["measure", "out/api_demo", "--out", "samples.json", "--force"]) == 0
         if program == "lensfit" and name in ("target", "measure", "init"):  # several pages show them: each as if first

@@ -62,14 +62,19 @@ def make_record(doc: dict[str, Any]) -> dict[str, Any]:
             "seconds_wall_first_run": first.get("seconds_wall"), "cases": len(cases), "quantities": quantities}
 
 
-def write_record(doc: dict[str, Any], folder: str | Path) -> Path:
-    """Write (or replace) ``folder/<suite>.json`` from a bench results document."""
+def write_json(folder: str | Path, name: str, data: dict[str, Any]) -> Path:
+    """Write (or replace) the record ``folder/<name>.json``, the folder made where missing."""
     from lensfit.outputs import write_text
 
-    record = make_record(doc)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    return write_text(folder / f"{record['suite']}.json", json.dumps(record, indent=1, allow_nan=False) + "\n")
+    return write_text(folder / f"{name}.json", json.dumps(data, indent=1, allow_nan=False) + "\n")
+
+
+def write_record(doc: dict[str, Any], folder: str | Path) -> Path:
+    """Write (or replace) ``folder/<suite>.json`` from a bench results document."""
+    record = make_record(doc)
+    return write_json(folder, record["suite"], record)
 
 
 def load_records(folder: str | Path) -> list[dict[str, Any]]:

@@ -36,6 +36,12 @@ def _bench_stages_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _check_record_folder(record: str | None) -> None:
+    """``--record DIR``, checked before the work: a folder (or none yet), never a file."""
+    if record and Path(record).exists() and not Path(record).is_dir():
+        raise CliError(f"--record {record} is a file; give the records' folder (e.g. docs/validation/records)")
+
+
 def _bench_api_command(args: argparse.Namespace) -> int:
     from rich.console import Console
 
@@ -45,8 +51,7 @@ def _bench_api_command(args: argparse.Namespace) -> int:
         raise CliError(f"STACK {args.stack}: no stack.toml there; give a stack folder (e.g. out/demo after make demo)")
     if args.pairs < 1:
         raise CliError(f"--pairs must be at least 1, got {args.pairs}")
-    if args.record and Path(args.record).exists() and not Path(args.record).is_dir():
-        raise CliError(f"--record {args.record} is a file; give the records' folder (e.g. docs/validation/records)")
+    _check_record_folder(args.record)
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
         try:
@@ -54,10 +59,9 @@ def _bench_api_command(args: argparse.Namespace) -> int:
         except RuntimeError as exc:
             raise CliError(f"STACK {args.stack}: {exc}") from exc
     if args.record:
-        from lensfit.outputs import write_text
+        from lensfit.bench.records import write_json
 
-        Path(args.record).mkdir(parents=True, exist_ok=True)
-        write_text(Path(args.record) / "api_vs_cli.json", json.dumps(result, indent=1) + "\n")
+        write_json(args.record, "api_vs_cli", result)
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK
@@ -230,8 +234,7 @@ def _bench_command(args: argparse.Namespace) -> int:
         raise CliError(f"--out {out} is a file; give a folder")
     if out.exists() and any(out.iterdir()) and not args.resume:
         raise CliError(f"--out {out} is not empty; pass --resume to continue the run there, or choose another folder")
-    if args.record and Path(args.record).exists() and not Path(args.record).is_dir():
-        raise CliError(f"--record {args.record} is a file; give the records' folder (e.g. docs/validation/records)")
+    _check_record_folder(args.record)
     from lensfit.outputs import OutputLock
 
     console = Console(stderr=True)
