@@ -39,6 +39,8 @@ class CameraRecord:
     shutter_s: float | None = None
     iso: float | None = None
     taken: str | None = None
+    #: the program that wrote the file (a camera's firmware, a raw developer)
+    software: str | None = None
 
     @property
     def camera(self) -> str | None:
@@ -120,4 +122,4 @@ def record_from_tags(tags: dict[str, Any]) -> CameraRecord:
         focus_distance_mm=focus, focus_distance_source=source, focal_plane_pitch_mm=pitch,
         reference_width_px=int(width) if width else None,
         shutter_s=_number(_get(tags, "ExposureTime")), iso=_number(_get(tags, "ISOSpeedRatings")),
-        taken=_text(_get(tags, "DateTimeOriginal")))
+        taken=_text(_get(tags, "DateTimeOriginal")), software=_text(_get(tags, "Software")))

@@ -41,6 +41,7 @@ from lensfit.errors import InputError
 from lensfit.fit.data import AIRY_NOT_SEEN
 from lensfit.fit.floor_choice import floor_sensitive, widen
 from lensfit.fit.spots import AUTO_MIN_AIRY_PX, airy_per_setting
+from lensfit.processing import POLICIES, apply, assess, from_exif
 
 #: Re-measurements at most, and the change of every f-number below which they stop.
 MAX_ROUNDS = 4
@@ -116,7 +117,7 @@ def diffraction_test(stack: Any, table: Any, airy: dict[str, float]) -> dict[str
 def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float | None = None,
                     fit_options: dict[str, Any] | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
-                    auto_diffraction: bool = False) -> tuple[Any, Any, list[dict[str, float]]]:
+                    auto_diffraction: bool = False, processed: str = "refuse") -> tuple[Any, Any, list[dict[str, float]]]:
     """Measure ``stack`` and fit it: what ``lensfit fit`` runs.
 
     With ``wavelength_nm`` (the light's effective wavelength, e.g. 550 for a grey or
@@ -144,6 +145,10 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     auto_diffraction : bool
         Test the images for the Airy pattern and model it where they show it (the command line's
         default).
+    processed : str
+        Where sRGB-encoded images were developed (EXIF) or sharpened (halos on the edges;
+        ``lensfit.processing``): "refuse" (default) the f-number, naming the cause and the fix, or
+        "report" it with a warning.
 
     Returns
     -------
@@ -173,12 +178,16 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
                          f"the effective wavelength of the light, e.g. {DEFAULT_WAVELENGTH_NM:g}")
     if wavelength_nm is not None and estimator not in ("edge", "edge-disk"):
         raise InputError("estimator", estimator, "edge or edge-disk where diffraction is modelled")
+    if processed not in POLICIES:
+        raise InputError("processed", processed, "one of: " + ", ".join(POLICIES))
     if not isinstance(stack, Stack):
         stack = load_stack(Path(stack))
     # Each image decoded once for every round (the diffraction test and rounds measure again: a
     # camera-raw stack spent 2.0 of 5.5 s decoding its 10 DNG files four times).
     stack = stack.holding(HOLD_BYTES)
     options = dict(fit_options or {})
+    if options.get("pupil_magnification") is None and "pupil_magnification" in stack.lens:
+        options["pupil_magnification"] = stack.lens["pupil_magnification"]  # (an argument overrides the stack's)
     ahead: list[Any] = []
     auto = wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk")
 
@@ -198,8 +207,10 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     try:
         # The edges' profiles are kept for the rounds, which solve them again with the Airy pattern
         # (``measure``'s ``keep_profiles``: the same readings, a quarter less time a round).
-        table = measure(stack, estimator, progress=progress, keep_profiles=auto or wavelength_nm is not None,
-                        on_edges=on_edges)
+        # (and for the halo test of sRGB-encoded images)
+        encoded = any(im.encoding == "srgb" for im in stack.images)
+        table = measure(stack, estimator, progress=progress,
+                        keep_profiles=auto or wavelength_nm is not None or encoded, on_edges=on_edges)
     except BaseException:
         for thread in ahead:
             thread.join()
@@ -208,10 +219,12 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         ahead[0].join()
     warming = ahead[1] if len(ahead) > 1 else airy_ahead() if auto or wavelength_nm else None
     try:
+        found = assess(stack, table) if estimator in ("edge", "edge-disk") else from_exif(stack)
         out = _fit_rounds(stack, table, estimator, wavelength_nm, options, progress, auto, warming)
     finally:
         if warming is not None:
             warming.join()
+    apply(out[1], found, processed)
     out[0].profiles = table.profiles = None  # the rounds' kept profiles: not held by the caller
     return out
 

@@ -67,6 +67,8 @@ class Stack:
     camera: dict[str, Any] = field(default_factory=dict)
     intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_pixels: int | None = None
+    #: what is known of the lens (``[lens]``: ``pupil_magnification``, a value or a (lo, hi) range)
+    lens: dict[str, Any] = field(default_factory=dict)
     #: images kept in memory once read (None: read again each time; :meth:`holding`)
     hold: dict[int, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
@@ -381,5 +383,12 @@ def load_stack(path: str | Path, *, max_pixels: int | None = None, allow_outside
             raise SpecError(manifest_path, f"intrinsics[{i}].setting", f"got {entry['setting']!r}: no image has this "
                             f"setting; valid: {', '.join(sorted(labels))}")
         known[entry["setting"]] = dict(entry)
+    lens = {k: v for k, v in data.get("lens", {}).items() if not k.startswith("x_")}
+    if isinstance(lens.get("pupil_magnification"), list):
+        lo, hi = lens["pupil_magnification"]
+        if not lo < hi:
+            raise SpecError(manifest_path, "lens.pupil_magnification", f"got {[lo, hi]}: a range is [lo, hi] with "
+                            "lo < hi; give one number where P is known")
+        lens["pupil_magnification"] = (float(lo), float(hi))
     return Stack(path=folder, manifest_path=manifest_path, pixel_pitch_mm=pitch, targets=list(data.get("target", [])),
-                 images=images, shape=shape, camera=dict(cam), intrinsics=known, max_pixels=max_pixels)
+                 images=images, shape=shape, camera=dict(cam), intrinsics=known, max_pixels=max_pixels, lens=lens)

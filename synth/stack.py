@@ -71,6 +71,8 @@ def manifest_toml(manifest: dict) -> str:
 
     text = "# Written by synth: what a photographer knows about this stack (never the answer).\n\n"
     text += "[camera]\n" + tomli_w.dumps(manifest["camera"])
+    if "lens" in manifest:
+        text += "\n[lens]\n" + tomli_w.dumps(manifest["lens"])
     for section in ("target", "image"):
         for entry in manifest.get(section, []):
             text += f"\n[[{section}]]\n" + tomli_w.dumps(entry)

@@ -152,4 +152,11 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str],
         ids = [i for i in ids if i in listed]
         if ids and len(listed) > 1:  # with one target there is nothing to say
             entry["targets"] = ids
-    return {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}
+    out = {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}
+    from synth.geometry import CompoundLensCamera
+
+    if not any(isinstance(shot.camera, CompoundLensCamera) for shot in scene.shots):
+        # A thin lens's pupils coincide with it (P = 1), as a user of any renderer's thin-lens camera
+        # knows; a compound lens's P is left for the data (or the spread of photographic lenses).
+        out["lens"] = {"pupil_magnification": 1.0}
+    return out

@@ -86,22 +86,42 @@ def test_focus_bracket_recovers_pupil_magnification_and_the_lens(name):
 
 
 def test_thin_lens_mapping_of_a_telephoto_is_biased_as_predicted():
-    """One setting of a P = 0.5 lens read as a thin lens: f and N come out high by about
-    (f/X)(1/P - 1) (thick lens: 1/f = 1/S + 1/(P X), lensfit.fit notes); the stated assumption P = 1 says so."""
+    """One setting of a P = 0.5 lens read as a thin lens (P = 1 given): f and N come out high by
+    about (f/X)(1/P - 1) (thick lens: 1/f = 1/S + 1/(P X), lensfit.fit notes)."""
     f, P, N, X = 100.0, 0.5, 4.0, 2000.0
     rows, fpx, fsg = simulate(f, P, {"a": (N, X, (1200.0, 5000.0))}, np.random.default_rng(3))
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0)
     assert r.pupil_magnification_source == "assumed" and r.pupil_magnification.value == 1.0
-    assert any("pupil magnification" in w for w in r.warnings)
     S = image_distance(f, P, X) / P
     f_thin = 1.0 / (1.0 / S + 1.0 / X)
     assert r.focal_length_mm.value == pytest.approx(f_thin, rel=2e-3)
     assert f_thin / f - 1 == pytest.approx((f / X) * (1 / P - 1), rel=0.1)
+    assert not inside(r.focal_length_mm, f)  # the wrong assumption: a tight interval without the truth
     # the right assumption gives the lens back
     r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=P)
     check(r.focal_length_mm, f, 0.003)
     check(r.settings["a"]["f_number"], N, 0.01)
     assert r.pupil_magnification_source == "assumed" and r.pupil_magnification.value == P
+
+
+@pytest.mark.parametrize("P", [0.55, 0.75, 1.0, 1.54, 2.0])
+def test_one_setting_carries_the_spread_of_photographic_lenses(P):
+    """Without a given P, one setting cannot determine it: the fit carries the spread of
+    photographic lenses (never an exact P = 1), so the 95 % intervals of f and N hold the truth
+    of a telephoto, a normal lens and a retrofocus wide angle alike, and the focus distance from
+    the entrance pupil, which blur fixes whatever P is, stays as tight as with P known."""
+    f, N, X = 35.0, 4.0, 700.0
+    rows, fpx, fsg = simulate(f, P, {"a": (N, X, (400.0, 2000.0))}, np.random.default_rng(21))
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    assert r.pupil_magnification_source == "prior" and "photographic lenses" in r.pupil_magnification.reason
+    assert any("pupil magnification P not determined" in w for w in r.warnings)
+    assert inside(r.focal_length_mm, f) and inside(r.settings["a"]["f_number"], N)
+    known = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=P)
+    check(r.settings["a"]["focus_distance_mm"], X, 0.01)
+    assert r.settings["a"]["focus_distance_mm"].sigma < 1.2 * known.settings["a"]["focus_distance_mm"].sigma
+    # the interval's width is what P's range moves f by, (f/X)|1/P - 1| from P = 0.46 to 2.5, not more
+    lo, hi = r.focal_length_mm.ci95
+    assert (hi - lo) / f < 1.5 * (f / X) * (1 / 0.46 - 1 / 2.5)
 
 
 def test_a_prior_range_widens_the_intervals_honestly():
@@ -139,8 +159,9 @@ def test_settings_at_one_focus_distance_cannot_fit_p_and_say_so():
     settings = {"f2": (2.0, 1500.0, (900.0, 4000.0)), "f4": (4.0, 1500.0, (900.0, 4000.0))}
     rows, fpx, fsg = simulate(f, P, settings, np.random.default_rng(9))
     r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
-    assert r.pupil_magnification_source == "assumed"
+    assert r.pupil_magnification_source == "prior"
     assert any("pupil magnification" in w and "focus" in w for w in r.warnings)
+    assert inside(r.focal_length_mm, f)
 
 
 @pytest.mark.parametrize("bad", [0.0, -1.0, math.nan, math.inf, 50.0, (2.0, 1.0), (0.0, 1.0), "x"])
@@ -176,7 +197,7 @@ def test_a_refused_bracket_says_how_wide_a_bracket_determines_p_to_5_percent():
     narrow = {"near": (N, 1500.0, (900.0, 3000.0)), "far": (N, X_far, (1000.0, 6000.0))}
     rows, fpx, fsg = simulate(f, P, narrow, np.random.default_rng(5), fpx_rel_sigma=cal)
     r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
-    assert r.pupil_magnification_source == "assumed"
+    assert r.pupil_magnification_source == "prior"
     said = next(w for w in r.warnings if "pupil magnification" in w)
     need_per_m = float(re.search(r"P to 5 % \(2 sigma\) about ([0-9.e+]+) /m", said).group(1))
     X_near = 1.0 / (1.0 / X_far + need_per_m / 1000.0)

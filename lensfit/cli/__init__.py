@@ -160,7 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--pupil-magnification", type=_pupil, metavar="P|LO:HI",
                     help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
                          "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
-                         "fitted from two or more focus settings, else 1 (thin lens) with a warning")
+                         "stack.toml's [lens] pupil_magnification, else fitted from two or more focus settings, else "
+                         "carried over the spread of photographic lenses with a warning")
+    ft.add_argument("--processed", choices=("refuse", "report"), default="refuse",
+                    help="where sRGB-encoded images were developed (EXIF names a raw developer or a camera's JPEG "
+                         "engine) or sharpened (halos on the edges): refuse (default) the f-number, which such "
+                         "processing reads 5-20%% high, naming the cause and the fix; or report it with a warning")
     ft.add_argument("--field-curvature", choices=("auto", "on", "off"), default="auto",
                     help="a real lens focuses the edge of the field at another distance than the centre: per setting, "
                          "the in-focus inverse distance 1/X + kappa tan^2(field angle), the reported X on the axis; "

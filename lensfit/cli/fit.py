@@ -33,7 +33,8 @@ def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | 
             return measure(stack, args.estimator, progress=progress)
         mode = getattr(args, "diffraction", "off")
         return measure_and_fit(stack, args.estimator, wavelength_nm=mode if isinstance(mode, float) else None,
-                               fit_options=fit_options, progress=progress, auto_diffraction=mode == "auto")
+                               fit_options=fit_options, progress=progress, auto_diffraction=mode == "auto",
+                               processed=getattr(args, "processed", "refuse"))
 
 
 def _measure_command(args: argparse.Namespace) -> int:
@@ -145,7 +146,8 @@ def _print_fit(result, document) -> None:
 
     pm = document["pupil_magnification"]
     if pm["value"] is not None:
-        how = {"fitted": "fitted", "prior": "from the stated range", "assumed": "assumed"}[pm["source"]]
+        how = {"fitted": "fitted", "prior": pm.get("reason") or "from the stated range",
+               "assumed": "assumed"}[pm["source"]]
         spread = f" ± {pm['sigma']:.3g}" if pm["sigma"] else ""
         print(f"pupil magnification P = {pm['value']:.4g}{spread} ({how}); distances are from the entrance pupil")
     print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {num(d['rms_residual_px'], '.3f')} px, "

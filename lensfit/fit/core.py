@@ -17,13 +17,14 @@ from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES,
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.floor_choice import floor_sensitive, widen
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
-                                         _second_vertex)
+                                         _one_sided, _second_vertex, PHOTOGRAPHIC_P_NOTE,
+                                         photographic_prior)
 from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
 from lensfit.fit.solve import (_floor_escape, _image_scatter, _padded_size, _predict_all, _robust_scale,
                                _robust_weights, _shared_sigma, _solver, _solver_args, _solver_residual_fn)
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
-from lensfit.fit.start import _one_side, _vertex_search
+from lensfit.fit.start import _vertex_search
 from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _images_part,
                                      _image_spread, _null_direction, _positive, _shares, student_z)
 
@@ -67,7 +68,8 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         Robust solves at most (least squares, then the loss until estimates and weights settle)
     pupil_magnification : float or tuple, optional
         None (default): fitted where two or more calibrated settings focus at different distances,
-        else assumed 1 (a thin lens) with a warning. A number: assumed. A range ``(lo, hi)``: a
+        else carried over the spread of photographic lenses (a log-normal prior, median 1,
+        ``identifiability.PHOTOGRAPHIC_P_SIGMA_LOG``) with a warning. A number: assumed. A range ``(lo, hi)``: a
         log-normal prior whose 95 % interval it is, which widens the intervals of f and N honestly.
     field_curvature : str
         "auto" (default), "on" or "off": fit each setting's field curvature, the in-focus inverse
@@ -182,23 +184,6 @@ def _curvature_estimate(theta, cov, i: int, fitted: bool, mode: str, possible: b
     return Estimate(None, reason=why)
 
 
-def _one_sided(label: str, focus: Estimate, w_per_m: np.ndarray, x_per_m: float) -> list[str]:
-    """A warning where a reported focus distance has every sample on one side of it (and its 95 %
-    interval stays finite: focus at infinity has none beyond it): the V's vertex is then
-    extrapolated from its slope, which the blur floor and the readings of the smallest blurs bend
-    beyond what the interval carries (an end-to-end fuzz's 13 mm f/4 stack, boards all nearer
-    than the focus: its focus distance 8.7 % near at 7.6 sigma, its floor 0.81 px against 0)."""
-    if focus.value is None or focus.ci95 is None or focus.ci95[1] is None:
-        return []
-    side = _one_side(w_per_m, x_per_m)
-    if side is None:
-        return []
-    where = "beyond" if side == "nearer" else "nearer than"
-    return [f"setting {label!r}: every sample is {side} than the focus distance, which is extrapolated from the blur's "
-            f"slope (a blur floor and the smallest blurs' readings can bend it beyond its interval): add targets "
-            f"{where} the focus distance"]
-
-
 def _refused(data: FitData, loss: str, reason: str) -> FitResult:
     """A result that states ``reason`` for every quantity (value None; never NaN)."""
     n, m = len(data.coc_px), len(data.labels)
@@ -246,7 +231,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     # ---- the pupil magnification: fitted, given a prior, or assumed (never silently)
     fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
     usable = [k for k in range(m) if has_fpx[k] and k not in blocked]
-    p_prior = (0.0, 0.0)
+    p_prior, p_note = (0.0, 0.0), None
     if pupil[0] == "fixed":
         P0, p_source = pupil[1], "assumed"
     elif pupil[0] == "prior":
@@ -255,13 +240,12 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         fit_p, why_not = _p_identifiable(data, verts, usable, fpx_sig)
         if fit_p:
             P0, p_source, p_prior = _p_start(data, verts, usable), "fitted", (0.0, 1.0 / _P_PRIOR_SIGMA_LOG)
+        elif has_fpx.any():
+            P0, p_prior, why = photographic_prior(why_not)
+            p_source, p_note = "prior", PHOTOGRAPHIC_P_NOTE
+            warnings.append(why)
         else:
             P0, p_source = 1.0, "assumed"
-            if has_fpx.any():
-                warnings.append(f"pupil magnification P = 1 assumed (a thin lens): {why_not}. A real lens has P "
-                                "about 0.5-0.9 (telephoto) to 1.2-2.5 (retrofocus wide angle), which moves f and N "
-                                "by about (f/X)(1/P - 1); give pupil_magnification (--pupil-magnification) as a "
-                                "value or a range, or add a second focus setting")
     theta[i_p] = math.log(P0)
 
     f_guess = [1 / (1 / (data.focal_length_px[k] * p) + verts[k] / P0) for k in range(m)
@@ -483,7 +467,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                          "assumed (a thin lens)" if thin else "assumed (given as pupil_magnification)")
     else:
         sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
-        p_est = _positive(math.exp(theta[i_p]), sd_p, z)
+        p_est = dataclasses.replace(_positive(math.exp(theta[i_p]), sd_p, z), reason=p_note)
         if parts:
             p_est = dataclasses.replace(p_est, shares=_shares({src: max(float(c[i_p, i_p]), 0.0)
                                                                for src, c in parts.items()}, sd_p**2))

@@ -125,6 +125,8 @@ class FitResult:
     #: seconds spent solving ("fit") and on the covariance, the images' spread and every reported quantity
     #: ("uncertainty"); kept in memory for ``lensfit bench-stages``, never written
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    #: what a developer or camera did to the images (``lensfit.processing.Processing``), where assessed
+    processing: Any = None
 
     @property
     def ok(self) -> bool:
@@ -164,7 +166,7 @@ class FitResult:
                 "loss": self.loss,
                 "warnings": self.warnings,
             },
-        }
+        } | ({"processing": self.processing.to_json_dict()} if self.processing is not None else {})
 
 
 def _finite(x: float) -> float | None:
