@@ -79,8 +79,11 @@ def _get(tags: dict[str, Any], name: str) -> Any:
 
 def read_camera_record(path: str | Path) -> CameraRecord:
     """The EXIF of one image file (an empty record where it has none or cannot be parsed)."""
+    import logging
+
     import exifread
 
+    logging.getLogger("exifread").setLevel(logging.CRITICAL)  # (it logs "no exif data" for every PNG)
     try:
         with Path(path).open("rb") as fh:
             tags = exifread.process_file(fh, details=True, builtin_types=True, extract_thumbnail=False)

@@ -26,7 +26,6 @@ the text, the CLI writes it.
 from __future__ import annotations
 
 import functools
-import json
 import string
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ from typing import Any
 
 from lensfit.errors import InputError, SpecError
 from lensfit.exif import CameraRecord, read_camera_record
+from lensfit.processing import developer_of
 from lensfit.stack import JPEG_SUFFIXES, RASTER_SUFFIXES, RAW_SUFFIXES, image_size
 
 GROUPINGS = ("exif", "per-image", "one")
@@ -83,13 +83,41 @@ def camera_sensor(record: CameraRecord) -> dict[str, Any] | None:
     return None
 
 
+def shown(text: str) -> str:
+    """``text`` (a file name, an EXIF string) safe for a terminal and a TOML comment: control
+    characters (newlines, escape sequences) and undecodable bytes written as escapes."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape", "backslashreplace").decode("ascii")
+                   for c in text)
+
+
+def _valid_name(p: Path) -> bool:
+    try:
+        p.name.encode("utf-8")
+    except UnicodeEncodeError:  # undecodable bytes (surrogate escapes) in the file system's name
+        return False
+    return True
+
+
 def photo_files(folder: Path, prefer: str = "raw") -> tuple[list[Path], list[str]]:
     """Image files directly in ``folder`` (name order) and the names left out as the other half
-    of a RAW + JPEG pair."""
+    of a RAW + JPEG pair. Symbolic links that lead out of the folder are refused, as are names
+    that are not valid UTF-8 (stack.toml could not name them)."""
     if prefer not in ("raw", "jpeg"):
         raise InputError("prefer", prefer, "raw or jpeg")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")
-                   and p.suffix.lower() in RAW_SUFFIXES | RASTER_SUFFIXES)
+    inside = folder.resolve()
+    files = []
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or p.suffix.lower() not in RAW_SUFFIXES | RASTER_SUFFIXES:
+            continue
+        if not _valid_name(p):
+            raise InputError("photos", shown(str(p)), "a folder of image files named in UTF-8 (stack.toml names each "
+                             "file)", "rename the file")
+        if not p.resolve().is_relative_to(inside):
+            raise InputError("photos", shown(str(p)), "a folder whose image files lie inside it",
+                             f"it is a link to {shown(str(p.resolve()))}, outside {shown(str(folder))}: copy the "
+                             "photo into the folder instead")
+        if p.is_file():
+            files.append(p)
     by_stem: dict[str, list[Path]] = {}
     for p in files:
         by_stem.setdefault(p.stem, []).append(p)
@@ -225,6 +253,12 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     if skipped:
         notes.append(f"{len(skipped)} {'JPEG' if prefer == 'raw' else 'RAW'} file(s) of RAW + JPEG pairs left out "
                      f"(e.g. {skipped[0]}); --prefer {'jpeg' if prefer == 'raw' else 'raw'} lists those instead")
+    developed = [(p, developer_of(p, r)) for p, r in zip(files, records)]
+    developed = [(p, name) for p, name in developed if name]
+    if developed:
+        notes.append(f"{len(developed)} photo(s) were developed ({developed[0][1]}, e.g. {developed[0][0].name}): a "
+                     "tone curve and sharpening read the f-number 5-20 % high, and lensfit fit refuses it from them; "
+                     "give the RAW files, or linear TIFF exported without sharpening")
     camera, pitch_source = _pitch(records, files, width, pixel_pitch_mm, sensor, sensor_width_mm, folder)
     notes.append(f"pixel pitch: {pitch_source}")
     targets, target_note = target_entries(Path(target_file) if target_file is not None else None)
@@ -264,6 +298,7 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
              else ("inf" if r.focus_distance_mm else None)),
             ("shutter_s", _round(r.shutter_s)), ("iso", _round(r.iso)), ("taken", r.taken))
             if value is not None}
+        exif = {name: shown(value) if isinstance(value, str) else value for name, value in exif.items()}
         if exif:
             entry["x_exif"] = exif
         images.append(entry)
@@ -280,11 +315,11 @@ def manifest_text(manifest: dict[str, Any], notes: list[str], folder: Path) -> s
 
     from lensfit import __version__
 
-    lines = [f"{HEADER} {__version__} from the EXIF of the photos in {folder.name}/.",
+    lines = [f"{HEADER} {__version__} from the EXIF of the photos in {shown(folder.name)}/.",
              "# Only what a photographer knows (never the answer): check the setting labels -- images with one",
              "# label share focus distance and f-number -- and the target's printed size.",
              "# x_exif: what each file's EXIF says (nominal values; never read by the fit)."]
-    lines += [f"# Note: {n}" for n in notes]
+    lines += [f"# Note: {shown(n)}" for n in notes]
     text = "\n".join(lines) + "\n\n[camera]\n" + tomli_w.dumps(manifest["camera"])
     for section in ("target", "image"):
         for entry in manifest[section]:
@@ -292,6 +327,6 @@ def manifest_text(manifest: dict[str, Any], notes: list[str], folder: Path) -> s
             text += f"\n[[{section}]]\n" + tomli_w.dumps(plain)
             for key, table in entry.items():  # inline: a [sub-table] header here would leave the entry
                 if isinstance(table, dict):
-                    items = ", ".join(f"{k} = {json.dumps(v)}" for k, v in table.items())
+                    items = ", ".join(tomli_w.dumps({k: v}).strip() for k, v in table.items())
                     text += f"{key} = {{ {items} }}\n"
     return text

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 #: ``Software`` tags of raw developers and photo editors (case-insensitive, anywhere in the tag).
@@ -103,27 +104,33 @@ class Processing:
                 "halo_edges": self.halo_edges, "f_number_biased": self.biases_f_number}
 
 
-def from_exif(stack: Any) -> Processing:
-    """The EXIF evidence of a stack's images (RAW and DNG files are never developed)."""
-    from lensfit.exif import read_camera_record
+def developer_of(path: Path, record: Any) -> str | None:
+    """What developed the image at ``path`` by its EXIF (``record``, a ``lensfit.exif.CameraRecord``):
+    a raw developer's ``Software`` tag, or a camera that wrote a JPEG; None (RAW and DNG files,
+    files without such tags, lensfit's own renders)."""
     from lensfit.stack import JPEG_SUFFIXES, RAW_SUFFIXES
+
+    suffix = path.suffix.lower()
+    software, maker = record.software or "", record.make or ""
+    if suffix in RAW_SUFFIXES or FAITHFUL.search(software) or FAITHFUL.search(maker):
+        return None
+    if DEVELOPERS.search(software):
+        return software
+    if suffix in JPEG_SUFFIXES and maker:
+        return "in-camera JPEG of the " + (record.camera or maker) + (f", {software}" if software else "")
+    return None
+
+
+def from_exif(stack: Any) -> Processing:
+    """The EXIF evidence of a stack's images."""
+    from lensfit.exif import read_camera_record
 
     found = Processing(encoded=any(im.encoding == "srgb" for im in stack.images))
     for im in stack.images:
-        if im.file.suffix.lower() in RAW_SUFFIXES:
-            continue
-        record = read_camera_record(im.file)
-        software, maker = record.software or "", record.make or ""
-        if FAITHFUL.search(software) or FAITHFUL.search(maker):
-            continue
-        if DEVELOPERS.search(software):
-            name = software
-        elif im.file.suffix.lower() in JPEG_SUFFIXES and maker:
-            name = "in-camera JPEG of the " + (record.camera or maker) + (f", {software}" if software else "")
-        else:
-            continue
-        found.developed_files.append(im.file.name)
-        found.developer = found.developer or name
+        name = developer_of(im.file, read_camera_record(im.file))
+        if name:
+            found.developed_files.append(im.file.name)
+            found.developer = found.developer or name
     return found
 
 

@@ -124,10 +124,9 @@ class SampleTable:
             rows = read_samples_csv(path)
             doc: dict[str, Any] = {"samples": rows, **csv_calibration(path, rows)}
         else:
-            try:
-                doc = json.loads(path.read_text())
-            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-                raise SpecError(path, "", f"not valid JSON ({exc})") from None
+            from lensfit.specs import load_json
+
+            doc = load_json(path)
             if not isinstance(doc, dict) or not isinstance(doc.get("samples"), list):
                 raise SpecError(path, "samples", "missing: a samples JSON written by lensfit measure has a list here")
         try:

@@ -20,18 +20,39 @@ def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
         raise SpecError(path, "", f"not a readable CSV ({exc}); write samples with lensfit measure") from None
 
 
+#: Rows a samples CSV may hold (a stack of hundreds of images has some tens of thousands of
+#: edges); the bytes checked first, so that a larger file is refused before it is read.
+MAX_ROWS = 1_000_000
+MAX_BYTES = 256 * 1024 * 1024
+
+
 def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
+    size = path.stat().st_size
+    if size > MAX_BYTES:
+        raise SpecError(path, "", f"is {size / 1e6:.0f} MB, more than the {MAX_BYTES / 1e6:.0f} MB of a samples CSV "
+                        "lensfit reads; is it the file you meant?")
     numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
                "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "field_radius_px",
                "disk_diameter_px", "disk_sigma_px", "distortion_k1", "distortion_k2")
     rows = []
-    with path.open(newline="") as fh:
+    with path.open(newline="", encoding="utf-8-sig") as fh:
         reader = csv.DictReader(fh)
+        names = reader.fieldnames or []
+        twice = sorted({c for c in names if names.count(c) > 1})
+        if twice:
+            raise SpecError(path, twice[0], "column appears twice in the header; one value per column")
         missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in (reader.fieldnames
                                                                                                       or [])]
         if missing:
             raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
         for i, r in enumerate(reader, start=2):
+            if i - 1 > MAX_ROWS:
+                raise SpecError(path, "", f"holds more than {MAX_ROWS} rows; split the stack")
+            if None in r or any(v is None for v in r.values()):
+                raise SpecError(path, f"line {i}", f"has {len(names) + len(r.get(None) or [])} cells where the header "
+                                f"has {len(names)} columns; one cell per column")
+            if any("\x00" in (v or "") for v in r.values()):
+                raise SpecError(path, f"line {i}", "holds a NUL byte; a samples CSV is text")
             row: dict[str, Any] = dict(r)
             for c in numeric:
                 if c in row:

@@ -41,6 +41,44 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise SpecError(path, "", "is a folder, expected a TOML file") from None
     except tomllib.TOMLDecodeError as exc:
         raise SpecError(path, "", f"not valid TOML ({exc})") from None
+    except RecursionError:
+        raise SpecError(path, "", "is nested too deeply (arrays or tables within each other) to be a stack or "
+                        "scene file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(path, "", f"cannot be read ({exc})") from None
+
+
+#: The largest JSON file lensfit reads (a samples file of about a million rows): a bigger one is
+#: refused before it is read, not parsed into memory many times its size.
+MAX_JSON_BYTES = 256 * 1024 * 1024
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in seen:
+            raise ValueError(f"the key {key!r} appears twice in one object")
+        seen[key] = value
+    return seen
+
+
+def load_json(path: str | Path, max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Parse a JSON file; unreadable, oversized, malformed or too deeply nested files, and objects
+    with a key twice, raise :class:`SpecError` naming the file."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > max_bytes:
+            raise SpecError(path, "", f"is {size / 1e6:.0f} MB, more than the {max_bytes / 1e6:.0f} MB lensfit reads "
+                            "as JSON; is it the file you meant?")
+        text = path.read_text(encoding="utf-8-sig")
+        return json.loads(text, object_pairs_hook=_unique_keys)
+    except RecursionError:
+        raise SpecError(path, "", "is nested too deeply to be a file lensfit wrote") from None
+    except json.JSONDecodeError as exc:
+        raise SpecError(path, "", f"not valid JSON ({exc})") from None
+    except ValueError as exc:  # a key twice (_unique_keys)
+        raise SpecError(path, "", f"not valid here: {exc}; remove the duplicate") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise SpecError(path, "", f"cannot be read ({exc})") from None
 

@@ -302,6 +302,40 @@ def read_image(path: str | Path, encoding: str = "linear", *, black_level: float
     return srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img
 
 
+#: Squares along one side of a board at most: printed boards have up to a few dozen; more is a
+#: typing slip, and the detector's work and memory grow with the board's area.
+MAX_SQUARES_PER_SIDE = 200
+#: Images one stack lists at most (a day's brackets run to some hundreds).
+MAX_IMAGES = 5000
+
+
+def _check_board(manifest_path: Path, i: int, t: dict[str, Any]) -> None:
+    """Refuse a board no detector can use: too many squares, a marker as large as its square, an
+    ArUco dictionary OpenCV does not have or that holds too few markers for the board."""
+    field = f"target[{i}]"
+    squares = t.get("squares")
+    if squares is not None and max(squares) > MAX_SQUARES_PER_SIDE:
+        raise SpecError(manifest_path, f"{field}.squares", f"got {squares}: at most {MAX_SQUARES_PER_SIDE} squares "
+                        "along a side; count the squares of the printed board")
+    if t["kind"] != "charuco":
+        return
+    if not t["marker_mm"] < t["square_mm"]:
+        raise SpecError(manifest_path, f"{field}.marker_mm", f"got {t['marker_mm']:g}: a marker lies inside its "
+                        f"square, so it must be smaller than square_mm ({t['square_mm']:g}); measure both on the print")
+    import cv2
+
+    name = t["dictionary"]
+    known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+    if name not in known:
+        raise SpecError(manifest_path, f"{field}.dictionary", f"got {name!r}: not an ArUco dictionary OpenCV knows; "
+                        f"e.g. {', '.join(k for k in known if k.startswith('DICT_4X4') or k.startswith('DICT_5X5'))}")
+    capacity = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0]
+    if squares[0] * squares[1] // 2 > capacity:
+        raise SpecError(manifest_path, f"{field}.squares", f"got {squares}: a ChArUco board of that size needs "
+                        f"{squares[0] * squares[1] // 2} markers and {name} holds {capacity}; check the squares "
+                        "and the dictionary printed on the board")
+
+
 def load_stack(path: str | Path, *, max_pixels: int | None = None, allow_outside: bool = False) -> Stack:
     """Read and validate a stack folder (or its ``stack.toml``); images are checked for
     existence, the pixel budget and a common size (from their headers), and read later on demand.
@@ -334,11 +368,21 @@ def load_stack(path: str | Path, *, max_pixels: int | None = None, allow_outside
         for name in need:
             if name not in t:
                 raise SpecError(manifest_path, f"target[{i}].{name}", f"is required for kind = {t['kind']!r}")
+        _check_board(manifest_path, i, t)
     images = []
     shape = None
     inside = folder.resolve()
+    first_of: dict[Path, int] = {}
+    if len(data["image"]) > MAX_IMAGES:
+        raise SpecError(manifest_path, "image", f"lists {len(data['image'])} images, more than {MAX_IMAGES}; a stack "
+                        "of that many is split into stacks of one lens setting each")
     for i, entry in enumerate(data["image"]):
         file = folder / entry["file"]
+        if file.resolve() in first_of:
+            j = first_of[file.resolve()]
+            raise SpecError(manifest_path, f"image[{i}].file", f"got {entry['file']!r}, the file image[{j}] lists "
+                            "already; list each photo once (one photo has one setting)")
+        first_of[file.resolve()] = i
         if not allow_outside and not file.resolve().is_relative_to(inside):
             raise SpecError(manifest_path, f"image[{i}].file", f"got {entry['file']!r}: it leads outside the stack "
                             f"folder {folder}; copy the image into the folder (or pass --allow-outside-stack)")

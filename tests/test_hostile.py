@@ -582,6 +582,11 @@ def test_check_output_refuses_an_unwritable_folder(tmp_path):
     ("s.json", b'{"samples": [], "intrinsics": {"a": 5}}'), ("s.json", b'{"samples": "x", "pixel_pitch_mm": 0.006}'),
     ("s.json", b'{"samples": [{"setting": "a", "distance_mm": 1e400, "coc_diameter_px": 1, "sigma_px": 1}]}'),
     ("s.json", b"\x00\x01\x02"),
+    ("s.json", b'{"samples": [], "samples": []}'), ("s.json", b"[" * 100000 + b"]" * 100000),
+    ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px,sigma_px\na,1000,3,0.1,0.2\n"),
+    ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px\na,1000,3\x00,0.1\n"),
+    ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px\n" + b"".join(
+        b"s%d,%d,3,0.1\n" % (k // 2, 1000 + k) for k in range(400))),
 ])
 def test_hostile_samples_files_are_one_line_refusals(tmp_path, capsys, name, content):
     path = tmp_path / name
@@ -593,12 +598,23 @@ def test_hostile_samples_files_are_one_line_refusals(tmp_path, capsys, name, con
 
 @pytest.mark.parametrize("edit,field,says", [
     (lambda t: t.replace('setting = "a"', 'setings = "a"', 1), "image[0].setings", "did you mean 'setting'"),
+    (lambda t: t.replace("DICT_4X4_50", "DICT_NOPE_99"), "target[0].dictionary", "not an ArUco dictionary"),
+    (lambda t: t.replace("marker_mm = 22.0", "marker_mm = 40.0"), "target[0].marker_mm", "smaller than square_mm"),
+    (lambda t: t.replace("squares = [\n    6,\n    4,\n]", "squares = [100000, 100000]"), "target[0].squares",
+     "at most 200 squares"),
+    (lambda t: t.replace("squares = [\n    6,\n    4,\n]", "squares = [20, 20]"), "target[0].squares",
+     "needs 200 markers"),
+    (lambda t: t + t[t.index("[[image]]"):t.index("[[image]]", t.index("[[image]]") + 1)], "image[8].file",
+     "lists already"),
+    (lambda t: t + "a = " + "[" * 100000 + "]" * 100000 + "\n", "stack.toml", "nested too deeply"),
     (lambda t: t.replace("[camera]\n", "[camera]\ndistance_m = 3\n", 1), "camera.distance_m", "valid here"),
     (lambda t: t.replace("pixel_pitch_mm", "x_pitch", 1), "camera", "needs pixel_pitch_mm or sensor_width_mm"),
 ])
-def test_stack_toml_typos_are_refused_naming_the_key(calibration_stack, tmp_path, edit, field, says):
+def test_stack_toml_typos_are_refused_naming_the_key(calibration_stack, tmp_path, capsys, edit, field, says):
     """Unknown keys in stack.toml are refused (a typo of an optional key would otherwise be
-    silently ignored), with the nearest valid key; your own fields may start with x_."""
+    silently ignored), with the nearest valid key; your own fields may start with x_. So are
+    boards no detector can use, an image listed twice and TOML nested beyond reason: a one-line
+    refusal naming the field, never an internal error."""
     import shutil
 
     from lensfit.stack import load_stack
@@ -612,6 +628,9 @@ def test_stack_toml_typos_are_refused_naming_the_key(calibration_stack, tmp_path
     with pytest.raises(SpecError) as err:
         load_stack(folder)
     assert f"{field}:" in str(err.value) and says in str(err.value), str(err.value)
+    code, _, cli_err = run_cli(capsys, lensfit_main, "fit", folder, "--out", tmp_path / "r.json")
+    assert code == 2 and not (tmp_path / "r.json").exists()
+    one_line_error(cli_err, field)
 
 
 def test_a_ctrl_c_swallowed_by_a_callback_still_stops_the_command():

@@ -236,3 +236,28 @@ def test_a_raw_files_thumbnail_width_is_not_the_pitchs_reference():
     r = record_from_tags({"Image ImageWidth": 160, "EXIF FocalPlaneXResolution": 1000.0,
                           "EXIF FocalPlaneResolutionUnit": 3})
     assert r.focal_plane_pitch_mm == pytest.approx(0.01) and r.reference_width_px is None
+
+
+def test_hostile_photo_folders_cannot_write_toml_or_reach_outside(tmp_path, capsys):
+    """File names and EXIF reach stack.toml only through a TOML writer and the terminal only
+    escaped: a name holding a newline and a TOML table stays a file name, an escape sequence is
+    shown as text, an emoji in the camera's name writes valid TOML; a link that leads out of the
+    folder is refused, naming it."""
+    photos = tmp_path / "p"
+    photos.mkdir()
+    jpeg_with_exif(photos / "a.jpg", make="Canon", model="Canon EOS R5 \U0001F4F7")
+    jpeg_with_exif(photos / 'b\n[[intrinsics]]\nsetting = "a"\nfocal_length_px = 1.jpg')
+    jpeg_with_exif(photos / "c\x1b[31m.jpg")
+    args = ["init", str(photos), "--pixel-pitch", "0.005"]
+    (photos / "x.jpg").symlink_to("/etc/passwd")
+    assert lensfit_main(args) == 2
+    err = capsys.readouterr().err
+    assert "x.jpg" in err and "/etc/passwd" in err and len(err.strip().splitlines()) == 1
+    (photos / "x.jpg").unlink()
+    assert lensfit_main(args) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "\\x1b" in out
+    manifest = tomllib.loads((photos / "stack.toml").read_text())
+    assert "intrinsics" not in manifest
+    assert sorted(im["file"] for im in manifest["image"])[1].startswith("b\n[[intrinsics]]")
+    assert any("Canon EOS R5" in im.get("x_exif", {}).get("camera", "") for im in manifest["image"])

@@ -111,3 +111,22 @@ def test_exif_names_the_developer_and_linear_images_are_trusted(calibration_stac
     ("Ver.1.00", False), ("Canon EOS R5 firmware", False), ("Blender 4.1", False)])
 def test_developer_names(software, developer):
     assert bool(DEVELOPERS.search(software)) == developer
+
+
+def test_init_notes_developed_photos(calibration_stack, tmp_path):
+    """``lensfit init`` on a camera's JPEGs says they were developed and what to give instead;
+    on lensfit's own faithful JPEGs it says nothing of the kind."""
+    from lensfit.manifest import draft_manifest
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for k, png in enumerate(sorted(calibration_stack.glob("*.png"))[:3]):
+        exif = Image.Exif()
+        exif[0x010F], exif[0x0110], exif[0x0131] = "Canon", "Canon EOS R5", "Firmware Version 1.8.1"
+        Image.fromarray(np.round(255 * _encode(read_image(png))).astype(np.uint8)).save(
+            folder / f"IMG_{k}.jpg", quality=95, exif=exif)
+    notes = " ".join(draft_manifest(folder, pixel_pitch_mm=0.006).notes)
+    assert "3 photo(s) were developed (in-camera JPEG of the Canon EOS R5" in notes and "RAW" in notes
+    faithful = _jpeg_copy(calibration_stack, tmp_path / "faithful", software="lensfit synth")
+    (faithful / "stack.toml").unlink()
+    assert "developed" not in " ".join(draft_manifest(faithful, pixel_pitch_mm=0.006).notes)

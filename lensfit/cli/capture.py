@@ -54,7 +54,7 @@ _INIT_OPTIONS = {"pixel_pitch_mm": "--pixel-pitch", "sensor_width_mm": "--sensor
 
 
 def _init_command(args: argparse.Namespace) -> int:
-    from lensfit.manifest import draft_manifest
+    from lensfit.manifest import draft_manifest, shown
     from lensfit.outputs import claimed, write_text
 
     folder = Path(args.photos)
@@ -79,10 +79,10 @@ def _init_command(args: argparse.Namespace) -> int:
     for r in draft.rows:
         def show(x, spec):
             return "-" if x is None else ("inf" if math.isinf(x) else format(x, spec))
-        print(f"{r['file'][:28]:<28} {r['setting']:>7} {show(r['focal_length_mm'], '8.4g'):>8} "
+        print(f"{shown(r['file'])[:28]:<28} {r['setting']:>7} {show(r['focal_length_mm'], '8.4g'):>8} "
               f"{show(r['f_number'], '6.3g'):>6} {show(r['focus_distance_mm'], '11.5g'):>11}")
     for note in draft.notes:
-        print(f"note: {note}")
+        print(f"note: {shown(note)}")
     dest = out.parent if out.name == "stack.toml" else out
     print(f"next: check the setting labels and the target in {out}, then: lensfit fit {dest}")
     return EXIT_OK

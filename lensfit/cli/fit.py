@@ -269,8 +269,15 @@ def _read_truth(stack) -> dict | None:
     if not truth_path.resolve().is_relative_to(stack.path.resolve()):
         print(f"warning: {truth_path} points outside the stack folder; not read", file=sys.stderr)
         return None
+    from lensfit.errors import SpecError
+    from lensfit.specs import load_json
+
     try:
-        return json.loads(truth_path.read_text())
-    except (OSError, ValueError) as exc:
-        print(f"warning: {truth_path} unreadable ({exc}); no comparison with the truth", file=sys.stderr)
+        truth = load_json(truth_path, max_bytes=64 * 1024 * 1024)
+    except SpecError as exc:
+        print(f"warning: {exc}; no comparison with the truth", file=sys.stderr)
         return None
+    if not isinstance(truth, dict):
+        print(f"warning: {truth_path} holds no JSON object; no comparison with the truth", file=sys.stderr)
+        return None
+    return truth

@@ -111,6 +111,11 @@ def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     return rows, {}
 
 
+#: Focus settings one fit takes at most: a photographer's bracket has a few, a careful study some
+#: dozens; the fit's cost grows with the square of their number.
+MAX_SETTINGS = 100
+
+
 def _per_setting(value: Any, labels: list[str], name: str, default: float) -> np.ndarray:
     if value is None:
         return np.full(len(labels), default)
@@ -179,6 +184,9 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("samples", f"{len(rows)} rows", "at least one sample with a measured coc_diameter_px and "
                          "sigma_px", fix)
     labels = sorted({str(r["setting"]) for r in used})
+    if len(labels) > MAX_SETTINGS:
+        raise InputError("samples.setting", f"{len(labels)} labels", f"at most {MAX_SETTINGS} focus settings in one "
+                         "fit (each adds its own parameters)", "fit the settings in groups, or check the setting column")
     idx = {k: i for i, k in enumerate(labels)}
     dist = np.array([float(r["distance_mm"]) for r in used])
     d0 = np.array([float(r.get("distance_start_mm") or r["distance_mm"]) for r in used])

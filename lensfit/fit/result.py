@@ -209,16 +209,17 @@ def compare_with_truth(result: FitResult, truth: dict[str, Any]) -> list[dict[st
     quantities ``truth.json`` states (data_specs/schemas/truth.schema.json)."""
     rows = []
     true_f = truth.get("focal_length_mm")
+    per_setting = truth.get("settings") if isinstance(truth.get("settings"), dict) else {}
     for label, qs in result.settings.items():
-        t = truth.get("settings", {}).get(label, {})
+        t = per_setting.get(label) if isinstance(per_setting.get(label), dict) else {}
         for qn, tv in (("focal_length_mm", true_f), *((q, t.get(q)) for q in (
                 "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm", "sensor_distance_mm",
                 "aperture_diameter_mm"))):
-            if tv is None or qn not in qs:
-                continue
+            if isinstance(tv, bool) or not isinstance(tv, (int, float)) or qn not in qs:
+                continue  # (a truth.json written by hand may hold anything: only numbers compare)
             e = qs[qn]
             tv = float(tv)
-            rel = None if e.value is None or not math.isfinite(tv) else e.value / tv - 1
+            rel = None if e.value is None or not math.isfinite(tv) or tv == 0 else e.value / tv - 1
             inside = None
             if e.ci95 is not None:
                 lo, hi = e.ci95
