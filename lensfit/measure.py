@@ -235,7 +235,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         detections[i] = found
         tick("detect")
     table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape,
-                        detections={i: list(found) for i, found in detections.items()})
+                        detections={i: list(found) for i, found in detections.items()}, lens=dict(stack.lens))
     missing = [stack.images[i].file.name for i in range(n) if not detections[i]]
     if missing:
         table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")

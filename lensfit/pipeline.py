@@ -186,8 +186,6 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     # camera-raw stack spent 2.0 of 5.5 s decoding its 10 DNG files four times).
     stack = stack.holding(HOLD_BYTES)
     options = dict(fit_options or {})
-    if options.get("pupil_magnification") is None and "pupil_magnification" in stack.lens:
-        options["pupil_magnification"] = stack.lens["pupil_magnification"]  # (an argument overrides the stack's)
     ahead: list[Any] = []
     auto = wavelength_nm is None and auto_diffraction and estimator in ("edge", "edge-disk")
 

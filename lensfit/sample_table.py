@@ -78,6 +78,9 @@ class SampleTable:
     #: beside them the calibration from the corners as detected and the edges it gives, which
     #: that measure takes too where its detections are these very objects
     profiles: dict[str, Any] | None = None
+    #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``), which the fit
+    #: takes where no argument gives it; written to the samples JSON
+    lens: dict[str, Any] = field(default_factory=dict)
 
     COLUMNS = SAMPLES_CSV_COLUMNS
 
@@ -108,7 +111,7 @@ class SampleTable:
                                "distortion": list(v.distortion)} for k, v in self.intrinsics.items()},
             "warnings": self.warnings,
             "provenance": provenance("lensfit", dated=False),
-        }
+        } | ({"lens": {k: list(v) if isinstance(v, tuple) else v for k, v in self.lens.items()}} if self.lens else {})
 
     @classmethod
     def read(cls, path: str | Path) -> "SampleTable":
@@ -135,6 +138,10 @@ class SampleTable:
                         warnings=[str(w) for w in doc.get("warnings", [])])
         except (TypeError, ValueError) as exc:
             raise SpecError(path, "pixel_pitch_mm", f"unreadable ({exc}); expected what lensfit measure writes") from None
+        lens = doc.get("lens") or {}
+        if not isinstance(lens, dict) or not set(lens) <= {"pupil_magnification", "focusing"}:
+            raise SpecError(path, "lens", "holds what stack.toml's [lens] says: pupil_magnification, focusing")
+        table.lens = {k: tuple(v) if isinstance(v, list) else v for k, v in lens.items()}
         intrinsics = doc.get("intrinsics") or {}
         if not isinstance(intrinsics, dict):
             raise SpecError(path, "intrinsics", "must map setting labels to calibrations")

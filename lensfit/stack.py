@@ -67,7 +67,8 @@ class Stack:
     camera: dict[str, Any] = field(default_factory=dict)
     intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_pixels: int | None = None
-    #: what is known of the lens (``[lens]``: ``pupil_magnification``, a value or a (lo, hi) range)
+    #: what is known of the lens (``[lens]``: ``pupil_magnification``, a value or a (lo, hi) range;
+    #: ``focusing``, unit, internal or unknown)
     lens: dict[str, Any] = field(default_factory=dict)
     #: images kept in memory once read (None: read again each time; :meth:`holding`)
     hold: dict[int, np.ndarray] | None = field(default=None, repr=False, compare=False)

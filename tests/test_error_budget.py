@@ -22,6 +22,8 @@ from lensfit.fit import fit
 from lensfit.fit.constants import BLUR_SCALE_SIGMA
 from lensfit.fit.uncertainty import BUDGET_SOURCES
 
+#: The simulated lenses are thin (P = 1) and focus as a unit: what their user would declare.
+THIN = {"pupil_magnification": 1.0, "focusing": "unit"}
 PITCH = 0.004
 F, N, X = 35.0, 4.0, 1500.0
 IMAGES, EDGES = 12, 16
@@ -59,7 +61,7 @@ def coverage(draws, seed, **kw):
     hits = {q: 0 for q in truths()}
     for _ in range(draws):
         rows, fpx, fsg = capture(rng, **kw)
-        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
         assert r.ok, r.reasons
         for q, t in truths().items():
             lo, hi = r.settings["a"][q].ci95
@@ -79,7 +81,7 @@ def fit_bracket(rng, pose_rel_sigma: float):
         r, fpx[setting], fsg[setting] = capture(rng, fpx_rel_sigma=1e-4, pose_rel_sigma=pose_rel_sigma,
                                                 noise_px=0.02, setting=setting, focus_mm=focus, images=5, e=0.0)
         rows += r
-    return fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, loss="linear")
+    return fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, loss="linear", **THIN)
 
 
 def test_intervals_hold_the_truth_with_calibration_pose_and_estimator_errors():
@@ -102,7 +104,7 @@ def test_large_pose_errors_are_a_term_of_their_own():
     hits, z = {q: 0 for q in truths()}, {q: [] for q in truths()}
     for _ in range(60):
         rows, fpx, fsg = capture(rng, fpx_rel_sigma=1e-3, pose_rel_sigma=0.01, noise_px=0.005)
-        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
         for q, t in truths().items():
             e = r.settings["a"][q]
             hits[q] += e.ci95[0] <= t <= e.ci95[1]
@@ -124,7 +126,7 @@ def test_the_images_scatter_reads_their_pose_errors(pose):
     taus = []
     for _ in range(6):
         rows, fpx, fsg = capture(rng, pose_rel_sigma=pose, noise_px=0.01)
-        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
         sc = _image_scatter(r._full, 1, r.samples, r.weights)
         assert sc.images == IMAGES
         taus.append(sc.tau)
@@ -179,7 +181,7 @@ def test_the_images_scatter_is_unbiased_once_the_fit_has_taken_its_part(monkeypa
                              "coc_diameter_px": abs(c + sigma * rng.normal()), "sigma_px": sigma})
         s = 1.0 / (1.0 / F - 1.0 / 2000.0)
         fit(rows, pixel_pitch_mm=PITCH, focal_length_px=s / PITCH, focal_length_sigma_px=1e-4 * s / PITCH,
-            loss="linear")
+            loss="linear", **THIN)
     taus = np.array([t for t, _, _ in seen])
     deltas = np.array([d for _, d, _ in seen])
     gains = np.array([g for _, _, g in seen])
@@ -209,7 +211,7 @@ def test_a_jackknifed_calibration_takes_its_views_degrees_of_freedom(tmp_path):
         cal = {"focal_length_px": fpx, "focal_length_sigma_px": stated, "focal_length_sigma_method": "jackknife",
                "principal_point_px": [0.0, 0.0], "rms_px": 0.02, "views": views, "source": "calibrated"}
         path.write_text(json.dumps({"samples": rows, "pixel_pitch_mm": PITCH, "intrinsics": {"a": cal}}))
-        est = fit(SampleTable.read(path)).focal_length_mm
+        est = fit(SampleTable.read(path), **THIN).focal_length_mm
         assert est.shares["calibration"] > 0.95, est.shares
         multiple = math.log(est.ci95[1] / est.value) / (est.sigma / est.value)
         assert multiple == pytest.approx(student_z((views - 1) / est.shares["calibration"] ** 2)[1], rel=2e-3)
@@ -230,20 +232,20 @@ def test_shares_name_the_source_that_dominates():
     rng = np.random.default_rng(3)
     # A precise calibration and low noise: the f-number's variance is the estimator's scale.
     rows, fpx, fsg = capture(rng, fpx_rel_sigma=1e-5, pose_rel_sigma=0.0, noise_px=0.005)
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
     shares = r.settings["a"]["f_number"].shares
     assert set(shares) == set(BUDGET_SOURCES) and math.isclose(sum(shares.values()), 1.0, rel_tol=1e-9)
     assert shares["estimator_scale"] > 0.8, shares
     assert r.settings["a"]["f_number"].sigma / N == pytest.approx(BLUR_SCALE_SIGMA, rel=0.15)
     # A loose calibration: the focus distance's and the focal length's variance is the calibration's.
     rows, fpx, fsg = capture(rng, fpx_rel_sigma=0.01, pose_rel_sigma=0.0, noise_px=0.005)
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
     for q in ("focal_length_mm", "focus_distance_mm"):
         assert r.settings["a"][q].shares["calibration"] > 0.8, (q, r.settings["a"][q].shares)
         assert r.settings["a"][q].sigma / truths()[q] == pytest.approx(0.01, rel=0.2)
     # Large shared per-image pose errors: the images' spread's excess, reported as the images' share.
     rows, fpx, fsg = capture(rng, fpx_rel_sigma=1e-5, pose_rel_sigma=0.01, noise_px=0.005)
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
     assert r.settings["a"]["focus_distance_mm"].shares["images"] > 0.5, r.settings["a"]["focus_distance_mm"].shares
 
 
@@ -261,7 +263,7 @@ def test_a_shaped_reading_costs_scale_only_as_far_as_it_departs_from_the_disk():
     def n_sigma(disk_ratio, flag=True):
         rs = [{**r, "flags": "shaped_spot" if flag else "",
                "disk_diameter_px": None if disk_ratio is None else r["coc_diameter_px"] * disk_ratio} for r in rows]
-        est = fit(rs, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg).settings["a"]["f_number"]
+        est = fit(rs, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN).settings["a"]["f_number"]
         return est.sigma / est.value
 
     disk = n_sigma(None, flag=False)
@@ -310,7 +312,7 @@ def test_each_quantity_takes_its_own_degrees_of_freedom():
     rng = np.random.default_rng(3)
     capture(rng, fpx_rel_sigma=2e-3, pose_rel_sigma=0.01, noise_px=0.005)  # a first capture; the second is fitted
     rows, fpx, fsg = capture(rng, fpx_rel_sigma=1e-3, pose_rel_sigma=0.01, noise_px=0.005)
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
     s = r.settings["a"]
 
     def multiple(q):  # of a positive quantity's log-space 95 % interval
@@ -402,7 +404,7 @@ def test_intervals_follow_the_readings_scatter_not_their_stated_sigmas(kw):
     z, half, err = ({q: [] for q in truths()} for _ in range(3))
     for _ in range(80):
         rows, fpx, fsg = capture(rng, **kw)
-        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
         for q, t in truths().items():
             e = r.settings["a"][q]
             z[q].append((e.value - t) / e.sigma)

@@ -45,9 +45,13 @@ def simulate(f, N, D, distances, rng, *, noise_px=0.05, rel_noise=0.005, floor_p
     return rows, fpx_true * (1 + fpx_rel_sigma * rng.normal()), fpx_rel_sigma * fpx_true
 
 
+#: The simulated lens is thin (P = 1) and focuses as a unit: what its user would declare.
+THIN = {"pupil_magnification": 1.0, "focusing": "unit"}
+
+
 def run_fit(rows, fpx, fpx_sigma, **kw):
     return fit(rows, pixel_pitch_mm=kw.pop("pitch", PITCH), focal_length_px=fpx, focal_length_sigma_px=fpx_sigma,
-               **kw)
+               **{**THIN, **kw})
 
 
 def assert_no_nan(result):
@@ -337,7 +341,7 @@ def test_focus_bracket_shares_the_focal_length():
     for label, (N, D) in settings_.items():
         r_, fpx[label], fsig[label] = simulate(f, N, D, spread(D / 2.5, D * 3, 40), rng, setting=label)
         rows += r_
-    r = run_fit(rows, fpx, fsig)
+    r = run_fit(rows, fpx, fsig, pupil_magnification=None)  # a unit-focusing bracket: P fitted
     assert r.ok, r.reasons
     check_close(r.focal_length_mm, f, 0.001)
     for label, (N, D) in settings_.items():
@@ -359,7 +363,7 @@ def test_a_setting_without_calibration_borrows_the_shared_focal_length():
         r_, fpx[label], _ = simulate(f, N, D, spread(D / 2, D * 3, 40), rng, setting=label)
         rows += r_
     r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px={"calibrated": fpx["calibrated"]},
-            focal_length_sigma_px={"calibrated": 1e-4 * fpx["calibrated"]})
+            focal_length_sigma_px={"calibrated": 1e-4 * fpx["calibrated"]}, **THIN)
     assert r.ok, r.reasons
     check_close(r.settings["bare"]["f_number"], 5.6, 0.01)
     check_close(r.settings["bare"]["sensor_distance_mm"], f * 3000 / (3000 - f), 0.002)

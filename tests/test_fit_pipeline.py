@@ -243,13 +243,16 @@ def test_property_fit_of_render_recovers_the_lens(tmp_path_factory, f, N, D_over
 
 @pytest.mark.parametrize("suffix", [".json", ".csv"])
 def test_refit_from_a_samples_file_equals_the_fit_from_the_stack(calibration_samples, tmp_path, capsys, suffix):
-    """Measure-then-refit: the samples file carries the calibration (and its sigma), so the fit
-    from it has the stack fit's values and sigmas, through the API and the CLI."""
+    """Measure-then-refit: the samples file carries the calibration (and its sigma), and the JSON
+    what the stack's [lens] says, so the fit from it has the stack fit's values and sigmas,
+    through the API and the CLI (a CSV's user gives the lens's P)."""
     from lensfit.cli import main
 
     path = tmp_path / f"samples{suffix}"
     calibration_samples.write(path)
-    direct, again = fit(calibration_samples), fit(SampleTable.read(path))
+    lens = [] if suffix == ".json" else ["--pupil-magnification", "1"]
+    direct = fit(calibration_samples)
+    again = fit(SampleTable.read(path), pupil_magnification=1.0 if lens else None)
     if suffix == ".json":  # the JSON keeps the calibration itself, with how its sigma was found
         assert SampleTable.read(path).intrinsics["a"] == calibration_samples.intrinsics["a"]
         assert calibration_samples.intrinsics["a"].focal_length_sigma_method == "jackknife"  # 8 views
@@ -257,7 +260,7 @@ def test_refit_from_a_samples_file_equals_the_fit_from_the_stack(calibration_sam
         a = getattr(direct, q) if q == "focal_length_mm" else direct.settings["a"][q]
         b = getattr(again, q) if q == "focal_length_mm" else again.settings["a"][q]
         assert b.value == pytest.approx(a.value, rel=1e-9) and b.sigma == pytest.approx(a.sigma, rel=1e-6), q
-    assert main(["fit", str(path), "--json"]) == 0
+    assert main(["fit", str(path), "--json", *lens]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["focal_length_mm"]["sigma"] == pytest.approx(direct.focal_length_mm.sigma, rel=1e-6)
 

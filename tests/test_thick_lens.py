@@ -72,7 +72,7 @@ BRACKETS = {
 def test_focus_bracket_recovers_pupil_magnification_and_the_lens(name):
     f, P, settings = BRACKETS[name]
     rows, fpx, fsg = simulate(f, P, settings, np.random.default_rng(7))
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
     assert r.ok, r.reasons
     assert r.pupil_magnification_source == "fitted"
     check(r.pupil_magnification, P, 0.05)
@@ -90,7 +90,8 @@ def test_thin_lens_mapping_of_a_telephoto_is_biased_as_predicted():
     about (f/X)(1/P - 1) (thick lens: 1/f = 1/S + 1/(P X), lensfit.fit notes)."""
     f, P, N, X = 100.0, 0.5, 4.0, 2000.0
     rows, fpx, fsg = simulate(f, P, {"a": (N, X, (1200.0, 5000.0))}, np.random.default_rng(3))
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0,
+                  focusing="unit")
     assert r.pupil_magnification_source == "assumed" and r.pupil_magnification.value == 1.0
     S = image_distance(f, P, X) / P
     f_thin = 1.0 / (1.0 / S + 1.0 / X)
@@ -98,7 +99,8 @@ def test_thin_lens_mapping_of_a_telephoto_is_biased_as_predicted():
     assert f_thin / f - 1 == pytest.approx((f / X) * (1 / P - 1), rel=0.1)
     assert not inside(r.focal_length_mm, f)  # the wrong assumption: a tight interval without the truth
     # the right assumption gives the lens back
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=P)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=P,
+                focusing="unit")
     check(r.focal_length_mm, f, 0.003)
     check(r.settings["a"]["f_number"], N, 0.01)
     assert r.pupil_magnification_source == "assumed" and r.pupil_magnification.value == P
@@ -112,11 +114,12 @@ def test_one_setting_carries_the_spread_of_photographic_lenses(P):
     the entrance pupil, which blur fixes whatever P is, stays as tight as with P known."""
     f, N, X = 35.0, 4.0, 700.0
     rows, fpx, fsg = simulate(f, P, {"a": (N, X, (400.0, 2000.0))}, np.random.default_rng(21))
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
     assert r.pupil_magnification_source == "prior" and "photographic lenses" in r.pupil_magnification.reason
     assert any("pupil magnification P not determined" in w for w in r.warnings)
     assert inside(r.focal_length_mm, f) and inside(r.settings["a"]["f_number"], N)
-    known = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=P)
+    known = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=P,
+                focusing="unit")
     check(r.settings["a"]["focus_distance_mm"], X, 0.01)
     assert r.settings["a"]["focus_distance_mm"].sigma < 1.2 * known.settings["a"]["focus_distance_mm"].sigma
     # the interval's width is what P's range moves f by, (f/X)|1/P - 1| from P = 0.46 to 2.5, not more
@@ -128,9 +131,10 @@ def test_a_prior_range_widens_the_intervals_honestly():
     f, P, N, X = 100.0, 0.6, 4.0, 1500.0
     rng = np.random.default_rng(11)
     rows, fpx, fsg = simulate(f, P, {"a": (N, X, (900.0, 4000.0))}, rng)
-    fixed = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0)
+    fixed = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0,
+                  focusing="unit")
     ranged = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg,
-                 pupil_magnification=(0.5, 2.0))
+                 pupil_magnification=(0.5, 2.0), focusing="unit")
     assert ranged.pupil_magnification_source == "prior"
     assert not inside(fixed.focal_length_mm, f)  # the silent thin-lens answer excludes the truth ...
     assert inside(ranged.focal_length_mm, f)  # ... the stated range holds it
@@ -146,9 +150,10 @@ def test_thin_lens_is_the_p_equal_1_case():
     f, N, X = 50.0, 2.8, 1500.0
     settings = {"a": (N, X, (800.0, 4000.0)), "b": (N, 3000.0, (1500.0, 8000.0))}
     rows, fpx, fsg = simulate(f, 1.0, settings, np.random.default_rng(5))
-    auto = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    auto = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
     check(auto.pupil_magnification, 1.0, 0.05)
-    thin = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0)
+    thin = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, pupil_magnification=1.0,
+                  focusing="unit")
     check(thin.focal_length_mm, f, 0.002)
     e = thin.settings["a"]["focus_distance_from_sensor_mm"]  # the thin lens: E is the lens plane
     assert e.value == pytest.approx(X + image_distance(f, 1.0, X), rel=2e-3)
@@ -158,7 +163,7 @@ def test_settings_at_one_focus_distance_cannot_fit_p_and_say_so():
     f, P = 85.0, 0.8
     settings = {"f2": (2.0, 1500.0, (900.0, 4000.0)), "f4": (4.0, 1500.0, (900.0, 4000.0))}
     rows, fpx, fsg = simulate(f, P, settings, np.random.default_rng(9))
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
     assert r.pupil_magnification_source == "prior"
     assert any("pupil magnification" in w and "focus" in w for w in r.warnings)
     assert inside(r.focal_length_mm, f)
@@ -179,7 +184,7 @@ def test_intervals_of_p_f_and_n_cover_the_truth():
     draws = 30
     for seed in range(draws):
         rows, fpx, fsg = simulate(f, P, settings, np.random.default_rng(100 + seed), n=24)
-        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
         hits["P"] += inside(r.pupil_magnification, P)
         hits["f"] += inside(r.focal_length_mm, f)
         hits["N"] += inside(r.settings["far"]["f_number"], settings["far"][0])
@@ -196,7 +201,7 @@ def test_a_refused_bracket_says_how_wide_a_bracket_determines_p_to_5_percent():
     f, P, N, X_far, cal = 50.0, 1.07, 8.0, 2000.0, 0.003
     narrow = {"near": (N, 1500.0, (900.0, 3000.0)), "far": (N, X_far, (1000.0, 6000.0))}
     rows, fpx, fsg = simulate(f, P, narrow, np.random.default_rng(5), fpx_rel_sigma=cal)
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
     assert r.pupil_magnification_source == "prior"
     said = next(w for w in r.warnings if "pupil magnification" in w)
     need_per_m = float(re.search(r"P to 5 % \(2 sigma\) about ([0-9.e+]+) /m", said).group(1))
@@ -206,7 +211,34 @@ def test_a_refused_bracket_says_how_wide_a_bracket_determines_p_to_5_percent():
     within, draws = 0, 20
     for seed in range(draws):
         rows, fpx, fsg = simulate(f, P, wide, np.random.default_rng(200 + seed), fpx_rel_sigma=cal)
-        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+        r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
         assert r.pupil_magnification_source == "fitted", r.warnings
         within += abs(r.pupil_magnification.value / P - 1) <= 0.05
     assert within >= 0.8 * draws, within
+
+
+def test_an_internally_focusing_bracket_is_fitted_setting_by_setting():
+    """A lens that focuses by moving a group inside breathes: f (and P) differ per setting. With
+    the focusing unknown (the default) each setting is fitted by itself: its f and N within 1 %
+    and their 95 % intervals holding its truth (the focus distance within 3 sigma); forced to share f (focusing = "unit"), the
+    settings give one f that misses each setting's own."""
+    rng = np.random.default_rng(31)
+    per = {"near": (47.4, 0.94, 3.8, 600.0, (350.0, 1500.0)), "mid": (48.4, 1.01, 3.9, 1000.0, (550.0, 2500.0)),
+           "far": (49.0, 1.06, 3.9, 1600.0, (800.0, 4500.0))}
+    rows, fpx, fsg = [], {}, {}
+    for label, (f, P, N, X, span) in per.items():
+        r, fp, fs = simulate(f, P, {label: (N, X, span)}, rng, fpx_rel_sigma=1e-3)
+        rows += r
+        fpx.update(fp)
+        fsg.update(fs)
+    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    assert r.focal_length_mm.value is None and "own" in r.focal_length_mm.reason
+    for label, (f, P, N, X, _) in per.items():
+        est = r.settings[label]
+        assert inside(est["focal_length_mm"], f) and inside(est["f_number"], N)
+        check(est["focus_distance_mm"], X, 0.01)
+        assert abs(est["focal_length_mm"].value / f - 1) < 0.01 and abs(est["f_number"].value / N - 1) < 0.01
+    assert any("were the lens to focus as a unit" in w for w in r.warnings)
+    unit = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
+    assert unit.focal_length_mm.value is not None
+    assert sum(abs(unit.focal_length_mm.value / f - 1) > 0.005 for f, *_ in per.values()) >= 2

@@ -162,6 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
                          "stack.toml's [lens] pupil_magnification, else fitted from two or more focus settings, else "
                          "carried over the spread of photographic lenses with a warning")
+    ft.add_argument("--focusing", choices=("unknown", "unit", "internal"), default=None,
+                    help="how the lens focuses: unit (the whole lens moves: settings share f and P, and a focus bracket "
+                         "fits P), internal (a group inside moves: f changes with focus) or unknown; default: "
+                         "stack.toml's [lens] focusing, else unknown (each setting fitted by itself)")
     ft.add_argument("--processed", choices=("refuse", "report"), default="refuse",
                     help="where sRGB-encoded images were developed (EXIF names a raw developer or a camera's JPEG "
                          "engine) or sharpened (halos on the edges): refuse (default) the f-number, which such "

@@ -210,7 +210,9 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     forced = isinstance(args.diffraction, float)  # a wavelength; else "auto" or "off"
     options = dict(pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
                    blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification,
-                   field_curvature=args.field_curvature, spot_shape=args.spot_shape)
+                   field_curvature=args.field_curvature, spot_shape=args.spot_shape, focusing=args.focusing)
+    if options["focusing"] is None:
+        del options["focusing"]
     if source.suffix.lower() in (".csv", ".json") and not source.exists():
         raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
                        "or a stack folder")
@@ -235,10 +237,13 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         print(f"warning: {w}", file=sys.stderr)
 
     from lensfit.fit import fit, results_document
+    from lensfit.processing import apply, from_exif
 
     if result is None:
         with console.status("fitting"):
             result = fit(table, **options)
+        if stack is not None:  # (the pipeline assessed it with the halos; here the EXIF alone)
+            apply(result, from_exif(stack), args.processed)
     document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
     wavelength = args.diffraction if forced else 550.0
     if rounds:

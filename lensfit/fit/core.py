@@ -16,6 +16,7 @@ from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES,
                                    FLOOR_START_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit.floor_choice import floor_sensitive, widen
+from lensfit.fit.focusing import merge, one_setting, subset, with_lens
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
                                          _one_sided, _second_vertex, PHOTOGRAPHIC_P_NOTE,
                                          photographic_prior)
@@ -35,7 +36,8 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         loss: str = "huber", blur_floor_px: float | None = None,
         floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
         pupil_magnification: float | tuple[float, float] | None = None,
-        field_curvature: str = "auto", spot_shape: str = "auto", floor_choice: bool = True) -> FitResult:
+        field_curvature: str = "auto", spot_shape: str = "auto", floor_choice: bool = True,
+        focusing: str | None = None) -> FitResult:
     """Fit focal length, and per setting f-number and focus distance, to blur samples.
 
     Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
@@ -79,6 +81,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         Where every sample of a setting lies on one side of its focus and its floor is above 0,
         fit again without the floor and widen its intervals to span both (lensfit.fit.floor_choice;
         default True). The pipeline's diffraction rounds compare their own rounds instead.
+    focusing : str, optional
+        How the lens focuses (``lensfit.fit.focusing``; default: the samples' ``lens``, what the
+        stack's ``[lens]`` said, else "unknown"): "unknown" or "internal" fits
+        each setting by itself (f per setting; P as for one setting) and notes the joint reading;
+        "unit" fits the settings together, sharing f and P (a bracket then determines P).
     spot_shape : str
         "auto" (default), "shaped" or "disk": where a sample gives two readings, take its spot's
         second moment or the uniform disk's (``disk_diameter_px``); "auto" takes the disk's on
@@ -111,6 +118,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("blur_floor_px", blur_floor_px, ">= 0 px and finite")
     if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
         raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
+    samples, pupil_magnification, focusing = with_lens(samples, pupil_magnification, focusing)
     pupil = _pupil_mode(pupil_magnification)
     if field_curvature not in FIELD_CURVATURE_MODES:
         raise InputError("field_curvature", field_curvature, "one of: " + ", ".join(FIELD_CURVATURE_MODES))
@@ -144,6 +152,14 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         result.warnings.append(instead[1])
     if floor_choice and blur_floor_px is None and (sensitive := floor_sensitive(result)):
         widen(result, run(disk, 0.0), sensitive)
+    if focusing != "unit" and len(result.samples.labels) > 1:
+        options = dict(pixel_pitch_mm=pixel_pitch_mm, loss=loss, blur_floor_px=blur_floor_px,
+                       floor_prior_sigma_px=floor_prior_sigma_px, max_irls=max_irls,
+                       pupil_magnification=pupil_magnification, field_curvature=field_curvature,
+                       spot_shape=spot_shape, floor_choice=floor_choice, focusing="unit")
+        result = merge(result, {label: fit(subset(samples, label), focal_length_px=one_setting(focal_length_px, label),
+                                           focal_length_sigma_px=one_setting(focal_length_sigma_px, label), **options)
+                                for label in result.samples.labels}, focusing)
     return result
 
 
