@@ -178,8 +178,11 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
              f"<h1>{html.escape(title)}</h1>",
              f"<p class='note'>lensfit {__version__}; {result.n_samples} edges used, {result.n_outliers} down-weighted; "
              f"RMS residual {result.rms_residual_px:.3g} px, reduced chi-square {result.chi2_reduced:.3g}, "
-             f"loss {result.loss}; pupil magnification P = {result.pupil_magnification.value:.4g} "
-             f"({result.pupil_magnification_source}); distances from the entrance pupil.</p>",
+             f"loss {result.loss}; pupil magnification "
+             + (f"P = {result.pupil_magnification.value:.4g} ({result.pupil_magnification_source})"
+                if result.pupil_magnification.value is not None else
+                f"P {html.escape(result.pupil_magnification.reason or 'not determined')}")
+             + "; distances from the entrance pupil.</p>",
              f"<h2>Estimates: fit {html.escape(result.code)}</h2>", _estimates_table(result, document)]
     for reason in result.reasons:
         parts.append(f"<p class='bad'>{html.escape(reason)}</p>")

@@ -45,6 +45,9 @@ FAITHFUL = re.compile(r"^lensfit\b", re.IGNORECASE)
 HALO_MIN_AMOUNT = 0.05
 HALO_MIN_Z = 5.0
 POLICIES = ("refuse", "report")
+#: A reduced chi-square above this is flagged with its likely causes (renders through a thin lens
+#: and real-ray renders of stopped-down lenses read about 1-3; an in-camera JPEG pipeline 8.9).
+MISFIT_CHI2 = 3.0
 
 
 @dataclass
@@ -158,6 +161,13 @@ def apply(result: Any, found: Processing, policy: str = "refuse") -> None:
     from lensfit.fit.result import Estimate, Outcome
 
     result.processing = found
+    if math.isfinite(result.chi2_reduced) and result.chi2_reduced > MISFIT_CHI2:
+        cause = (found.describe() if found.biases_f_number or found.halos else
+                 "likely causes: images developed or sharpened beyond what their EXIF and edges show, a lens's "
+                 "aberrations wide open (stop down), or a lens that moved between shots")
+        result.warnings.append(f"the blur readings scatter about the fitted V {math.sqrt(result.chi2_reduced):.1f} "
+                               f"times more than their noise (reduced chi-square {result.chi2_reduced:.1f}); the "
+                               f"intervals are widened by it, but a systematic cause is not noise: {cause}")
     if not found.biases_f_number:
         if found.halos:
             result.warnings.append(f"{found.describe()}; the images are declared linear, so their blur is read as it "

@@ -34,7 +34,9 @@ def load_toml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         with path.open("rb") as fh:
-            return tomllib.load(fh)
+            data = fh.read()
+        # A byte-order mark (some Windows editors write one) is no TOML; it is read past.
+        return tomllib.loads(data.removeprefix(b"\xef\xbb\xbf").decode("utf-8"))
     except FileNotFoundError:
         raise SpecError(path, "", "file not found") from None
     except IsADirectoryError:

@@ -584,6 +584,7 @@ def test_check_output_refuses_an_unwritable_folder(tmp_path):
     ("s.json", b"\x00\x01\x02"),
     ("s.json", b'{"samples": [], "samples": []}'), ("s.json", b"[" * 100000 + b"]" * 100000),
     ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px,sigma_px\na,1000,3,0.1,0.2\n"),
+    ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px\na,1000,-3,0.1\n"),
     ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px\na,1000,3\x00,0.1\n"),
     ("s.csv", b"setting,distance_mm,coc_diameter_px,sigma_px\n" + b"".join(
         b"s%d,%d,3,0.1\n" % (k // 2, 1000 + k) for k in range(400))),

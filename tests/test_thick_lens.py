@@ -217,7 +217,7 @@ def test_a_refused_bracket_says_how_wide_a_bracket_determines_p_to_5_percent():
     assert within >= 0.8 * draws, within
 
 
-def test_an_internally_focusing_bracket_is_fitted_setting_by_setting():
+def test_an_internally_focusing_bracket_is_fitted_setting_by_setting(tmp_path):
     """A lens that focuses by moving a group inside breathes: f (and P) differ per setting. With
     the focusing unknown (the default) each setting is fitted by itself: its f and N within 1 %
     and their 95 % intervals holding its truth (the focus distance within 3 sigma); forced to share f (focusing = "unit"), the
@@ -231,7 +231,15 @@ def test_an_internally_focusing_bracket_is_fitted_setting_by_setting():
         rows += r
         fpx.update(fp)
         fsg.update(fs)
-    r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg)
+    from lensfit.calibration import Intrinsics
+    from lensfit.sample_table import Sample, SampleTable
+
+    table = SampleTable(samples=[Sample(r_["image"], r_["setting"], "board", "e", r_["distance_mm"], r_["distance_mm"],
+                                        r_["distance_mm"], r_["coc_diameter_px"], r_["sigma_px"], "edge", "",
+                                        (0.0, 0.0), (1.0, 0.0), "pose") for r_ in rows],
+                        intrinsics={k: Intrinsics(fpx[k], (0.0, 0.0), (0.0,) * 5, 0.1, 8, "manifest", fsg[k])
+                                    for k in fpx}, pixel_pitch_mm=PITCH)
+    r = fit(table)
     assert r.focal_length_mm.value is None and "own" in r.focal_length_mm.reason
     for label, (f, P, N, X, _) in per.items():
         est = r.settings[label]
@@ -239,6 +247,18 @@ def test_an_internally_focusing_bracket_is_fitted_setting_by_setting():
         check(est["focus_distance_mm"], X, 0.01)
         assert abs(est["focal_length_mm"].value / f - 1) < 0.01 and abs(est["f_number"].value / N - 1) < 0.01
     assert any("were the lens to focus as a unit" in w for w in r.warnings)
+    # its report and results file say so (no shared f, no shared P) and hold finite numbers or null
+    import json
+
+    from lensfit.fit import results_document
+    from lensfit.fitreport import write_fit_report
+
+    document = results_document(r)
+    assert document["focal_length_mm"]["value"] is None and document["pupil_magnification"]["value"] is None
+    json.dumps(document, allow_nan=False)
+    report = tmp_path / "report.html"
+    write_fit_report(report, r, document, table)
+    assert "P how the lens focuses is not known" in report.read_text()
     unit = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, focusing="unit")
     assert unit.focal_length_mm.value is not None
     assert sum(abs(unit.focal_length_mm.value / f - 1) > 0.005 for f, *_ in per.values()) >= 2

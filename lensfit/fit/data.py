@@ -160,6 +160,11 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
         if not DISTANCE_RANGE_MM[0] <= d <= DISTANCE_RANGE_MM[1]:
             raise InputError(f"samples[{i}].distance_mm", d, f"between {DISTANCE_RANGE_MM[0]:g} and "
                              f"{DISTANCE_RANGE_MM[1]:g} mm", "distances are in mm from the lens")
+        if c is not None and sg is not None and (c < 0 or sg <= 0):
+            bad = "coc_diameter_px" if c < 0 else "sigma_px"
+            raise InputError(f"samples[{i}].{bad}", r[bad], "> 0 px" if bad == "sigma_px" else ">= 0 px",
+                             "a blur diameter and its sigma are never negative; leave both empty where an edge has "
+                             "no measurement")
         if c is None or sg is None or not (math.isfinite(c) and math.isfinite(sg) and sg > 0 and c >= 0):
             dropped += 1  # the estimator could not measure this edge
             truncated += "window_truncated" in _flags(r)
