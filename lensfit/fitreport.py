@@ -31,6 +31,37 @@ import numpy as np
 from lensfit.fit import FitResult
 from lensfit.sample_table import SampleTable
 
+#: An edge whose robust weight is below this counts as down-weighted, in the header, the table and
+#: the plots alike (``lensfit.plots`` draws it hollow).
+DOWN_WEIGHTED = 0.5
+
+
+def budget_text(quantities: dict[str, Any]) -> str:
+    """"variance from: ...": per headline quantity of a setting, the sources carrying at least a
+    tenth of its variance, largest first ("" where none is known)."""
+    parts = []
+    for qn in ("focal_length_mm", "f_number", "focus_distance_mm"):
+        est = quantities.get(qn)
+        shares = est.shares if est is not None and est.value is not None else None
+        big = sorted(((v, k) for k, v in (shares or {}).items() if v >= 0.1), reverse=True)
+        if big:
+            parts.append(f"{qn} " + ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f}%" for v, k in big))
+    return "variance from: " + "; ".join(parts) if parts else ""
+
+
+def calibration_text(cal: dict[str, Any] | None) -> str:
+    """"calibration: focal length ... px (how its sigma was found, views, reprojection RMS)" for a
+    setting's entry of the results' ``calibration`` ("" where it was not calibrated)."""
+    if not cal or cal.get("source") != "calibrated":
+        return ""
+    how = cal.get("focal_length_sigma_method") or "sigma"
+    views = f"{cal['views']} views"
+    if cal.get("informative_views"):  # a jackknife, pooled with the corners' model
+        how += " with the corners' model"
+        views = f"{cal['informative_views']:.1f} informative of {views}"
+    return (f"calibration: focal length {cal['focal_length_px']:.1f} ± {cal['focal_length_sigma_px']:.2g} px "
+            f"({how}, {views}, reprojection RMS {cal['rms_px']:.3g} px)")
+
 #: Overlays wider than this (px) are drawn downscaled (the picture, not the measurement).
 OVERLAY_WIDTH_PX = 1400
 #: |residual| / sigma above which an edge is listed as suspicious.
@@ -84,7 +115,7 @@ def overlay_figure(image: np.ndarray, name: str, samples: list, blur: np.ndarray
         if (~ok).any():
             ax.add_collection(LineCollection(segments[~ok], colors="0.6", linewidths=1.2))
         if ok.any():
-            styles = ["--" if (np.isfinite(wt) and wt < 0.5) else "-" for wt in w[ok]]
+            styles = ["--" if (np.isfinite(wt) and wt < DOWN_WEIGHTED) else "-" for wt in w[ok]]
             lc = LineCollection(segments[ok], cmap=cmap, norm=norm, linewidths=2.6, linestyles=styles)
             lc.set_array(np.clip(values[ok], norm.vmin, norm.vmax))
             ax.add_collection(lc)
@@ -121,7 +152,7 @@ def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarra
                      "distance_mm": (float(d.min()), float(d.max())),
                      "rms_residual_sigma": float(np.sqrt(np.mean(zi**2))) if zi.size else math.nan,
                      "suspicious": int((np.abs(zi) > SUSPICIOUS_SIGMAS).sum()),
-                     "down_weighted": int((w[idx][np.isfinite(w[idx])] < 0.5).sum())})
+                     "down_weighted": int((w[idx][np.isfinite(w[idx])] < DOWN_WEIGHTED).sum())})
     return rows
 
 
@@ -176,7 +207,9 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
              f"<meta name=\"generator\" content=\"{software_tag('lensfit')}\">"
              f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
              f"<h1>{html.escape(title)}</h1>",
-             f"<p class='note'>lensfit {__version__}; {result.n_samples} edges used, {result.n_outliers} down-weighted; "
+             f"<p class='note'>lensfit {__version__}; {result.n_samples} edges used, "
+             f"{int(np.sum(result.weights < DOWN_WEIGHTED))} down-weighted (robust weight below {DOWN_WEIGHTED:g}), "
+             f"{result.n_outliers} beyond 5 robust scales; "
              f"RMS residual {result.rms_residual_px:.3g} px, reduced chi-square {result.chi2_reduced:.3g}, "
              f"loss {result.loss}; pupil magnification "
              + (f"P = {result.pupil_magnification.value:.4g} ({result.pupil_magnification_source})"
@@ -184,6 +217,20 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
                 f"P {html.escape(result.pupil_magnification.reason or 'not determined')}")
              + "; distances from the entrance pupil.</p>",
              f"<h2>Estimates: fit {html.escape(result.code)}</h2>", _estimates_table(result, document)]
+    for label, quantities in result.settings.items():
+        lines = [text for text in (budget_text(quantities),
+                                   calibration_text((document.get("calibration") or {}).get(label))) if text]
+        if lines:
+            parts.append(f"<p class='note'>setting {html.escape(label)}: " + "<br>".join(map(html.escape, lines))
+                         + "</p>")
+    if "diffraction" in document:
+        d = document["diffraction"]
+        parts.append(f"<p class='note'>diffraction modelled at {d['wavelength_nm']:g} nm ({d['mode']}; "
+                     f"{d['rounds']} round(s) of measuring)</p>")
+    prov = document.get("provenance") or {}
+    if prov.get("command"):
+        parts.append(f"<p class='note'>command: <code>{html.escape(str(prov['command']))}</code>"
+                     + (f"; {html.escape(str(prov['date']))}" if prov.get("date") else "") + "</p>")
     for reason in result.reasons:
         parts.append(f"<p class='bad'>{html.escape(reason)}</p>")
     for warning in [*table.warnings, *result.warnings]:

@@ -136,3 +136,14 @@ def test_a_command_process_runs_one_blas_thread_and_reuses_freed_memory(preset):
     bare = subprocess.run([sys.executable, "-c", _PROCESS_PROBE.replace("command_process()", "")],
                           capture_output=True, text=True, env=env)
     assert bare.stdout.split()[1] in ("1", "None")
+
+
+@pytest.mark.parametrize("coc, says", [("30", "30 um is --coc 0.03"), ("1.5", "at most 1 mm")])
+def test_a_coc_in_the_wrong_unit_is_refused_with_the_fix(capsys, coc, says):
+    """Micrometres typed for millimetres (30 for 0.03) give a depth of field off by 1000x: refused,
+    naming the likely slip; 0.2 mm (large format) is still taken."""
+    code, _, err = run(capsys, "dof", "--focal-length", "50", "--f-number", "4", "--focus-distance", "2000",
+                       "--coc", coc)
+    assert code == 2 and says in err and len(err.strip().splitlines()) == 1
+    assert run(capsys, "dof", "--focal-length", "150", "--f-number", "16", "--focus-distance", "5000",
+               "--coc", "0.2")[0] == 0

@@ -37,11 +37,18 @@ def test_an_image_whose_blur_is_wrong_stands_out(calibration_samples):
 def test_report_has_every_image_with_its_corners_and_edges(calibration_stack, calibration_samples, tmp_path):
     stack = load_stack(calibration_stack)
     result = fit(calibration_samples)
-    document = results_document(result, ["test"], None)
+    document = results_document(result, ["lensfit", "fit", "stack"], None, intrinsics=calibration_samples.intrinsics)
     out = tmp_path / "report.html"
     write_fit_report(out, result, document, calibration_samples, stack)
     text = out.read_text()
     assert written_by(out) == "lensfit"
+    # what decides trust: the calibration, the error budget, the command; one count of down-weighted
+    # edges, the one the table and the plots use
+    k = calibration_samples.intrinsics["a"]
+    assert f"calibration: focal length {k.focal_length_px:.1f}" in text and "variance from: " in text
+    assert "command: <code>lensfit fit stack</code>" in text
+    down = int(np.sum(result.weights < 0.5))
+    assert f"{down} down-weighted (robust weight below 0.5)" in text
     shown = re.findall(r"<h3 id='([^']+)'", text)
     assert shown == [im.file.name for im in stack.images if im.file.name in calibration_samples.corners_px
                      and any(s.image == im.file.name for s in calibration_samples.samples)]

@@ -19,6 +19,11 @@ _DOF_OPTIONS = {
 }
 
 
+#: The largest acceptable circle of confusion taken (mm): large-format film's is about 0.2 mm; a
+#: value far above it is a unit slip (micrometres typed for millimetres).
+MAX_COC_MM = 1.0
+
+
 def _dof_command(args: argparse.Namespace) -> int:
     from lensfit import optics
     from lensfit.sensors import sensor_format
@@ -29,6 +34,10 @@ def _dof_command(args: argparse.Namespace) -> int:
         if args.pixel_pitch is not None and not (args.pixel_pitch > 0 and math.isfinite(args.pixel_pitch)):
             raise InputError("pixel_pitch_mm", args.pixel_pitch, "> 0 mm and finite")
         if args.coc is not None:
+            if args.coc > MAX_COC_MM:
+                raise CliError(f"--coc must be at most {MAX_COC_MM:g} mm, got {args.coc:g}: an acceptable circle of "
+                               "confusion is a small fraction of a mm (0.005-0.2 mm from phones to large format); "
+                               f"micrometres are given as mm, e.g. 30 um is --coc {args.coc / 1000:g}")
             coc, coc_source = args.coc, "--coc"
         elif fmt is not None:
             coc = float(optics.default_coc_diameter(fmt.width_mm, fmt.height_mm))

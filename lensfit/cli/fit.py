@@ -84,18 +84,12 @@ def _write_fit_outputs(args, source: Path, table, result, document, stack=None) 
     return write_all(files, force=args.force)
 
 
-def _budget_text(shares: dict[str, float] | None) -> str:
-    """The sources carrying at least a tenth of a variance, largest first: "calibration 75%"."""
-    if not shares:
-        return ""
-    big = sorted(((v, k) for k, v in shares.items() if v >= 0.1), reverse=True)
-    return ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f}%" for v, k in big)
-
-
 def _print_fit(result, document) -> None:
     """Per setting a table of estimates (and truth, when known); diagnostics; reasons."""
     from rich.console import Console
     from rich.table import Table
+
+    from lensfit.fitreport import budget_text, calibration_text
 
     show = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
             "sensor_distance_mm", "aperture_diameter_mm", "blur_floor_px")
@@ -118,19 +112,11 @@ def _print_fit(result, document) -> None:
                           if r else ["", ""])
             t.add_row(*cells)
         out.print(t)
-        budget = [f"{qn} {text}" for qn in ("focal_length_mm", "f_number", "focus_distance_mm")
-                  if (text := _budget_text(qs[qn].shares if qs[qn].value is not None else None))]
-        if budget:
-            print("variance from: " + "; ".join(budget))
+        if budget := budget_text(qs):
+            print(budget)
         cal = (document.get("calibration") or {}).get(label)
-        if cal and cal.get("source") == "calibrated":
-            how = cal.get("focal_length_sigma_method") or "sigma"
-            views = f"{cal['views']} views"
-            if cal.get("informative_views"):  # a jackknife, pooled with the corners' model
-                how += " with the corners' model"
-                views = f"{cal['informative_views']:.1f} informative of {views}"
-            print(f"calibration: focal length {cal['focal_length_px']:.1f} ± {cal['focal_length_sigma_px']:.2g} px "
-                  f"({how}, {views}, reprojection RMS {cal['rms_px']:.3g} px)")
+        if line := calibration_text(cal):
+            print(line)
             dist = cal.get("distortion_opencv") or []
             if any(dist):
                 print(f"lens distortion k1 {dist[0]:+.3g}, k2 {dist[1]:+.3g}: each edge's blur is read through it "
