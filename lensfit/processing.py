@@ -17,8 +17,8 @@ Two kinds of evidence, each enough:
 
 Images declared sRGB-encoded (``encoding = "srgb"``, the default for JPEG) with either evidence
 have their f-number (and the aperture diameter) refused by default, naming the processing and
-the fix: the RAW files, or a linear export without sharpening. Images declared linear are
-trusted as such (a linear TIFF from a developer is the advice), but halos on them are reported.
+the fix: the RAW files, or a linear export without sharpening. Images declared linear are read
+as they are (a linear TIFF from a developer is the advice), their EXIF and halos unchecked.
 """
 
 from __future__ import annotations
@@ -125,11 +125,14 @@ def developer_of(path: Path, record: Any) -> str | None:
 
 
 def from_exif(stack: Any) -> Processing:
-    """The EXIF evidence of a stack's images."""
+    """The EXIF evidence of a stack's sRGB-encoded images (images declared linear are read as
+    they are, and their EXIF is not consulted)."""
     from lensfit.exif import read_camera_record
 
     found = Processing(encoded=any(im.encoding == "srgb" for im in stack.images))
-    for im in stack.images:
+    for im in stack.images if found.encoded else ():  # (linear images keep today's path, untouched)
+        if im.encoding != "srgb":
+            continue
         name = developer_of(im.file, read_camera_record(im.file))
         if name:
             found.developed_files.append(im.file.name)

@@ -5,6 +5,7 @@ not at all (``lensfit.outputs``)."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 from typing import Callable, Iterator
 
@@ -99,6 +100,9 @@ def run_guarded(prog: str, body: Callable[[], int],
         elif isinstance(exc, OSError):
             where = f"{exc.filename}: " if exc.filename else ""
             message, code = f"{where}{exc.strerror or exc}", 1
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                message += ("; free some space on the output's disk or write elsewhere (--out): the outputs are "
+                            "written whole or not at all, and nothing was left half-written")
         else:
             if os.environ.get("LENSFIT_TRACEBACK"):
                 raise

@@ -665,3 +665,27 @@ def test_a_target_too_small_to_pose_is_skipped_not_an_opencv_assertion():
     img = 320.0 + np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * 1e-3
     intr = Intrinsics(3000.0, (320.0, 240.0), (0.0,) * 5, 0.0, 0, "manifest")
     assert estimate_pose(Detection("square", obj, img, np.arange(4)), intr) is None
+
+
+def test_a_full_disk_is_an_error_that_leaves_nothing(tmp_path, capsys, monkeypatch):
+    """A disk that fills while the outputs are written: exit 1 with a message that says so and what
+    to do, no output, no temporary file and no lock left behind (a second run is not refused as
+    "being written")."""
+    import errno
+
+    import lensfit.outputs
+
+    def full(*_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(lensfit.outputs.os, "replace", full)
+    monkeypatch.setattr(lensfit.outputs.os, "link", full)
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = run_cli(capsys, lensfit_main, "target", "--out", out / "board.png")
+    assert code == 1
+    one_line_error(err, "No space left on device", "free some space")
+    assert list(out.iterdir()) == []
+    monkeypatch.undo()
+    code, _, err = run_cli(capsys, lensfit_main, "target", "--out", out / "board.png")
+    assert code == 0, err
