@@ -234,6 +234,14 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     for p in files:
         sizes[p] = image_size(p)
         check_image_size(p, *sizes[p], max_pixels)
+    # Portrait photos whose pixels were turned (an export that applied the EXIF orientation) have
+    # the others' width and height swapped: turned back on reading (rotate_deg), the sensor's
+    # orientation taken as the one most photos have.
+    counts = {shape: sum(1 for v in sizes.values() if v == shape) for shape in set(sizes.values())}
+    upright = max(counts, key=lambda shape: (counts[shape], shape[1] >= shape[0]))
+    turned = [p for p in files if sizes[p] == (upright[1], upright[0]) and upright[0] != upright[1]]
+    for p in turned:
+        sizes[p] = upright
     shapes = sorted(set(sizes.values()))
     if len(shapes) > 1:
         odd = next(p for p in files if sizes[p] != sizes[files[0]])
@@ -250,6 +258,10 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
                                                                                                    else "")
                                                              for f, v in by.items()) + "; split them into folders")
     notes = []
+    if turned:
+        notes.append(f"{len(turned)} portrait photo(s) (e.g. {turned[0].name}, {upright[0]} x {upright[1]} px against "
+                     f"{upright[1]} x {upright[0]}) are turned back on reading with rotate_deg = 90; where the camera "
+                     "was turned the other way, write 270 (the calibration's principal point depends on it)")
     if skipped:
         notes.append(f"{len(skipped)} {'JPEG' if prefer == 'raw' else 'RAW'} file(s) of RAW + JPEG pairs left out "
                      f"(e.g. {skipped[0]}); --prefer {'jpeg' if prefer == 'raw' else 'raw'} lists those instead")
@@ -283,6 +295,8 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     images, rows = [], []
     for p, r, k in zip(files, records, keys):
         entry: dict[str, Any] = {"file": p.name}
+        if p in turned:
+            entry["rotate_deg"] = 90
         if p.suffix.lower() in JPEG_SUFFIXES:
             entry["encoding"] = "srgb"
         elif p.suffix.lower() in (".png", ".tif", ".tiff"):

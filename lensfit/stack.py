@@ -43,6 +43,8 @@ class ImageEntry:
     black_level: float | None = None  # raw integer levels (sensor DN in a PNG/TIFF)
     white_level: float | None = None
     targets: tuple[str, ...] | None = None  # ids of the targets it shows (None: any)
+    #: counter-clockwise turn (degrees) that brings the pixels back to the sensor's orientation
+    rotate_deg: int = 0
 
 
 @dataclass
@@ -96,6 +98,8 @@ class Stack:
         entry = self.images[index]
         image = read_image(entry.file, entry.encoding, black_level=entry.black_level, white_level=entry.white_level,
                            max_pixels=self.max_pixels)
+        if entry.rotate_deg:
+            image = np.ascontiguousarray(np.rot90(image, entry.rotate_deg // 90))
         if self.hold is not None:
             self.hold[index] = image
         return image
@@ -398,16 +402,22 @@ def load_stack(path: str | Path, *, max_pixels: int | None = None, allow_outside
                                 f"valid: {', '.join(ids)}")
         size = image_size(file)
         check_image_size(file, *size, max_pixels)
+        if entry.get("rotate_deg", 0) in (90, 270):
+            size = (size[1], size[0])
         if shape is None:
             shape = size
         elif size != shape:
-            raise SpecError(file, "", f"is {size[1]} x {size[0]} px but {images[0].file.name} is "
-                            f"{shape[1]} x {shape[0]}; every image of a stack must have the same size")
+            turned = " (after its rotate_deg)" if entry.get("rotate_deg", 0) in (90, 270) else ""
+            hint = ("; a portrait photo whose pixels were turned takes rotate_deg = 90 or 270 in its [[image]]"
+                    if size == (shape[1], shape[0]) else "")
+            raise SpecError(file, "", f"is {size[1]} x {size[0]} px{turned} but {images[0].file.name} is "
+                            f"{shape[1]} x {shape[0]}; every image of a stack must have the same size{hint}")
         default_encoding = "srgb" if file.suffix.lower() in JPEG_SUFFIXES else "linear"
         images.append(ImageEntry(index=i, file=file, encoding=entry.get("encoding", default_encoding),
                                  setting=entry.get("setting", "a"), distance_mm=entry.get("distance_mm"),
                                  black_level=entry.get("black_level"), white_level=entry.get("white_level"),
-                                 targets=tuple(entry["targets"]) if "targets" in entry else None))
+                                 targets=tuple(entry["targets"]) if "targets" in entry else None,
+                                 rotate_deg=int(entry.get("rotate_deg", 0))))
     cam = data["camera"]
     if "pixel_pitch_mm" in cam:
         pitch = float(cam["pixel_pitch_mm"])

@@ -261,3 +261,26 @@ def test_hostile_photo_folders_cannot_write_toml_or_reach_outside(tmp_path, caps
     assert "intrinsics" not in manifest
     assert sorted(im["file"] for im in manifest["image"])[1].startswith("b\n[[intrinsics]]")
     assert any("Canon EOS R5" in im.get("x_exif", {}).get("camera", "") for im in manifest["image"])
+
+
+def test_portrait_photos_are_turned_back_and_fit_as_the_landscape_ones(calibration_stack, tmp_path, capsys):
+    """Photos whose pixels were turned to portrait (an export that applied the EXIF orientation):
+    ``lensfit init`` writes rotate_deg = 90 for them, says so, and the stack reads exactly the
+    pixels of the sensor: the fit equals the fit of the untouched photos."""
+    import cv2
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k, png in enumerate(sorted(calibration_stack.glob("*.png"))):
+        raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(photos / png.name), np.rot90(raw, -1) if k in (2, 5) else raw)  # turned clockwise
+    assert lensfit_main(["init", str(photos), "--pixel-pitch", "0.006"]) == 0
+    out = capsys.readouterr().out
+    assert "2 portrait photo(s)" in out and "rotate_deg = 90" in out
+    manifest = tomllib.loads((photos / "stack.toml").read_text())
+    assert [im.get("rotate_deg", 0) for im in manifest["image"]] == [0, 0, 90, 0, 0, 90, 0, 0]
+    from lensfit.stack import load_stack
+
+    turned, original = load_stack(photos), load_stack(calibration_stack)
+    for k in range(8):
+        assert np.array_equal(turned.read(k), original.read(k))
