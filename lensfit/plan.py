@@ -6,8 +6,10 @@ printed board, the plan
 
 1. finds the target distances a shot can use: the board fits in the frame (90 % of its width
    and height), its squares are large enough to detect (``min_square_px``) and the blur is
-   small enough that markers still decode and edges have room (blur diameter at most
-   ``max_blur_fraction`` of a square);
+   small enough that edges have room (blur diameter at most ``max_blur_fraction`` of a square,
+   and on a ChArUco board at most ``CLEAN_ROOM_SHARE`` of the clean room between a square's
+   edge and its marker, both sides) and the markers still decode (at most ``MARKER_CELLS`` of
+   a marker's cells);
 2. spreads n fronto-parallel shots evenly in inverse distance over that range (both sides of
    focus where the range allows it: a V measured on one arm cannot tell N from X well);
 3. computes the Cramer-Rao bound of the thin-lens circle-of-confusion fit for each n:
@@ -36,6 +38,17 @@ import numpy as np
 from lensfit.errors import InputError
 
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
+#: The calibration's fewest views (some tilted by 20-40 degrees): the plan never asks for fewer.
+MIN_SHOTS = 6
+#: A ChArUco edge is measured in the white between the square's edge and its marker: the blur
+#: diameter may fill this share of twice that gap (its radius, of the gap) before the window is
+#: cut short (flag window_truncated).
+CLEAN_ROOM_SHARE = 0.8
+#: Markers decode under a blur diameter of up to about this many of their cells (bits + border):
+#: rendered 4x4 markers through a 16 mm f/2 lens gave every corner at 0.6 cells, every one or
+#: most at 0.85-0.88 (by the render's noise), 9-12 of 15 at 1.1-1.3 cells behind the focus and
+#: none at 1.1 cells before it; 0.7 keeps a margin.
+MARKER_CELLS = 0.7
 
 
 @dataclass(frozen=True)
@@ -46,6 +59,19 @@ class Board:
     height_mm: float
     square_mm: float
     edges: int
+    #: a ChArUco board's marker side and its cells across (bits + 2 border); None: a checkerboard
+    marker_mm: float | None = None
+    marker_cells: int | None = None
+
+    def max_blur(self, square_px: np.ndarray, max_blur_fraction: float) -> np.ndarray:
+        """The largest blur diameter (px) an edge of this board measures at a square size in px."""
+        limit = max_blur_fraction * square_px
+        if self.marker_mm is not None:
+            scale = square_px / self.square_mm  # px per mm on the board
+            clean = 0.5 * (self.square_mm - self.marker_mm) * scale
+            limit = np.minimum(limit, CLEAN_ROOM_SHARE * 2.0 * clean)
+            limit = np.minimum(limit, MARKER_CELLS * self.marker_mm / self.marker_cells * scale)
+        return limit
 
     @classmethod
     def from_entry(cls, entry: dict[str, Any]) -> "Board":
@@ -54,8 +80,15 @@ class Board:
             raise InputError("target.kind", entry.get("kind"), "charuco or checkerboard for planning")
         cols, rows = (int(v) for v in entry["squares"])
         sq = float(entry["square_mm"])
+        marker, cells = None, None
+        if entry["kind"] == "charuco":
+            import re
+
+            marker = float(entry["marker_mm"])
+            bits = re.match(r"DICT_(\d+)X\d+", str(entry.get("dictionary", "")))
+            cells = (int(bits.group(1)) if bits else 6) + 2  # (ArUco's original and AprilTag dictionaries: ~6)
         # edges between neighbouring interior corners
-        return cls(cols * sq, rows * sq, sq, (cols - 2) * (rows - 1) + (cols - 1) * (rows - 2))
+        return cls(cols * sq, rows * sq, sq, (cols - 2) * (rows - 1) + (cols - 1) * (rows - 2), marker, cells)
 
 
 @dataclass
@@ -136,7 +169,7 @@ def plan_capture(focal_length_mm: float, f_number: float, focus_distance_mm: flo
               ("focus_distance_mm", X, X > f, "> the focal length (or inf)"),
               ("pixel_pitch_mm", pixel_pitch_mm, 1e-4 <= pixel_pitch_mm <= 1.0, "between 0.0001 and 1 mm"),
               ("goal", goal_rel, 0 < goal_rel < 1, "between 0 and 100 %"),
-              ("max_shots", max_shots, 3 <= max_shots <= 1000, "between 3 and 1000"),
+              ("max_shots", max_shots, MIN_SHOTS <= max_shots <= 1000, f"between {MIN_SHOTS} and 1000"),
               ("width_px", width_px, width_px >= 16 and height_px >= 16, "at least 16 x 16 px")]
     for name, value, ok, req in checks:
         if not ok:
@@ -150,7 +183,7 @@ def plan_capture(focal_length_mm: float, f_number: float, focus_distance_mm: flo
     fits = (board.width_mm * mag <= 0.9 * sensor_w) & (board.height_mm * mag <= 0.9 * sensor_h)
     square_px = board.square_mm * mag / pixel_pitch_mm
     blur = _blur_px(f, N, x, w, pixel_pitch_mm)
-    ok = fits & (square_px >= min_square_px) & (blur <= max_blur_fraction * square_px)
+    ok = fits & (square_px >= min_square_px) & (blur <= board.max_blur(square_px, max_blur_fraction))
     if not ok.any():
         why = ("the board does not fit the frame where its squares are large enough to detect" if not (
             fits & (square_px >= min_square_px)).any() else "the blur swamps the squares at every distance that fits")
@@ -173,12 +206,16 @@ def plan_capture(focal_length_mm: float, f_number: float, focus_distance_mm: flo
         shots = np.linspace(w_lo, w_hi, n)
         b = bound(f, N, x, shots, board, pixel_pitch_mm, edge_sigma_px=edge_sigma_px, edge_sigma_rel=edge_sigma_rel,
                   calibration_sigma_rel=calibration_sigma_rel)
-        curve.append({"shots": n, **b})
+        curve.append({"shots": n, **b, "distances_mm": [float(1.0 / v) for v in shots[::-1]]})
         if chosen is None and all(1.96 * b[q] <= goal_rel for q in QUANTITIES if not (q == "focus_distance_mm"
                                                                                     and x == 0)):
             chosen = n
     if x == 0:
         notes.append("focus at infinity: the focus distance's relative error is undefined; its inverse is bounded")
+    if chosen is not None and chosen < MIN_SHOTS:
+        notes.append(f"{chosen} shots would reach the goal; the calibration wants at least {MIN_SHOTS} views, some "
+                     "tilted by 20-40 degrees: the plan takes {MIN_SHOTS}".replace("{MIN_SHOTS}", str(MIN_SHOTS)))
+        chosen = MIN_SHOTS
     n_best = chosen if chosen is not None else max_shots
     shots = np.linspace(w_lo, w_hi, n_best)
     if chosen is None:
@@ -187,8 +224,6 @@ def plan_capture(focal_length_mm: float, f_number: float, focus_distance_mm: flo
         notes.append(f"{max_shots} shots do not reach {100 * goal_rel:g} % on {limiting} "
                      f"(bound {100 * 1.96 * last[limiting]:.2g} %): the edge noise or the calibration limits it; "
                      "a larger aperture (more blur per distance) or a board usable over a wider range helps")
-    if n_best < 6:
-        notes.append("calibration wants at least 6 views with some tilted by 20-40 degrees: take 6 or more")
     return Plan((float(1.0 / w_hi), float(1.0 / w_lo)), chosen, [float(1.0 / v) for v in shots[::-1]],
                 {q: curve[n_best - 3][q] for q in QUANTITIES}, curve, notes, goal_rel)
 

@@ -143,8 +143,9 @@ def _plan_command(args: argparse.Namespace) -> int:
     print("what accuracy costs in capture (shots -> 95 % half-interval of f, N, focus distance):")
     for row in plan.curve:
         if row["shots"] in (3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96) or row["shots"] == plan.shots:
+            at = (" at " + ", ".join(f"{d:.0f}" for d in row["distances_mm"]) + " mm") if row["shots"] <= 12 else ""
             print(f"  {row['shots']:>3} shots: " + ", ".join(
-                f"{100 * 1.96 * row[q]:.2g} %" if math.isfinite(row[q]) else "-" for q in QUANTITIES))
+                f"{100 * 1.96 * row[q]:.2g} %" if math.isfinite(row[q]) else "-" for q in QUANTITIES) + at)
     for note in plan.notes:
         print(f"note: {note}")
     print("note: a lower bound for an unbiased fit; tilt some shots by 20-40 degrees for the calibration")
