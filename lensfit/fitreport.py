@@ -156,6 +156,17 @@ def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarra
     return rows
 
 
+def _to_sigma(value: float | None, sigma: float | None, unbounded: str = "") -> str:
+    """``value`` to the decimal of its sigma's second significant digit (6 significant digits
+    where the sigma is 0 or unknown); ``unbounded`` for an interval end that is None."""
+    if value is None:
+        return unbounded
+    if not sigma or not math.isfinite(sigma) or sigma <= 0:
+        return f"{value:.6g}"
+    decimals = max(0, 1 - math.floor(math.log10(sigma)))
+    return f"{value:.{decimals}f}"
+
+
 def _estimates_table(result: FitResult, document: dict[str, Any]) -> str:
     truth = {(r["setting"], r["quantity"]): r for r in document.get("truth_comparison", [])}
     head = "<tr><th>setting</th><th>quantity</th><th>estimate</th><th>1 sigma</th><th>95 % interval</th>"
@@ -168,10 +179,12 @@ def _estimates_table(result: FitResult, document: dict[str, Any]) -> str:
             if est is None:
                 continue
             if est.value is None:
-                cells = ["not determined", "", ""]
+                why = html.escape(est.reason or "")
+                cells = [f"<span title='{why}'>not determined</span>" if why else "not determined", "", ""]
             else:
                 lo, hi = est.ci95
-                cells = [f"{est.value:.6g}", f"{est.sigma:.3g}", f"[{lo:.6g}, {hi:.6g}]"]
+                cells = [_to_sigma(est.value, est.sigma), f"{est.sigma:.2g}",
+                         f"[{_to_sigma(lo, est.sigma, '-inf')}, {_to_sigma(hi, est.sigma, 'inf')}]"]
             row = f"<tr><td>{html.escape(label)}</td><td>{q}</td>" + "".join(f"<td>{c}</td>" for c in cells)
             if truth:
                 t = truth.get((label, q))

@@ -509,3 +509,21 @@ def test_the_results_say_how_long_the_run_took(quick_report):
         assert doc["provenance"]["seconds_wall"] < 0.5 * first["seconds_wall"]
     else:
         assert doc["provenance"]["seconds_wall"] == first["seconds_wall"]
+
+
+def test_a_resumed_run_redoes_a_truncated_or_edited_case(quick_report, tmp_path, capsys):
+    """A case file cut short (a crash of another tool, a full disk) or edited to another case's
+    record is not a finished case: ``--resume`` runs that case again and replaces the file,
+    instead of failing on it."""
+    import shutil
+
+    out = tmp_path / "quick"
+    shutil.copytree(quick_report, out)
+    cases = sorted((out / "cache" / "cases").glob("*.json"))
+    cut, swapped = cases[0], cases[1]
+    cut.write_text(cut.read_text()[:40])
+    swapped.write_text(cases[2].read_text())
+    assert main(["bench", "--suite", "quick", "--out", str(out), "--resume", "--allow-fail"]) == 0, \
+        capsys.readouterr().err
+    for f in (cut, swapped):
+        assert json.loads(f.read_text())["id"] == f.stem

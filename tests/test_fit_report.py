@@ -77,3 +77,14 @@ def test_cli_report_written_once_replaced_only_with_force(calibration_stack, tmp
     assert lensfit_main(["fit", str(calibration_stack), "--report", str(mine), "--force"]) == 2
     assert mine.read_text() == "<html>my notes</html>"
     assert lensfit_main(["fit", str(calibration_stack), "--report", str(tmp_path / "r.txt")]) == 2
+
+
+@pytest.mark.parametrize("value, sigma, shown", [(49.9356, 1.85, "49.9"), (1004.6, 5.02, "1004.6"),
+                                                 (25.00536, 0.0088, "25.0054"), (None, 1.0, "inf"),
+                                                 (3.1, 0.0, "3.1")])
+def test_estimates_carry_the_digits_their_sigma_allows(value, sigma, shown):
+    """Two significant digits of the sigma decide the estimate's last digit (the report printed
+    six whatever the sigma); an unbounded interval end reads inf."""
+    from lensfit.fitreport import _to_sigma
+
+    assert _to_sigma(value, sigma, "inf") == shown

@@ -279,9 +279,9 @@ def run_suite(suite: Suite, out: str | Path, *, jobs: int = 1, resume: bool = Fa
     total = sum(len(t["cases"]) for t in tasks)
 
     def finished() -> int:
-        return sum((cache / "cases" / f"{c['id']}.json").is_file() for t in tasks for c in t["cases"])
+        return sum(_case_record(cache, c["id"]) is not None for t in tasks for c in t["cases"])
 
-    pending = [t for t in tasks if any(not (cache / "cases" / f"{c['id']}.json").is_file() for c in t["cases"])]
+    pending = [t for t in tasks if any(_case_record(cache, c["id"]) is None for c in t["cases"])]
     if progress:
         progress(finished(), total)
     if pending:
@@ -294,10 +294,22 @@ def run_suite(suite: Suite, out: str | Path, *, jobs: int = 1, resume: bool = Fa
     records = []
     for t in tasks:
         for c in t["cases"]:
-            f = cache / "cases" / f"{c['id']}.json"
-            if f.is_file():
-                records.append(json.loads(f.read_text()))
+            if (record := _case_record(cache, c["id"])) is not None:
+                records.append(record)
     return records
+
+
+def _case_record(cache: Path, case_id: str) -> dict[str, Any] | None:
+    """A finished case's record, or None where it is missing or is not one this suite wrote for
+    that case (truncated, edited, another case's): then the case runs again and replaces it."""
+    f = cache / "cases" / f"{case_id}.json"
+    if not f.is_file() or f.stat().st_size > 64 * 1024 * 1024:
+        return None
+    try:
+        record = json.loads(f.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return None
+    return record if isinstance(record, dict) and record.get("id") == case_id else None
 
 
 def _run_local(tasks, cache: str, jobs: int, tick: Callable[[], None]) -> None:
