@@ -689,3 +689,15 @@ def test_a_full_disk_is_an_error_that_leaves_nothing(tmp_path, capsys, monkeypat
     monkeypatch.undo()
     code, _, err = run_cli(capsys, lensfit_main, "target", "--out", out / "board.png")
     assert code == 0, err
+
+
+def test_a_bad_value_from_a_file_is_named_as_the_files_field(tmp_path, capsys):
+    """A pixel pitch of 5 (micrometres typed for mm) in a samples JSON is named as that file's
+    field, not as the command-line option the user never gave."""
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({"pixel_pitch_mm": 5, "samples": [
+        {"setting": "a", "distance_mm": 1000.0, "coc_diameter_px": 3.0, "sigma_px": 0.1}]}))
+    code, _, err = run_cli(capsys, lensfit_main, "fit", path)
+    assert code == 2
+    one_line_error(err, "samples.pixel_pitch_mm", "got 5")
+    assert "--pixel-pitch" not in err

@@ -142,11 +142,15 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     for i in swap:
         rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
                    "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot"}))}
-    pitch = pixel_pitch_mm if pixel_pitch_mm is not None else ctx.get("pixel_pitch_mm")
+    stated = ctx.get("pixel_pitch_mm")
+    stated = None if isinstance(stated, float) and math.isnan(stated) else stated  # (a table without one)
+    pitch = pixel_pitch_mm if pixel_pitch_mm is not None else stated
+    # (named as the samples' own field where the value came from them, not the argument)
+    field = "pixel_pitch_mm" if pixel_pitch_mm is not None or stated is None else "samples.pixel_pitch_mm"
     if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
-        raise InputError("pixel_pitch_mm", pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
+        raise InputError(field, pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
     if not PIXEL_PITCH_RANGE_MM[0] <= pitch <= PIXEL_PITCH_RANGE_MM[1]:
-        raise InputError("pixel_pitch_mm", pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
+        raise InputError(field, pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
                          "mm (0.1 micrometre to 1 mm)", "pixel pitches are given in mm, e.g. 0.0059 for 5.9 um")
     used, used_rows, dropped, truncated = [], [], 0, 0
     for i, r in enumerate(rows):
