@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
@@ -77,35 +76,37 @@ def _distance_scale(xp, s, pitch, fpx_cal):
     return xp.where(fpx_cal > 0, pitch * fpx_cal / s, 1.0)
 
 
-def _model(theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
-    """Blur diameter in px of each sample (JAX); ``pose`` (0/1 per sample): its distances come
-    from a target pose solved with the setting's calibrated ``fpx_cal`` (and scale with it);
-    ``field2`` its squared field (0 where unknown): field curvature moves its in-focus inverse
-    distance to ``x + kappa field2``."""
-    import jax.numpy as jnp
-
+def _blur(xp, theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
+    """Blur diameter in px of each sample, and the pinhole distance S per setting, with the
+    array module ``xp`` (jax.numpy in the solver, NumPy for predictions: one model). ``setting``
+    is each sample's setting index; ``pose`` (0/1 per sample): its distances come from a target
+    pose solved with the setting's calibrated ``fpx_cal`` (per setting; 0: none), and scale with
+    it; ``field2`` its squared field (0 where unknown): field curvature moves its in-focus
+    inverse distance to ``x + kappa field2``."""
     log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(theta, m)
     kappa = theta[Layout(m).curvature()] / 1000.0  # 1/mm
-    f = jnp.exp(log_f)
+    f = xp.exp(log_f)
     x = inv_focus_per_m / 1000.0  # 1/mm
-    s = _pinhole_distance(jnp, f, x, jnp.exp(log_p))
-    slope_px = f * s / jnp.exp(log_n) / pitch  # K/p = A S / p
-    k = setting
-    mu = 1.0 + pose * (_distance_scale(jnp, s, pitch, fpx_cal)[k] - 1.0)
-    w = w_nodes * mu[:, None] - (kappa[k] * field2)[:, None]
-    return _edge_blur(jnp, slope_px[k], x[k], w, floor[k]), s
+    s = _pinhole_distance(xp, f, x, xp.exp(log_p))
+    slope_px = f * s / xp.exp(log_n) / pitch  # K/p = A S / p
+    mu = 1.0 + pose * (_distance_scale(xp, s, pitch, fpx_cal)[setting] - 1.0)
+    w = w_nodes * mu[:, None] - (kappa[setting] * field2)[:, None]
+    return _edge_blur(xp, slope_px[setting], x[setting], w, floor[setting]), s
+
+
+def _model(theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
+    """:func:`_blur` in JAX (the solver's)."""
+    import jax.numpy as jnp
+
+    return _blur(jnp, theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2)
 
 
 def _model_np(theta, m, k, w_nodes, pitch, fpx_cal=0.0, pose=0.0, field2=0.0):
-    """The same for the samples of setting ``k`` (NumPy); ``fpx_cal`` that setting's calibrated
-    focal length in px (0: none), ``pose`` 0/1 and ``field2`` per sample or one for all."""
-    log_f, inv_focus_per_m, log_n, floor, log_p = (np.asarray(a) for a in _unpack(np.asarray(theta), m))
-    kappa = float(np.asarray(theta)[Layout(m).curvature(k)]) / 1000.0
-    f = math.exp(log_f)
-    x = inv_focus_per_m[k] / 1000.0
-    s = float(_pinhole_distance(np, f, x, math.exp(log_p)))
+    """:func:`_blur` in NumPy for samples of setting ``k`` alone; ``fpx_cal`` that setting's
+    calibrated focal length in px (0: none), ``pose`` 0/1 and ``field2`` per sample or one for all."""
     n = len(w_nodes)
-    mu = 1.0 + np.asarray(pose, float) * (float(_distance_scale(np, s, pitch, np.float64(fpx_cal))) - 1.0)
-    shift = kappa * np.broadcast_to(np.nan_to_num(np.asarray(field2, float)), (n,))
-    return _edge_blur(np, np.full(n, f * s / math.exp(log_n[k]) / pitch), np.full(n, x),
-                      w_nodes * np.broadcast_to(mu, (n,))[:, None] - shift[:, None], np.full(n, floor[k]))
+    fpx = np.zeros(m)
+    fpx[k] = fpx_cal
+    return _blur(np, np.asarray(theta, np.float64), m, np.full(n, k), np.asarray(w_nodes, np.float64), pitch, fpx,
+                 np.broadcast_to(np.asarray(pose, float), (n,)),
+                 np.broadcast_to(np.nan_to_num(np.asarray(field2, float)), (n,)))[0]
