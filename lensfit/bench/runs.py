@@ -89,7 +89,7 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
     cache_dir = Path(cache)
     cases_dir = cache_dir / "cases"
     cases_dir.mkdir(parents=True, exist_ok=True)
-    todo = [c for c in task["cases"] if not (cases_dir / f"{c['id']}.json").is_file()]
+    todo = [c for c in task["cases"] if _case_record(cache_dir, c["id"]) is None]
     if not todo:
         return []
     scene_path = Path(task["scene"])
