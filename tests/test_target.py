@@ -21,6 +21,8 @@ def test_png_board_detects_with_the_stated_geometry(tmp_path, capsys):
     out = tmp_path / "board.png"
     assert main(["target", "--out", str(out), "--paper", "a4-landscape", "--dpi", "150"]) == 0
     text = capsys.readouterr().out
+    # the photographer's checklist comes with the page
+    assert all(w in text for w in ("RAW", "stabilisation off", "autofocus off", "lens corrections", "tilted"))
     entry = dict(re.findall(r"^(\w+) = (.+)$", text, flags=re.M))
     square_mm = float(entry["square_mm"])
     cols, rows = (int(v) for v in re.findall(r"\d+", entry["squares"]))

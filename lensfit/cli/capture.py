@@ -42,6 +42,10 @@ def _target_command(args: argparse.Namespace) -> int:
           f"{board.page_mm[0]:g} x {board.page_mm[1]:g} mm, {board.dpi:.1f} dpi.")
     print("# Print at 100 % (actual size), mount it flat, measure a square: where it is not "
           f"{e['square_mm']:g} mm, scale square_mm and marker_mm below by the measured ratio.")
+    print("# Then photograph it: RAW (or RAW + JPEG), a tripod, image stabilisation off, focus set once per "
+          "setting and autofocus off between shots, in-camera lens corrections (distortion, vignetting) off; "
+          "the board at 6 or more distances on both sides of the focus, some shots tilted 20-40 degrees "
+          "(lensfit plan gives the distances).")
     print("# stack.toml entry:")
     print(target_toml(e), end="")
     return EXIT_OK
