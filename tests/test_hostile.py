@@ -485,6 +485,7 @@ def test_manifest_numbers_that_are_not_physical_are_refused(tmp_path, capsys, li
     ("f_number = 4.0", "f_number = 0.3", "lens.f_number"),
     ("pixel_pitch_mm = 0.006", "pixel_pitch_mm = 1e300", "camera.pixel_pitch_mm"),
     ("distance_mm = 1200.0", "distance_mm = -inf", "object[0].distance_mm"),
+    ("[[object]]", "[background]\nvalue = 1e308\n\n[[object]]", "background.value"),
 ])
 def test_scene_numbers_that_are_not_physical_are_refused(tmp_path, capsys, old, new, field):
     scene = scene_file(tmp_path, SCENE.replace(old, new))
