@@ -125,8 +125,9 @@ def written_by(path: str | Path) -> str | None:
         return None
     if suffix == ".json":
         try:
-            doc = json.loads(path.read_text())
-        except (OSError, ValueError):
+            # (lensfit's JSON outputs are some MB at most: a larger file is not read to find out)
+            doc = json.loads(path.read_text()) if path.stat().st_size <= _MAX_OWN_JSON_BYTES else None
+        except (OSError, ValueError, RecursionError):
             return None
         prov = doc.get("provenance") if isinstance(doc, dict) else None
         if not isinstance(prov, dict):
@@ -195,8 +196,9 @@ def foreign_entry(folder: Path) -> str | None:
     stack_toml, truth_json = folder / "stack.toml", folder / "truth.json"
     try:
         first_line = stack_toml.read_text().split("\n", 1)[0] if stack_toml.is_file() else ""
-        truth = json.loads(truth_json.read_text()) if truth_json.is_file() else None
-    except (OSError, ValueError):
+        truth = (json.loads(truth_json.read_text())
+                 if truth_json.is_file() and truth_json.stat().st_size <= _MAX_OWN_JSON_BYTES else None)
+    except (OSError, ValueError, RecursionError):
         truth = None
     if not first_line.startswith("# Written by synth") or not isinstance(truth, dict):
         return entries[0]
@@ -342,6 +344,11 @@ class OutputLock:
         for lock in self._held:
             lock.unlink(missing_ok=True)
         self._held.clear()
+
+
+#: The largest JSON file lensfit or synth writes (a samples file of a large stack, a truth.json
+#: with every edge): checked before reading one to see who wrote it.
+_MAX_OWN_JSON_BYTES = 256 * 1024 * 1024
 
 
 def temporary_sibling(path: Path) -> Path:

@@ -702,3 +702,12 @@ def test_a_bad_value_from_a_file_is_named_as_the_files_field(tmp_path, capsys):
     assert code == 2
     one_line_error(err, "samples.pixel_pitch_mm", "got 5")
     assert "--pixel-pitch" not in err
+
+
+def test_a_huge_sparse_json_is_not_read_to_see_who_wrote_it(tmp_path):
+    """A 4 GB sparse file named like lensfit's results is not ours (nothing lensfit writes is that
+    large): judged from its size, not read whole (6 GB of memory before)."""
+    big = tmp_path / "results.json"
+    with big.open("wb") as fh:
+        fh.truncate(4 * 1024**3)
+    assert written_by(big) is None
