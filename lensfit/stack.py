@@ -186,11 +186,28 @@ def _decode_jpeg(path: Path) -> np.ndarray:
         return np.asarray(im)
 
 
+def _check_png_chunks(path: Path, data: np.ndarray) -> None:
+    """Refuse a PNG whose chunks claim more bytes than the file holds: the decoder allocates by the
+    claimed length (a 12 KB file claiming 2 GB took 2.1 GB before failing)."""
+    raw = data.tobytes()
+    at = 8  # after the signature
+    while at + 8 <= len(raw):
+        length = int.from_bytes(raw[at:at + 4], "big")
+        kind = raw[at + 4:at + 8]
+        if length > len(raw) - at - 12:
+            raise SpecError(path, "", f"is not a whole PNG: its {kind.decode('latin-1')!r} chunk claims {length} bytes, "
+                            f"{len(raw) - at - 12} remain in the file; is it truncated or corrupt?")
+        if kind == b"IEND":
+            return
+        at += 12 + length
+
+
 def _decode_png(path: Path) -> np.ndarray:
     """Every PNG layout at its full bit depth (1-16 bit grey, grey + alpha, RGB, RGBA, palette)."""
     import cv2
 
     data = np.fromfile(path, dtype=np.uint8)
+    _check_png_chunks(path, data)
     log = cv2.utils.logging
     level = log.getLogLevel()
     log.setLogLevel(log.LOG_LEVEL_SILENT)  # a corrupt file is reported below as one line, not as OpenCV's log

@@ -711,3 +711,18 @@ def test_a_huge_sparse_json_is_not_read_to_see_who_wrote_it(tmp_path):
     with big.open("wb") as fh:
         fh.truncate(4 * 1024**3)
     assert written_by(big) is None
+
+
+def test_a_png_chunk_claiming_more_than_the_file_is_refused_before_decoding(tmp_path):
+    """A PNG whose IDAT length reads 0x7FFFFFFF (the decoder allocated 2.1 GB for a 12 KB file):
+    refused from its chunk table, naming the chunk and what the file holds."""
+    import struct
+
+    ok, buf = cv2.imencode(".png", np.full((40, 60), 128, np.uint8))
+    data = bytearray(buf.tobytes())
+    at = data.index(b"IDAT") - 4
+    data[at:at + 4] = struct.pack(">I", 0x7FFFFFFF)
+    bomb = tmp_path / "bomb.png"
+    bomb.write_bytes(bytes(data))
+    with pytest.raises(SpecError, match="'IDAT' chunk claims 2147483647 bytes"):
+        read_image(bomb)
