@@ -29,11 +29,8 @@ from typing import Any
 import numpy as np
 
 from lensfit.fit import FitResult
+from lensfit.plots import DOWN_WEIGHTED
 from lensfit.sample_table import SampleTable
-
-#: An edge whose robust weight is below this counts as down-weighted, in the header, the table and
-#: the plots alike (``lensfit.plots`` draws it hollow).
-DOWN_WEIGHTED = 0.5
 
 
 def budget_text(quantities: dict[str, Any]) -> str:

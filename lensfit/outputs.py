@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
 from lensfit.errors import OutputError
+from lensfit.specs import MAX_JSON_BYTES
 
 PROGRAMS = ("lensfit", "synth")
 
@@ -126,7 +127,7 @@ def written_by(path: str | Path) -> str | None:
     if suffix == ".json":
         try:
             # (lensfit's JSON outputs are some MB at most: a larger file is not read to find out)
-            doc = json.loads(path.read_text()) if path.stat().st_size <= _MAX_OWN_JSON_BYTES else None
+            doc = json.loads(path.read_text()) if path.stat().st_size <= MAX_JSON_BYTES else None
         except (OSError, ValueError, RecursionError):
             return None
         prov = doc.get("provenance") if isinstance(doc, dict) else None
@@ -197,7 +198,7 @@ def foreign_entry(folder: Path) -> str | None:
     try:
         first_line = stack_toml.read_text().split("\n", 1)[0] if stack_toml.is_file() else ""
         truth = (json.loads(truth_json.read_text())
-                 if truth_json.is_file() and truth_json.stat().st_size <= _MAX_OWN_JSON_BYTES else None)
+                 if truth_json.is_file() and truth_json.stat().st_size <= MAX_JSON_BYTES else None)
     except (OSError, ValueError, RecursionError):
         truth = None
     if not first_line.startswith("# Written by synth") or not isinstance(truth, dict):
@@ -344,11 +345,6 @@ class OutputLock:
         for lock in self._held:
             lock.unlink(missing_ok=True)
         self._held.clear()
-
-
-#: The largest JSON file lensfit or synth writes (a samples file of a large stack, a truth.json
-#: with every edge): checked before reading one to see who wrote it.
-_MAX_OWN_JSON_BYTES = 256 * 1024 * 1024
 
 
 def temporary_sibling(path: Path) -> Path:

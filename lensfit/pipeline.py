@@ -41,7 +41,7 @@ from lensfit.errors import InputError
 from lensfit.fit.data import AIRY_NOT_SEEN
 from lensfit.fit.floor_choice import floor_sensitive, widen
 from lensfit.fit.spots import AUTO_MIN_AIRY_PX, airy_per_setting
-from lensfit.processing import POLICIES, apply, assess, from_exif
+from lensfit.processing import POLICIES, apply, assess
 
 #: Re-measurements at most, and the change of every f-number below which they stop.
 MAX_ROUNDS = 4
@@ -206,9 +206,8 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         # The edges' profiles are kept for the rounds, which solve them again with the Airy pattern
         # (``measure``'s ``keep_profiles``: the same readings, a quarter less time a round).
         # (and for the halo test of sRGB-encoded images)
-        encoded = any(im.encoding == "srgb" for im in stack.images)
         table = measure(stack, estimator, progress=progress,
-                        keep_profiles=auto or wavelength_nm is not None or encoded, on_edges=on_edges)
+                        keep_profiles=auto or wavelength_nm is not None or stack.encoded, on_edges=on_edges)
     except BaseException:
         for thread in ahead:
             thread.join()
@@ -217,7 +216,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         ahead[0].join()
     warming = ahead[1] if len(ahead) > 1 else airy_ahead() if auto or wavelength_nm else None
     try:
-        found = assess(stack, table) if estimator in ("edge", "edge-disk") else from_exif(stack)
+        found = assess(stack, table)  # (the halos where the edge estimator kept its profiles)
         out = _fit_rounds(stack, table, estimator, wavelength_nm, options, progress, auto, warming)
     finally:
         if warming is not None:

@@ -214,7 +214,7 @@ def plan_capture(focal_length_mm: float, f_number: float, focus_distance_mm: flo
         notes.append("focus at infinity: the focus distance's relative error is undefined; its inverse is bounded")
     if chosen is not None and chosen < MIN_SHOTS:
         notes.append(f"{chosen} shots would reach the goal; the calibration wants at least {MIN_SHOTS} views, some "
-                     "tilted by 20-40 degrees: the plan takes {MIN_SHOTS}".replace("{MIN_SHOTS}", str(MIN_SHOTS)))
+                     f"tilted by 20-40 degrees: the plan takes {MIN_SHOTS}")
         chosen = MIN_SHOTS
     n_best = chosen if chosen is not None else max_shots
     shots = np.linspace(w_lo, w_hi, n_best)

@@ -11,6 +11,10 @@ import numpy as np
 
 from lensfit.fit import FitResult
 
+#: A sample whose robust weight is below this counts as down-weighted, in the plots (hollow) and
+#: the fit report's header and table alike.
+DOWN_WEIGHTED = 0.5
+
 
 def plot_fit(result: FitResult, path, *, title: str | None = None, image_format: str | None = None) -> None:
     """Write a PNG/SVG/PDF (by suffix, or ``image_format`` for a file object) of the samples,
@@ -40,7 +44,7 @@ def plot_fit(result: FitResult, path, *, title: str | None = None, image_format:
         moved = fc is not None and fc.value is not None
         if moved:  # each sample where its blur puts it on the axis: 1/d - kappa tan^2(field angle)
             w = w - fc.value * np.nan_to_num(data.field2[sel])
-        good = result.weights[sel] >= 0.5  # (lensfit.fitreport.DOWN_WEIGHTED)
+        good = result.weights[sel] >= DOWN_WEIGHTED
         ax.errorbar(w[good], data.coc_px[sel][good], yerr=data.sigma_px[sel][good], fmt="o", ms=3, color=col,
                     alpha=0.7, lw=0.8, label=f"setting {label}: {int(sel.sum())} edges"
                     + (" (moved to the axis by the fitted field curvature)" if moved else ""))

@@ -69,15 +69,13 @@ def charuco_page(paper: str = "a4-landscape", squares: tuple[int, int] = (9, 6),
     ``square_mm`` defaults to the largest whole half-millimetre that fits ``squares`` inside the
     page's margins; ``marker_mm`` to ``MARKER_RATIO`` of it (a whole half-millimetre).
     """
-    import cv2
-
-    from lensfit.targets import charuco_board, charuco_texels_per_square
+    from lensfit.targets import aruco_dictionary, aruco_dictionary_names, charuco_board, charuco_texels_per_square
 
     page_w, page_h = paper_size(paper)
     cols, rows = (int(v) for v in squares)
     if not (3 <= cols <= 60 and 3 <= rows <= 60):
         raise InputError("squares", f"{cols} x {rows}", "3 to 60 squares each way")
-    if not hasattr(cv2.aruco, dictionary) or not dictionary.startswith("DICT_"):
+    if dictionary not in aruco_dictionary_names():
         raise InputError("dictionary", dictionary, "an OpenCV ArUco dictionary, e.g. DICT_5X5_100 or DICT_4X4_50")
     room_w, room_h = page_w - 2 * MARGIN_MM, page_h - 2 * MARGIN_MM
     if square_mm is None:
@@ -93,7 +91,7 @@ def charuco_page(paper: str = "a4-landscape", squares: tuple[int, int] = (9, 6),
     if not (0 < marker_mm < square_mm):
         raise InputError("marker_mm", marker_mm, f"between 0 and the square side ({square_mm:g} mm)")
     n_markers = (cols * rows) // 2
-    capacity = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).bytesList.shape[0]
+    capacity = aruco_dictionary(dictionary).bytesList.shape[0]
     if n_markers > capacity:
         raise InputError("squares", f"{cols} x {rows}", f"at most {capacity} markers for {dictionary} "
                          f"({n_markers} needed)", "or a larger dictionary (e.g. DICT_5X5_250)")

@@ -129,9 +129,9 @@ def from_exif(stack: Any) -> Processing:
     they are, and their EXIF is not consulted)."""
     from lensfit.exif import read_camera_record
 
-    found = Processing(encoded=any(im.encoding == "srgb" for im in stack.images))
-    for im in stack.images if found.encoded else ():  # (linear images keep today's path, untouched)
-        if im.encoding != "srgb":
+    found = Processing(encoded=stack.encoded)
+    for im in stack.images:
+        if im.encoding != "srgb":  # (linear images keep today's path, untouched)
             continue
         name = developer_of(im.file, read_camera_record(im.file))
         if name:
@@ -150,7 +150,7 @@ def assess(stack: Any, table: Any) -> Processing:
 
     found = from_exif(stack)
     state = (table.profiles or {}).get("state")
-    if state is not None and any(im.encoding == "srgb" for im in stack.images):
+    if state is not None and found.encoded:
         radius, batch, index = state[1], state[7], state[8]
         amounts, var = halo_amounts(batch, [radius[i] for i in index])
         found.halo_amount, found.halo_sigma, found.halo_edges = pooled(np.asarray(amounts), np.asarray(var))
@@ -165,16 +165,13 @@ def apply(result: Any, found: Processing, policy: str = "refuse") -> None:
 
     result.processing = found
     if math.isfinite(result.chi2_reduced) and result.chi2_reduced > MISFIT_CHI2:
-        cause = (found.describe() if found.biases_f_number or found.halos else
+        cause = (found.describe() if found.biases_f_number else
                  "likely causes: images developed or sharpened beyond what their EXIF and edges show, a lens's "
                  "aberrations wide open (stop down), or a lens that moved between shots")
         result.warnings.append(f"the blur readings scatter about the fitted V {math.sqrt(result.chi2_reduced):.1f} "
                                f"times more than their noise (reduced chi-square {result.chi2_reduced:.1f}); the "
                                f"intervals are widened by it, but a systematic cause is not noise: {cause}")
-    if not found.biases_f_number:
-        if found.halos:
-            result.warnings.append(f"{found.describe()}; the images are declared linear, so their blur is read as it "
-                                   "is: check that they were exported without sharpening")
+    if not found.biases_f_number:  # (halos are looked for on sRGB-encoded images only, so they bias it)
         return
     if policy == "report":
         result.warnings.append(f"{found.describe()}: the f-number reads high (typically 5-20 %) and its interval "

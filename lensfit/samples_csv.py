@@ -41,8 +41,7 @@ def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
         twice = sorted({c for c in names if names.count(c) > 1})
         if twice:
             raise SpecError(path, twice[0], "column appears twice in the header; one value per column")
-        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in (reader.fieldnames
-                                                                                                      or [])]
+        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in names]
         if missing:
             raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
         for i, r in enumerate(reader, start=2):

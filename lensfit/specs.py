@@ -50,7 +50,7 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise SpecError(path, "", f"cannot be read ({exc})") from None
 
 
-#: The largest JSON file lensfit reads (a samples file of about a million rows): a bigger one is
+#: The largest JSON file lensfit reads or writes (a samples file of about a million rows): a bigger one is
 #: refused before it is read, not parsed into memory many times its size.
 MAX_JSON_BYTES = 256 * 1024 * 1024
 

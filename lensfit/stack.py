@@ -76,6 +76,11 @@ class Stack:
     hold: dict[int, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     @property
+    def encoded(self) -> bool:
+        """Whether any image is declared sRGB-encoded (``encoding = "srgb"``) rather than linear."""
+        return any(im.encoding == "srgb" for im in self.images)
+
+    @property
     def settings(self) -> list[str]:
         """Setting labels in first-seen order."""
         seen: dict[str, None] = {}
@@ -344,14 +349,14 @@ def _check_board(manifest_path: Path, i: int, t: dict[str, Any]) -> None:
     if not t["marker_mm"] < t["square_mm"]:
         raise SpecError(manifest_path, f"{field}.marker_mm", f"got {t['marker_mm']:g}: a marker lies inside its "
                         f"square, so it must be smaller than square_mm ({t['square_mm']:g}); measure both on the print")
-    import cv2
+    from lensfit.targets import aruco_dictionary, aruco_dictionary_names
 
     name = t["dictionary"]
-    known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+    known = aruco_dictionary_names()
     if name not in known:
         raise SpecError(manifest_path, f"{field}.dictionary", f"got {name!r}: not an ArUco dictionary OpenCV knows; "
                         f"e.g. {', '.join(k for k in known if k.startswith('DICT_4X4') or k.startswith('DICT_5X5'))}")
-    capacity = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0]
+    capacity = aruco_dictionary(name).bytesList.shape[0]
     if squares[0] * squares[1] // 2 > capacity:
         raise SpecError(manifest_path, f"{field}.squares", f"got {squares}: a ChArUco board of that size needs "
                         f"{squares[0] * squares[1] // 2} markers and {name} holds {capacity}; check the squares "
@@ -419,15 +424,16 @@ def load_stack(path: str | Path, *, max_pixels: int | None = None, allow_outside
                                 f"valid: {', '.join(ids)}")
         size = image_size(file)
         check_image_size(file, *size, max_pixels)
-        if entry.get("rotate_deg", 0) in (90, 270):
+        turned = entry.get("rotate_deg", 0) in (90, 270)
+        if turned:
             size = (size[1], size[0])
         if shape is None:
             shape = size
         elif size != shape:
-            turned = " (after its rotate_deg)" if entry.get("rotate_deg", 0) in (90, 270) else ""
             hint = ("; a portrait photo whose pixels were turned takes rotate_deg = 90 or 270 in its [[image]]"
                     if size == (shape[1], shape[0]) else "")
-            raise SpecError(file, "", f"is {size[1]} x {size[0]} px{turned} but {images[0].file.name} is "
+            raise SpecError(file, "", f"is {size[1]} x {size[0]} px{' (after its rotate_deg)' if turned else ''} but "
+                            f"{images[0].file.name} is "
                             f"{shape[1]} x {shape[0]}; every image of a stack must have the same size{hint}")
         default_encoding = "srgb" if file.suffix.lower() in JPEG_SUFFIXES else "linear"
         images.append(ImageEntry(index=i, file=file, encoding=entry.get("encoding", default_encoding),

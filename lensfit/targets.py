@@ -23,13 +23,27 @@ from typing import Any
 import numpy as np
 
 
+def aruco_dictionary_names() -> list[str]:
+    """The predefined ArUco dictionaries OpenCV has (``DICT_4X4_50``, ...), sorted."""
+    import cv2
+
+    return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+
+
+def aruco_dictionary(name: str):
+    """OpenCV's predefined ArUco dictionary ``name`` (one of :func:`aruco_dictionary_names`): its
+    ``markerSize`` (bits across) and ``bytesList`` (one row per marker)."""
+    import cv2
+
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+
+
 def charuco_board(squares, square_mm: float, marker_mm: float, dictionary: str, legacy_pattern: bool = False):
     """OpenCV's ``CharucoBoard`` (OpenCV >= 4.7 API); ``legacy_pattern`` for boards made
     before OpenCV 4.6 with an even number of rows."""
     import cv2
 
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    board = cv2.aruco.CharucoBoard(tuple(squares), float(square_mm), float(marker_mm), d)
+    board = cv2.aruco.CharucoBoard(tuple(squares), float(square_mm), float(marker_mm), aruco_dictionary(dictionary))
     if legacy_pattern:
         board.setLegacyPattern(True)
     return board
@@ -43,9 +57,7 @@ def charuco_texels_per_square(square_mm: float, marker_mm: float, dictionary: st
     bit edge moves by up to a texel. Returns the smallest such resolution >= ``minimum`` (or the
     closest one up to 512).
     """
-    import cv2
-
-    cells = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).markerSize + 2
+    cells = aruco_dictionary(dictionary).markerSize + 2
     ratio = marker_mm / square_mm
     best, best_err = minimum, float("inf")
     for n in range(minimum, 513):

@@ -152,9 +152,9 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str],
         ids = [i for i in ids if i in listed]
         if ids and len(listed) > 1:  # with one target there is nothing to say
             entry["targets"] = ids
-    out = {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}
     from synth.geometry import CompoundLensCamera
 
+    out = {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}
     # synth's lenses focus as a unit (the whole lens moves), as its user knows.
     out["lens"] = {"focusing": "unit"}
     if not any(isinstance(shot.camera, CompoundLensCamera) for shot in scene.shots):

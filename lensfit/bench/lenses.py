@@ -174,7 +174,8 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
             one.samples = near
             one.intrinsics = {"near": table.intrinsics["near"]}
             P = truth["settings"]["near"]["pupil_magnification"]
-            fits = {"thin (one setting)": fit(one, pupil_magnification=1.0), "thick, P given (one setting)": fit(one, pupil_magnification=P),
+            fits = {"thin (one setting)": fit(one, pupil_magnification=1.0),
+                    "thick, P given (one setting)": fit(one, pupil_magnification=P),
                     "thick (bracket, P fitted)": bracket}
             calibration = {label: {"focal_length_px": k.focal_length_px, "sigma": k.focal_length_sigma_px,
                                    "sigma_method": k.focal_length_sigma_method, "views": k.views,

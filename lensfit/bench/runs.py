@@ -302,12 +302,14 @@ def run_suite(suite: Suite, out: str | Path, *, jobs: int = 1, resume: bool = Fa
 def _case_record(cache: Path, case_id: str) -> dict[str, Any] | None:
     """A finished case's record, or None where it is missing or is not one this suite wrote for
     that case (truncated, edited, another case's): then the case runs again and replaces it."""
+    from lensfit.specs import load_json
+
     f = cache / "cases" / f"{case_id}.json"
-    if not f.is_file() or f.stat().st_size > 64 * 1024 * 1024:
+    if not f.is_file():
         return None
     try:
-        record = json.loads(f.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        record = load_json(f, max_bytes=64 * 1024 * 1024)
+    except SpecError:
         return None
     return record if isinstance(record, dict) and record.get("id") == case_id else None
 

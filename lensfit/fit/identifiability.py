@@ -73,9 +73,9 @@ def photographic_prior(why_not: str) -> tuple[float, tuple[float, float], str]:
     determine P (``why_not``) and no value or range was given."""
     return 1.0, (0.0, 1.0 / PHOTOGRAPHIC_P_SIGMA_LOG), (
         f"pupil magnification P not determined ({why_not}): carried over the range of photographic lenses "
-        "(telephotos about 0.5 to retrofocus wide angles 2.5), which widens f and N by about (f/X)|1/P - 1|; give the lens's P "
-        "(pupil_magnification in stack.toml's [lens], or --pupil-magnification) as a value or a range, or add a "
-        "second focus setting, to narrow them")
+        "(telephotos about 0.5 to retrofocus wide angles 2.5), which widens f and N by about (f/X)|1/P - 1|; "
+        "give the lens's P (pupil_magnification in stack.toml's [lens], or --pupil-magnification) as a value or "
+        "a range, or add a second focus setting, to narrow them")
 
 
 def _pupil_mode(value) -> tuple:

@@ -9,7 +9,7 @@ import numpy as np
 
 from lensfit.fit.constants import FLOOR_SADDLE_PX, FLOOR_START_PX, _CAUCHY_C, _HUBER_K
 from lensfit.fit.data import FitData
-from lensfit.fit.model import Layout, _model, _model_np, _pinhole_distance, _unpack
+from lensfit.fit.model import Layout, _blur, _model, _pinhole_distance, _unpack
 
 
 def _residuals(theta_free, args):
@@ -381,10 +381,7 @@ def _solver_residual_fn(m):
 
 
 def _predict_all(theta: np.ndarray, m: int, data: FitData) -> np.ndarray:
-    out = np.empty(len(data.coc_px))
-    fpx = np.nan_to_num(data.focal_length_px, nan=0.0)
-    for k in range(m):
-        sel = data.setting == k
-        out[sel] = _model_np(theta, m, k, data.w_nodes[sel], data.pixel_pitch_mm, fpx[k], data.pose[sel],
-                             data.field2[sel])
-    return out
+    """The model's blur of every sample (NumPy), all settings at once."""
+    return _blur(np, np.asarray(theta, np.float64), m, data.setting, data.w_nodes, data.pixel_pitch_mm,
+                 np.nan_to_num(data.focal_length_px, nan=0.0), np.asarray(data.pose, float),
+                 np.nan_to_num(np.asarray(data.field2, float)))[0]
