@@ -31,3 +31,23 @@ class StageClock:
             yield
         finally:
             self.seconds[name] += (time.perf_counter() - t) - (self.seconds["read"] - r)
+
+    @contextmanager
+    def parallel(self, names: tuple[str, ...]):
+        """Stages run side by side in threads: the caller reports each item's seconds per stage
+        (in ``names``' order) to the function this yields, and the section's wall time is shared
+        among the stages in proportion to those sums."""
+        sums = [0.0] * len(names)
+
+        def spent(*seconds: float) -> None:
+            for k, v in enumerate(seconds):
+                sums[k] += v
+
+        t = time.perf_counter()
+        try:
+            yield spent
+        finally:
+            wall, total = time.perf_counter() - t, sum(sums)
+            for name, v in zip(names, sums):
+                self.seconds[name] += wall * (v / total if total > 0 else 1.0 / len(names))
+

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+import time
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable
@@ -23,6 +24,7 @@ from lensfit.clock import StageClock
 from lensfit.calibration import calibrate, estimate_pose, few_informative_views, known_intrinsics, outlier_views
 from lensfit.errors import InputError, SpecError
 from lensfit.estimators import EdgeTask, get_estimator
+from lensfit.parallel import check_jobs, in_threads
 from lensfit.sample_table import Sample, SampleTable
 from lensfit.stack import Stack, load_stack
 from lensfit.edge_geometry import bow_margin, edge_tasks, refine_corners, unbowed
@@ -36,6 +38,12 @@ SATURATED_FRACTION_LIMIT = 0.01
 #: A stack whose images take at most this many bytes (float64) is held in memory between the
 #: stages; a larger one (many RAW files) is read again where needed.
 HOLD_BYTES = 2 << 30
+#: Images searched for targets at once are bounded by memory as well as by ``jobs``: each holds
+#: about this many bytes per pixel while it is searched (the float64 image, a float32 and three
+#: 8-bit copies, the percentile's sort), and all of them at most ``IN_FLIGHT_BYTES`` (a 45 MP
+#: camera: two at a time; 24 MP: five).
+DETECT_BYTES_PER_PX = 24
+IN_FLIGHT_BYTES = 3 << 30
 
 
 def _check_saturation(stack: Stack, index: int, image: np.ndarray, det: Detection) -> None:
@@ -91,7 +99,8 @@ def in_background(load: Callable[[], None], name: str) -> threading.Thread:
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
             progress: Callable[[str, int, int], None] | None = None,
             airy_px: dict[str, float] | None = None, detected: SampleTable | None = None,
-            on_edges: Callable[[int, int], None] | None = None, keep_profiles: bool = False) -> SampleTable:
+            on_edges: Callable[[int, int], None] | None = None, keep_profiles: bool = False,
+            jobs: int | None = None) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
 
     Parameters
@@ -121,6 +130,9 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     keep_profiles : bool
         Keep the edge estimator's profiles in the table (``SampleTable.profiles``) for a later
         measure with the Airy pattern (``detected``); memory: about 4 kB an edge.
+    jobs : int, optional
+        Images read and searched for targets at once, in threads (default: the cores this
+        process may use; ``lensfit.parallel``). The results are the same whatever it is.
 
     Returns
     -------
@@ -138,6 +150,7 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     >>> table.write("samples.csv")                      # doctest: +SKIP
     """
     fn = get_estimator(estimator)
+    jobs = check_jobs(jobs)
     if airy_px is not None and estimator not in ("edge", "edge-disk"):
         raise InputError("estimator", estimator, "edge or edge-disk where diffraction is modelled",
                          "the target estimator has no diffraction model")
@@ -156,7 +169,7 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         same = detected is not None and len(detected.detections) == len(stack.images)
         return _measure(stack, estimator, fn, refine, progress, airy_px,
                         detected.detections if same else None, on_edges,
-                        {} if keep_profiles else detected.profiles if same else None)
+                        {} if keep_profiles else detected.profiles if same else None, jobs)
     finally:
         if warming is not None:
             warming.join()
@@ -189,7 +202,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
              progress: Callable[[str, int, int], None] | None, airy_px: dict[str, float] | None,
              detected: dict[int, list[Detection]] | None = None,
              on_edges: Callable[[int, int], None] | None = None,
-             profiles: dict[str, Any] | None = None) -> SampleTable:
+             profiles: dict[str, Any] | None = None, jobs: int = 1) -> SampleTable:
     """:func:`measure` once its arguments are checked (the edge estimator's compiled fits loading
     in the background meanwhile, :func:`_prewarm`); ``detected``: the targets of each image as an
     earlier measure of the stack detected them; ``on_edges``: see :func:`measure`; ``profiles``:
@@ -214,26 +227,38 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             progress(stage, step[0], total)
 
     detections: dict[int, list[Detection]] = {i: list(found) for i, found in (detected or {}).items()}
-    for i in range(n):
-        if detected is not None:
-            tick("detect")
-            continue
+    candidates: dict[int, list[Target]] = {}
+    for i in range(n if detected is None else 0):
         entry = stack.images[i]
-        candidates = [t for t in targets if entry.targets is None or t.id in entry.targets]
-        squares = [t.id for t in candidates if t.kind == "slanted-edge"]
+        candidates[i] = [t for t in targets if entry.targets is None or t.id in entry.targets]
+        squares = [t.id for t in candidates[i] if t.kind == "slanted-edge"]
         if len(squares) > 1:
             # Each would claim the same dark square with its own printed size: wrong distances.
             raise SpecError(stack.manifest_path, f"image[{i}].targets",
                             f"{entry.file.name} may show slanted-edge targets {', '.join(squares)}, which look alike; "
                             "list the one it shows (targets = [\"ID\"]); one slanted-edge square per image")
-        img = read(i)
-        with clock.stage("detect"):
-            copies = detection_copies(img) if candidates else []
-            found = [d for d in (t.detect(img, copies) for t in candidates) if d is not None]
+
+    def detect(i: int) -> tuple[list[Detection], float, float]:
+        # Reading (decoding) and OpenCV's detection release the GIL: images run in threads.
+        t0 = time.perf_counter()
+        img = stack.read(i)
+        t1 = time.perf_counter()
+        copies = detection_copies(img) if candidates[i] else []
+        found = [d for d in (t.detect(img, copies) for t in candidates[i]) if d is not None]
         for d in found:
             _check_saturation(stack, i, img, d)
-        detections[i] = found
-        tick("detect")
+        return found, t1 - t0, time.perf_counter() - t1
+
+    if detected is None:
+        jobs = max(1, min(jobs, IN_FLIGHT_BYTES // max(DETECT_BYTES_PER_PX * stack.shape[0] * stack.shape[1], 1)))
+        with clock.parallel(("read", "detect")) as spent:
+            for i, (found, *seconds) in enumerate(in_threads(detect, range(n), jobs)):
+                detections[i] = found
+                spent(*seconds)
+                tick("detect")
+    else:
+        for i in range(n):
+            tick("detect")
     table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape,
                         detections={i: list(found) for i, found in detections.items()}, lens=dict(stack.lens))
     missing = [stack.images[i].file.name for i in range(n) if not detections[i]]

@@ -117,7 +117,8 @@ def diffraction_test(stack: Any, table: Any, airy: dict[str, float]) -> dict[str
 def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float | None = None,
                     fit_options: dict[str, Any] | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
-                    auto_diffraction: bool = False, processed: str = "refuse") -> tuple[Any, Any, list[dict[str, float]]]:
+                    auto_diffraction: bool = False, processed: str = "refuse",
+                    jobs: int | None = None) -> tuple[Any, Any, list[dict[str, float]]]:
     """Measure ``stack`` and fit it: what ``lensfit fit`` runs.
 
     With ``wavelength_nm`` (the light's effective wavelength, e.g. 550 for a grey or
@@ -149,6 +150,8 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         Where sRGB-encoded images were developed (EXIF) or sharpened (halos on the edges;
         ``lensfit.processing``): "refuse" (default) the f-number, naming the cause and the fix, or
         "report" it with a warning.
+    jobs : int, optional
+        Images read and searched for targets at once (``lensfit.measure.measure``; default the cores).
 
     Returns
     -------
@@ -206,7 +209,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         # The edges' profiles are kept for the rounds, which solve them again with the Airy pattern
         # (``measure``'s ``keep_profiles``: the same readings, a quarter less time a round).
         # (and for the halo test of sRGB-encoded images)
-        table = measure(stack, estimator, progress=progress,
+        table = measure(stack, estimator, progress=progress, jobs=jobs,
                         keep_profiles=auto or wavelength_nm is not None or stack.encoded, on_edges=on_edges)
     except BaseException:
         for thread in ahead:

@@ -179,7 +179,7 @@ def apply(result: Any, found: Processing, policy: str = "refuse") -> None:
         return
     reason = found.reason()
     for quantities in result.settings.values():
-        for q in ("f_number", "aperture_diameter_mm"):
+        for q in ("f_number", "f_number_effective", "aperture_diameter_mm"):
             before = quantities.get(q)
             if before is not None:  # (a reason of its own is kept after the processing's)
                 quantities[q] = Estimate(None, reason=reason if before.value is not None or not before.reason

@@ -78,8 +78,8 @@ class SampleTable:
     #: beside them the calibration from the corners as detected and the edges it gives, which
     #: that measure takes too where its detections are these very objects
     profiles: dict[str, Any] | None = None
-    #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``), which the fit
-    #: takes where no argument gives it; written to the samples JSON
+    #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``, ``ideal``), which the
+    #: fit takes where no argument gives it; written to the samples JSON
     lens: dict[str, Any] = field(default_factory=dict)
 
     COLUMNS = SAMPLES_CSV_COLUMNS
@@ -139,8 +139,9 @@ class SampleTable:
         except (TypeError, ValueError) as exc:
             raise SpecError(path, "pixel_pitch_mm", f"unreadable ({exc}); expected what lensfit measure writes") from None
         lens = doc.get("lens") or {}
-        if not isinstance(lens, dict) or not set(lens) <= {"pupil_magnification", "focusing"}:
-            raise SpecError(path, "lens", "holds what stack.toml's [lens] says: pupil_magnification, focusing")
+        if not isinstance(lens, dict) or not set(lens) <= {"pupil_magnification", "focusing", "ideal"}:
+            raise SpecError(path, "lens", "holds what stack.toml's [lens] says: pupil_magnification, focusing, "
+                            "ideal")
         table.lens = {k: tuple(v) if isinstance(v, list) else v for k, v in lens.items()}
         intrinsics = doc.get("intrinsics") or {}
         if not isinstance(intrinsics, dict):

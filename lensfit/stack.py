@@ -70,7 +70,7 @@ class Stack:
     intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_pixels: int | None = None
     #: what is known of the lens (``[lens]``: ``pupil_magnification``, a value or a (lo, hi) range;
-    #: ``focusing``, unit, internal or unknown)
+    #: ``focusing``, unit, internal or unknown; ``ideal``, a lens without aberrations)
     lens: dict[str, Any] = field(default_factory=dict)
     #: images kept in memory once read (None: read again each time; :meth:`holding`)
     hold: dict[int, np.ndarray] | None = field(default=None, repr=False, compare=False)

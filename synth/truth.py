@@ -161,4 +161,5 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str],
         # A thin lens's pupils coincide with it (P = 1), as a user of any renderer's thin-lens camera
         # knows; a compound lens's P is left for the data (or the spread of photographic lenses).
         out["lens"]["pupil_magnification"] = 1.0
+        out["lens"]["ideal"] = True  # (no aberrations: its f-number is the blur's own)
     return out

@@ -23,7 +23,7 @@ from lensfit.fit.constants import BLUR_SCALE_SIGMA
 from lensfit.fit.uncertainty import BUDGET_SOURCES
 
 #: The simulated lenses are thin (P = 1) and focus as a unit: what their user would declare.
-THIN = {"pupil_magnification": 1.0, "focusing": "unit"}
+THIN = {"pupil_magnification": 1.0, "focusing": "unit", "ideal_lens": True}
 PITCH = 0.004
 F, N, X = 35.0, 4.0, 1500.0
 IMAGES, EDGES = 12, 16

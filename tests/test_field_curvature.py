@@ -44,7 +44,7 @@ def simulate(R_mm, rng, *, n=240, noise_px=0.05, rel_noise=0.005, tan_max=0.12, 
 
 def run(rows, mode="auto"):
     return fit(rows, pixel_pitch_mm=PITCH, focal_length_px=S / PITCH, focal_length_sigma_px=1e-4 * S / PITCH,
-               field_curvature=mode)
+               field_curvature=mode, ideal_lens=True)
 
 
 def inside(est, truth):

@@ -46,7 +46,7 @@ def simulate(f, N, D, distances, rng, *, noise_px=0.05, rel_noise=0.005, floor_p
 
 
 #: The simulated lens is thin (P = 1) and focuses as a unit: what its user would declare.
-THIN = {"pupil_magnification": 1.0, "focusing": "unit"}
+THIN = {"pupil_magnification": 1.0, "focusing": "unit", "ideal_lens": True}
 
 
 def run_fit(rows, fpx, fpx_sigma, **kw):

@@ -198,6 +198,39 @@ def test_images_read_again_and_no_background_loading_give_the_same_samples(calib
         [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in calibration_samples.samples]
 
 
+def test_images_in_threads_give_the_same_samples_as_one_at_a_time(calibration_stack, calibration_samples):
+    """--jobs is only speed: one image at a time and four at once (the fixture: the cores) give
+    the same samples and intrinsics, bit for bit; a bad count is refused naming it."""
+    from lensfit.errors import InputError
+    from lensfit.measure import measure
+
+    for jobs in (1, 4):
+        table = measure(calibration_stack, jobs=jobs)
+        assert [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in table.samples] == \
+            [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in calibration_samples.samples]
+        assert {k: v.focal_length_px for k, v in table.intrinsics.items()} == \
+            {k: v.focal_length_px for k, v in calibration_samples.intrinsics.items()}
+    with pytest.raises(InputError, match="jobs"):
+        measure(calibration_stack, jobs=0)
+
+
+def test_an_error_in_one_image_of_many_in_threads_is_the_first_in_order(tmp_path):
+    """Threads do not change which failure is reported: the first bad image in the stack's order."""
+    from lensfit.parallel import in_threads
+
+    def work(i):
+        if i in (3, 6):
+            raise ValueError(f"image {i}")
+        return i * i
+
+    got = []
+    with pytest.raises(ValueError, match="image 3"):
+        for v in in_threads(work, range(10), jobs=4):
+            got.append(v)
+    assert got == [0, 1, 4]
+    assert list(in_threads(lambda i: i + 1, range(7), jobs=3)) == list(range(1, 8))
+
+
 def test_measuring_again_from_the_first_detections_gives_the_same_samples(calibration_stack, calibration_samples,
                                                                           monkeypatch):
     """The diffraction rounds measure a stack again from the targets as first detected: no
@@ -606,29 +639,38 @@ def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkey
     assert used <= loaded, sorted(used - loaded)
 
 
-def test_the_target_estimators_sigma_holds_its_errors(calibration_stack):
+def test_the_target_estimators_sigma_holds_its_errors(calibration_stack, monkeypatch):
     """The ``target`` estimator (analysis by synthesis) on the calibration stack's edges (0-5 px
     of blur, boards tilted up to 30 degrees, noise-free) against the truth maps' CoC at each edge's
-    middle: every edge read, its error over its stated sigma 1.06 RMS (2026-11-27), 93 % within 2
-    sigma, near the focus plane as well. With one texture sample per sub-pixel (the squares'
-    edges on a 1/4 px staircase, which the fit read as blur; before 2026-11-27): RMS 6.3, 52 %
-    within 2 sigma, 9.2 RMS below 1.5 px of blur."""
+    middle: every edge read, its error over its stated sigma 1.06 RMS over all 121 edges, 93 %
+    within 2 sigma, near the focus plane as well (with one texture sample per sub-pixel, the
+    squares' edges on a 1/4 px staircase that the fit read as blur: RMS 6.3, 52 % within 2 sigma,
+    9.2 RMS below 1.5 px of blur). Every other edge is read here (the estimator takes about a second
+    an edge on 2 cores)."""
     from scipy.ndimage import map_coordinates
 
+    from lensfit.estimators import target
+    from lensfit.estimators.base import BlurEstimate
     from lensfit.measure import measure
 
+    whole = target.measure
+    monkeypatch.setattr(target, "measure", lambda image, tasks: [
+        est for pair in zip(whole(image, tasks[::2]), [BlurEstimate(None, None, ("skipped",))] * len(tasks))
+        for est in pair][:len(tasks)])
     truth = json.loads((calibration_stack / "truth.json").read_text())
     maps = {i["file"]: np.load(calibration_stack / i["maps"])["coc_diameter_px"] for i in truth["images"]}
     table = measure(calibration_stack, "target")
     z, small = [], []
     for s in table.samples:
+        if "skipped" in s.flags:
+            continue
         assert s.coc_diameter_px is not None, s.flags
         mid = (np.array(s.start_px) + np.array(s.end_px)) / 2
         c = map_coordinates(maps[s.image], [[mid[1]], [mid[0]]], order=1)[0]
         z.append((s.coc_diameter_px - c) / s.sigma_px)
         small.append(c < 1.5)
     z, small = np.array(z), np.array(small)
-    assert len(z) > 100 and small.sum() > 30
+    assert len(z) > 50 and small.sum() > 15
     rms, within = np.sqrt(np.mean(z**2)), np.mean(np.abs(z) < 2)
     assert rms < 1.4 and within > 0.85, (rms, within)
     assert np.sqrt(np.mean(z[small] ** 2)) < 1.6, np.sqrt(np.mean(z[small] ** 2))

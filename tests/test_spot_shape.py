@@ -46,7 +46,7 @@ def n_of(result):
 def test_auto_takes_the_disk_only_where_an_untested_airy_pattern_would_matter(pitch, n, airy_large):
     # Airy scale 550 nm x N_w / p: 1.5 px at f/11 on 4 um pixels; 0.15 px at f/2.8 on 10 um.
     rs, fpx = rows(50.0, n, 2000.0, pitch)
-    kw = dict(pixel_pitch_mm=pitch, focal_length_px=fpx, focal_length_sigma_px=0.0)
+    kw = dict(pixel_pitch_mm=pitch, focal_length_px=fpx, focal_length_sigma_px=0.0, ideal_lens=True)
     shaped, disk, auto = (fit(rs, spot_shape=m, **kw) for m in ("shaped", "disk", "auto"))
     assert n_of(disk) == pytest.approx(n_of(fit(as_disk(rs), **kw)), rel=1e-9)
     assert n_of(shaped) == pytest.approx(n, rel=0.01) and n_of(disk) == pytest.approx(n / 1.04, rel=0.01)
@@ -69,7 +69,7 @@ def test_auto_takes_the_disk_only_on_the_settings_where_the_pattern_would_matter
     narrow, _ = rows(50.0, 11.0, 1000.0, 0.004, seed=1)
     both = wide + [{**r, "setting": "b", "image": "b" + r["image"]} for r in narrow]
     kw = dict(pixel_pitch_mm=0.004, focal_length_px={"a": fpx, "b": 1.0 / (1 / 50.0 - 1 / 1000.0) / 0.004},
-              focal_length_sigma_px=0.0)
+              focal_length_sigma_px=0.0, ideal_lens=True)
     auto = fit(both, **kw)
     assert auto.settings["a"]["f_number"].value == pytest.approx(2.8, rel=0.01)  # the shapes
     assert auto.settings["b"]["f_number"].value == pytest.approx(11.0 / 1.04, rel=0.01)  # the disk

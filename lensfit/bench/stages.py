@@ -120,14 +120,18 @@ def _subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
 
 
 def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[float, ...] = (1.0, 1.5, 2.0),
-        progress=None, repeat: int = 3, warm_runs: int = 3) -> dict:
+        progress=None, repeat: int = 3, warm_runs: int = 3, jobs: tuple[int, ...] = (1,)) -> dict:
     """Rows of seconds per stage (cold and warm) per configuration; the OpenCV ratio per scale.
 
     Returns {"rows": [...], "provenance": ...}; each row: images, megapixels, edges, cold and warm
     seconds per stage and in total (warm: the median of ``warm_runs`` calls), the whole-process
     seconds of ``lensfit fit`` and of the OpenCV reference, and their ratio (scales only):
     ``repeat`` pairs of the two processes run back to back (a virtual machine's speed drifts
-    within minutes), the median of each and of the pairs' ratios (``ratios``: every pair's)."""
+    within minutes), the median of each and of the pairs' ratios (``ratios``: every pair's).
+    With more than one count in ``jobs``, the whole ``lensfit fit`` runs at each ``--jobs`` too
+    (``lensfit_fit_process_s_by_jobs``, the medians of ``repeat`` runs taken in turn), the speed-up
+    of the most over one (``jobs_speedup``) and whether every run's results were the same
+    (``jobs_identical``, provenance aside); the ratio to OpenCV is then the most jobs' run."""
     from lensfit.outputs import provenance
 
     stack = Path(stack)
@@ -148,19 +152,30 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
                             for s in (*STAGES, "total")},
                    "warm_runs": len(child["warm_runs"])}
             if count == n_all:  # whole process: lensfit fit against OpenCV's detect + calibrate
-                pairs = []
+                pairs, by_jobs, documents = [], {n: [] for n in jobs}, []
                 for j in range(max(repeat, 1)):
-                    out_json = Path(tmp) / f"r{k}-{j}.json"
-                    t_fit, _ = _run("from lensfit.cli import run; run()", "fit", str(folder), "--out", str(out_json))
+                    for n in jobs:
+                        out_json = Path(tmp) / f"r{k}-{j}-{n}.json"
+                        t_fit, _ = _run("from lensfit.cli import run; run()", "fit", str(folder), "--out",
+                                        str(out_json), "--jobs", str(n))
+                        by_jobs[n].append(t_fit)
+                        document = json.loads(out_json.read_text())
+                        document.pop("provenance", None)
+                        documents.append(document)
                     t_cv, _ = _run(_OPENCV, str(folder))
-                    pairs.append((t_fit, t_cv))
+                    pairs.append((by_jobs[jobs[-1]][-1], t_cv))
                 fits, cvs = zip(*pairs)
                 row.update(lensfit_fit_process_s=statistics.median(fits), opencv_process_s=statistics.median(cvs),
                            ratio=statistics.median(f / c for f, c in pairs), ratios=[f / c for f, c in pairs])
+                if len(jobs) > 1:
+                    medians = {n: statistics.median(v) for n, v in by_jobs.items()}
+                    row.update(lensfit_fit_process_s_by_jobs=medians,
+                               jobs_speedup=medians[jobs[0]] / medians[jobs[-1]],
+                               jobs_identical=all(d == documents[0] for d in documents))
             rows.append(row)
     if progress:
         progress("done", len(configs), len(configs))
-    return {"rows": rows, "provenance": provenance("lensfit bench-stages")}
+    return {"rows": rows, "jobs": list(jobs), "provenance": provenance("lensfit bench-stages")}
 
 
 def _shape(folder: Path) -> tuple[int, int]:
@@ -181,5 +196,14 @@ def table(report: dict) -> str:
         extra = ([f"{r['lensfit_fit_process_s']:.1f} s", f"{r['opencv_process_s']:.1f} s", f"{r['ratio']:.1f}x"]
                  if "ratio" in r else ["", "", ""])
         lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {r['edges']} | " + " | ".join(cells + extra) + " |")
+    jobs = report.get("jobs") or [1]
+    if len(jobs) > 1:
+        lines += ["", "| images | MP | " + " | ".join(f"`--jobs {n}`" for n in jobs) + " | speed-up | results |",
+                  "|" + "---|" * (len(jobs) + 4)]
+        for r in report["rows"]:
+            if "jobs_speedup" in r:
+                times = " | ".join(f"{r['lensfit_fit_process_s_by_jobs'][n]:.1f} s" for n in jobs)
+                same = "identical" if r["jobs_identical"] else "DIFFER"
+                lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {times} | {r['jobs_speedup']:.2f}x | {same} |")
     return "\n".join(lines)
 

@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="which file of a RAW + JPEG pair to list (default raw: linear, no tone curve)")
     it.add_argument("--out", metavar="FILE", help="manifest to write (default PHOTOS_DIR/stack.toml)")
     it.add_argument("--force", action="store_true", help="replace a stack.toml lensfit init wrote")
-    _input_options(it, outside=False)
+    _input_options(it, outside=False, jobs=False)
     it.set_defaults(func=_init_command, prog="lensfit init")
 
     pl = sub.add_parser("plan", help="where to put the target and how many shots for a requested accuracy",
@@ -166,6 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="how the lens focuses: unit (the whole lens moves: settings share f and P, and a focus bracket "
                          "fits P), internal (a group inside moves: f changes with focus) or unknown; default: "
                          "stack.toml's [lens] focusing, else unknown (each setting fitted by itself)")
+    ft.add_argument("--ideal-lens", action=argparse.BooleanOptionalAction, default=None,
+                    help="the lens has no aberrations (a renderer's thin-lens camera): report the blur's own f-number. "
+                         "Default: stack.toml's [lens] ideal, else a real lens: the nominal f-number (EFL / entrance "
+                         "pupil) with the spread of real designs' blur against it carried in its interval")
     ft.add_argument("--processed", choices=("refuse", "report"), default="refuse",
                     help="where sRGB-encoded images were developed (EXIF names a raw developer or a camera's JPEG "
                          "engine) or sharpened (halos on the edges): refuse (default) the f-number, which such "
@@ -276,6 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="whole-process pairs (lensfit fit, OpenCV) run back to back; medians (default 3)")
     bs.add_argument("--warm-runs", type=int, default=3, metavar="K",
                     help="warm calls per configuration after the cold one; each stage's median (default 3)")
+    bs.add_argument("--jobs", type=int, nargs="+", default=[1], metavar="N",
+                    help="also run the whole `lensfit fit` at each --jobs N (e.g. 1 2) and report the speed-up and "
+                         "whether the results are identical (default 1)")
     bs.add_argument("--json", action="store_true", help="print JSON")
     bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
 

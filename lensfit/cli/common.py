@@ -82,13 +82,28 @@ def _pupil(text: str) -> float | tuple[float, float]:
         raise argparse.ArgumentTypeError(f"expected a number or LO:HI, got {text!r}") from None
 
 
-def _input_options(p: argparse.ArgumentParser, outside: bool = True) -> None:
+def _jobs(text: str) -> int:
+    """--jobs: a whole number of threads, 1 to 256."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"got {text!r}: a whole number of images at once, e.g. 2") from None
+    if not 1 <= value <= 256:
+        raise argparse.ArgumentTypeError(f"got {value}: from 1 to 256")
+    return value
+
+
+def _input_options(p: argparse.ArgumentParser, outside: bool = True, jobs: bool = True) -> None:
     """Options on reading a stack: the pixel budget and reading outside the stack folder."""
     from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
 
     p.add_argument("--max-megapixels", type=_number, default=DEFAULT_MAX_MEGAPIXELS, metavar="MP",
                    help=f"refuse images larger than this, checked from the file header before decoding "
                         f"(default {DEFAULT_MAX_MEGAPIXELS:g})")
+    if jobs:
+        p.add_argument("--jobs", type=_jobs, default=None, metavar="N",
+                       help="images read and searched for targets at once, in threads (default: the cores; the "
+                            "results are the same whatever N is)")
     if outside:
         p.add_argument("--allow-outside-stack", action="store_true",
                        help="read image files that stack.toml names outside the stack folder (refused by default)")

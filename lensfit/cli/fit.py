@@ -30,11 +30,11 @@ def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | 
             bar.update(task, description=stage, completed=done, total=total)
 
         if fit_options is None:
-            return measure(stack, args.estimator, progress=progress)
+            return measure(stack, args.estimator, progress=progress, jobs=args.jobs)
         mode = getattr(args, "diffraction", "off")
         return measure_and_fit(stack, args.estimator, wavelength_nm=mode if isinstance(mode, float) else None,
                                fit_options=fit_options, progress=progress, auto_diffraction=mode == "auto",
-                               processed=getattr(args, "processed", "refuse"))
+                               processed=getattr(args, "processed", "refuse"), jobs=args.jobs)
 
 
 def _measure_command(args: argparse.Namespace) -> int:
@@ -114,6 +114,11 @@ def _print_fit(result, document) -> None:
         out.print(t)
         if budget := budget_text(qs):
             print(budget)
+        eff = qs.get("f_number_effective")
+        if eff is not None and eff.value is not None and qs["f_number"].value is not None:
+            print(f"f-number {qs['f_number'].text()} is the nominal one (EFL / entrance pupil); the blur's own reading "
+                  f"is {eff.text()} {eff.interval_text()}: real designs' ratio divided out (declare an ideal lens "
+                  "with [lens] ideal = true)")
         cal = (document.get("calibration") or {}).get(label)
         if line := calibration_text(cal):
             print(line)
@@ -196,9 +201,11 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     forced = isinstance(args.diffraction, float)  # a wavelength; else "auto" or "off"
     options = dict(pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
                    blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification,
-                   field_curvature=args.field_curvature, spot_shape=args.spot_shape, focusing=args.focusing)
-    if options["focusing"] is None:
-        del options["focusing"]
+                   field_curvature=args.field_curvature, spot_shape=args.spot_shape, focusing=args.focusing,
+                   ideal_lens=args.ideal_lens)
+    for name in ("focusing", "ideal_lens"):
+        if options[name] is None:
+            del options[name]
     if source.suffix.lower() in (".csv", ".json") and not source.exists():
         raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
                        "or a stack folder")

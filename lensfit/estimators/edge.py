@@ -188,6 +188,40 @@ def _radius_terms(theta, cov) -> tuple[float, float, float, float]:
     return rho, slope, var_rho, math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - math.sqrt(rho)
 
 
+class _Ahead:
+    """The images ``sources`` (arrays, or callables that read them) in order, the next one read in a
+    background thread while the caller works on the current one (decoding releases the GIL): a
+    stack too large to hold is read again with its reading hidden behind the edges' gathering."""
+
+    def __init__(self, sources: list[Any]):
+        self.sources, self.k, self.pending = sources, 0, None
+        self.pool = None
+        if any(callable(src) for src in sources) and len(sources) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lensfit-read-ahead")
+
+    @staticmethod
+    def _load(source: Any) -> np.ndarray:
+        return np.asarray(source() if callable(source) else source, np.float64)
+
+    def next(self) -> np.ndarray:
+        if self.pending is not None:
+            image, self.pending = self.pending.result(), None
+        else:
+            image = self._load(self.sources[self.k])
+        self.k += 1
+        if self.pool is not None and self.k < len(self.sources):
+            self.pending = self.pool.submit(self._load, self.sources[self.k])
+        return image
+
+    def close(self) -> None:
+        if self.pool is not None:
+            if self.pending is not None:
+                self.pending.cancel()
+            self.pool.shutdown(wait=True)
+
+
 def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True,
             airy_px: float | None = None) -> list[BlurEstimate]:
     """Blur diameter at each edge of one image (see the module docstring): the second-moment
@@ -267,31 +301,35 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             for i, profile in zip(index, batch):
                 enqueue(i, profile)
         else:
-            for i, task in enumerate(tasks):
-                if results[i] is not None and attempt == 1 and radius[i] is None:
-                    continue
-                if owner[i] not in images:
-                    images.clear()  # one image in memory at a time
-                    source = items[owner[i]][0]
-                    images[owner[i]] = np.asarray(source() if callable(source) else source, np.float64)
-                half, margin, truncated = windows(task, radius[i] if attempt else None)
-                sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
-                if sel is None or len(sel[0]) < 8:
-                    results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
-                    radius[i] = None
-                    continue
-                d, s_along, v, se, n, L, short, pixels, line, se_banded, boxes = sel
-                banded[i] = (d, s_along, v, se_banded, boxes)
-                lines[i] = (line, n)
-                if attempt == 1:
-                    flags[i] = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
-                    angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
-                    if min(angle, 90.0 - angle) < AXIS_ALIGNED_DEG:
-                        flags[i].append("axis_aligned")
-                batch.append((d, s_along, v, se, boxes))
-                npixels[i] = pixels
-                index.append(i)
-                enqueue(i, batch[-1])
+            skip = [results[i] is not None and attempt == 1 and radius[i] is None for i in range(len(tasks))]
+            loader = _Ahead([items[k][0] for k in dict.fromkeys(o for o, s in zip(owner, skip) if not s)])
+            try:
+                for i, task in enumerate(tasks):
+                    if skip[i]:
+                        continue
+                    if owner[i] not in images:
+                        images.clear()  # one image in memory at a time (and the next one being read)
+                        images[owner[i]] = loader.next()
+                    half, margin, truncated = windows(task, radius[i] if attempt else None)
+                    sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
+                    if sel is None or len(sel[0]) < 8:
+                        results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
+                        radius[i] = None
+                        continue
+                    d, s_along, v, se, n, L, short, pixels, line, se_banded, boxes = sel
+                    banded[i] = (d, s_along, v, se_banded, boxes)
+                    lines[i] = (line, n)
+                    if attempt == 1:
+                        flags[i] = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
+                        angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
+                        if min(angle, 90.0 - angle) < AXIS_ALIGNED_DEG:
+                            flags[i].append("axis_aligned")
+                    batch.append((d, s_along, v, se, boxes))
+                    npixels[i] = pixels
+                    index.append(i)
+                    enqueue(i, batch[-1])
+            finally:
+                loader.close()
         if attempt == 1 and keep_profiles is not None:
             keep_profiles.update(key=key, state=tuple(list(v) for v in (
                 results, radius, flags, npixels, lines, expected, banded, batch, index)))

@@ -11,10 +11,11 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MIN_SAMPLES, FIELD_CURVATURE_MIN_SPREAD,
-                                   FIELD_CURVATURE_MODES, FIELD_CURVATURE_Z, FLOOR_PRIOR_SIGMA_PX,
-                                   FLOOR_START_PX, LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
+from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MODES, FLOOR_PRIOR_SIGMA_PX, FLOOR_START_PX,
+                                   LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
+from lensfit.fit import nominal
+from lensfit.fit.curvature import curvature_estimate, field_spread, significant_curvature
 from lensfit.fit.floor_choice import floor_sensitive, widen
 from lensfit.fit.focusing import merge, one_setting, subset, with_lens
 from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
@@ -37,7 +38,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
         pupil_magnification: float | tuple[float, float] | None = None,
         field_curvature: str = "auto", spot_shape: str = "auto", floor_choice: bool = True,
-        focusing: str | None = None) -> FitResult:
+        focusing: str | None = None, ideal_lens: bool | None = None) -> FitResult:
     """Fit focal length, and per setting f-number and focus distance, to blur samples.
 
     Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
@@ -86,6 +87,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         stack's ``[lens]`` said, else "unknown"): "unknown" or "internal" fits
         each setting by itself (f per setting; P as for one setting) and notes the joint reading;
         "unit" fits the settings together, sharing f and P (a bracket then determines P).
+    ideal_lens : bool, optional
+        The lens has no aberrations (a renderer's thin-lens camera): its f-number is the blur's own.
+        Default: the samples' ``lens`` (stack.toml ``[lens] ideal``), else False: the f-number
+        and aperture diameter are the nominal ones, with the spread of real designs carried
+        (``lensfit.fit.nominal``).
     spot_shape : str
         "auto" (default), "shaped" or "disk": where a sample gives two readings, take its spot's
         second moment or the uniform disk's (``disk_diameter_px``); "auto" takes the disk's on
@@ -118,7 +124,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("blur_floor_px", blur_floor_px, ">= 0 px and finite")
     if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
         raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
-    samples, pupil_magnification, focusing = with_lens(samples, pupil_magnification, focusing)
+    samples, pupil_magnification, focusing, ideal_lens = with_lens(samples, pupil_magnification, focusing, ideal_lens)
     pupil = _pupil_mode(pupil_magnification)
     if field_curvature not in FIELD_CURVATURE_MODES:
         raise InputError("field_curvature", field_curvature, "one of: " + ", ".join(FIELD_CURVATURE_MODES))
@@ -156,10 +162,11 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         options = dict(pixel_pitch_mm=pixel_pitch_mm, loss=loss, blur_floor_px=blur_floor_px,
                        floor_prior_sigma_px=floor_prior_sigma_px, max_irls=max_irls,
                        pupil_magnification=pupil_magnification, field_curvature=field_curvature,
-                       spot_shape=spot_shape, floor_choice=floor_choice, focusing="unit")
+                       spot_shape=spot_shape, floor_choice=floor_choice, focusing="unit", ideal_lens=True)
         result = merge(result, {label: fit(subset(samples, label), focal_length_px=one_setting(focal_length_px, label),
                                            focal_length_sigma_px=one_setting(focal_length_sigma_px, label), **options)
                                 for label in result.samples.labels}, focusing)
+    nominal.apply(result, ideal_lens)
     return result
 
 
@@ -168,36 +175,6 @@ def _full_size(c: np.ndarray, free_idx: np.ndarray, m: int) -> np.ndarray:
     out = np.zeros((_size(m), _size(m)))
     out[np.ix_(free_idx, free_idx)] = c
     return out
-
-
-def _field_spread(data: FitData, k: int) -> bool:
-    """Whether setting ``k``'s samples can show field curvature: every one's field known, enough
-    of them, spread over the field."""
-    f2 = data.field2[data.setting == k]
-    return (f2.size >= FIELD_CURVATURE_MIN_SAMPLES and bool(np.all(np.isfinite(f2)))
-            and float(np.ptp(f2)) >= FIELD_CURVATURE_MIN_SPREAD)
-
-
-def _significant_curvature(theta, free_idx, cov, m: int, curved: list[int]) -> list[int]:
-    """Of the settings ``curved`` (field curvature free in ``theta``, the solution; ``cov`` the
-    free parameters' model covariance, inflated by the reduced chi-square where that exceeds 1: a
-    test that errs towards leaving the curvature out), those whose curvature differs from 0 by
-    ``FIELD_CURVATURE_Z`` sigma."""
-    at, pos = Layout(m), {int(j): i for i, j in enumerate(free_idx)}
-    return [k for k in curved if abs(theta[at.curvature(k)]) >= FIELD_CURVATURE_Z * math.sqrt(
-        max(cov[pos[at.curvature(k)], pos[at.curvature(k)]], 1e-300))]
-
-
-def _curvature_estimate(theta, cov, i: int, fitted: bool, mode: str, possible: bool, z) -> Estimate:
-    """The field curvature (dioptres per unit tan^2 of the field angle) as fitted, or why not."""
-    if fitted:
-        v, sd = float(theta[i]), math.sqrt(max(float(cov[i, i]), 0.0))
-        return Estimate(v, sd, (v - z[0] * sd, v + z[0] * sd), (v - z[1] * sd, v + z[1] * sd))
-    why = ("not fitted (field_curvature off): 0 assumed" if mode == "off" else
-           "not determined: the samples do not give their field radius (field_radius_px), are too few or lie at one "
-           "field angle; 0 assumed" if not possible else
-           f"not significant (below {FIELD_CURVATURE_Z:g} sigma): 0 assumed, as for a thin lens")
-    return Estimate(None, reason=why)
 
 
 def _refused(data: FitData, loss: str, reason: str) -> FitResult:
@@ -295,7 +272,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         out[[at.curvature(k) for k in curved]] = True
         return out
 
-    curved = [] if field_curvature == "off" else [k for k in range(m) if k not in blocked and _field_spread(data, k)]
+    curved = [] if field_curvature == "off" else [k for k in range(m) if k not in blocked and field_spread(data, k)]
     free = free_with(curved)
     free_idx = np.flatnonzero(free)
 
@@ -389,7 +366,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         if curved and field_curvature == "auto":
             # Field curvature is kept where the data show it (|kappa| / sigma >= FIELD_CURVATURE_Z);
             # without any, the fit is the one "off" gives, from the same start.
-            kept = _significant_curvature(theta, free_idx, _covariance(jac, max(1.0, chi2_red))[0], m, curved)
+            kept = significant_curvature(theta, free_idx, _covariance(jac, max(1.0, chi2_red))[0], m, curved)
             if kept != curved:
                 curved = kept
                 free = free_with(curved)
@@ -474,8 +451,8 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                     max(scatter.images - 1, 1) if shared else math.inf,
                     calibration_terms)
     for k, label in enumerate(labels):
-        settings[label]["field_curvature_per_m"] = _curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
-                                                                       field_curvature, _field_spread(data, k), z)
+        settings[label]["field_curvature_per_m"] = curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
+                                                                       field_curvature, field_spread(data, k), z)
         warnings.extend(_one_sided(label, settings[label]["focus_distance_mm"],
                                    data.w_mean[data.setting == k] * 1000.0, float(theta[at.inv_focus_per_m(k)])))
     if p_source == "assumed":

@@ -142,15 +142,7 @@ def _linear(est: Estimate, alt: float, lower: float | None = None) -> Estimate:
 def _log(est: Estimate, alt: float) -> Estimate:
     """A positive quantity: the log-space difference added to its log-space variance, its
     intervals' log-space multiples kept."""
-    s_log, d = est.sigma / est.value, math.log(alt / est.value)
-    s_new = math.hypot(s_log, d)
-    k = s_new / s_log
-
-    def scaled(ci):
-        return None if ci is None else tuple(None if e is None else est.value * (e / est.value) ** k for e in ci)
-
-    return dataclasses.replace(est, sigma=est.value * s_new, ci68=scaled(est.ci68), ci95=scaled(est.ci95),
-                               shares=_shares(est, (d / s_new) ** 2))
+    return est.widened(abs(math.log(alt / est.value)), "floor_choice")
 
 
 def _distance(est: Estimate, inv: Estimate, offset_mm: float) -> Estimate:

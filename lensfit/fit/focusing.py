@@ -40,10 +40,11 @@ def check_focusing(value: Any) -> str:
     return value
 
 
-def with_lens(samples: Any, pupil_magnification: Any, focusing: str | None) -> tuple[Any, Any, str]:
-    """``samples`` (a path read into its SampleTable), and the pupil magnification and focusing
-    the fit takes: the arguments, else what the samples carry from the stack's ``[lens]``, else
-    none and "unknown"."""
+def with_lens(samples: Any, pupil_magnification: Any, focusing: str | None,
+              ideal: bool | None = None) -> tuple[Any, Any, str, bool]:
+    """``samples`` (a path read into its SampleTable), and the pupil magnification, focusing and
+    whether the lens is ideal that the fit takes: the arguments, else what the samples carry from
+    the stack's ``[lens]``, else none, "unknown" and not ideal."""
     from pathlib import Path
 
     from lensfit.sample_table import SampleTable
@@ -53,7 +54,12 @@ def with_lens(samples: Any, pupil_magnification: Any, focusing: str | None) -> t
     lens = samples.lens if isinstance(samples, SampleTable) else {}
     if pupil_magnification is None:
         pupil_magnification = lens.get("pupil_magnification")
-    return samples, pupil_magnification, check_focusing(focusing or lens.get("focusing") or "unknown")
+    if ideal is None:
+        ideal = lens.get("ideal", False)
+    if not isinstance(ideal, bool):
+        raise InputError("ideal_lens", ideal, "true or false", "true only for a lens without aberrations (a "
+                         "renderer's thin-lens camera)")
+    return samples, pupil_magnification, check_focusing(focusing or lens.get("focusing") or "unknown"), ideal
 
 
 def subset(samples: Any, label: str) -> Any:

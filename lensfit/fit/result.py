@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import json
 import math
@@ -67,6 +68,25 @@ class Estimate:
         lo, hi = (("infinity" if v is None else f"{v:.{n}f}") for v in self.ci95)
         return f"[{lo}, {hi}]"
 
+    def widened(self, sigma_log: float, source: str, shift_log: float = 0.0) -> "Estimate":
+        """A positive quantity times ``exp(shift_log)`` with a term of log-space sigma ``sigma_log``
+        (carried by ``source`` in the shares) added to its log-space variance, its intervals'
+        log-space multiples of sigma kept."""
+        if self.value is None or not self.sigma or sigma_log <= 0:
+            return self
+        s_log = self.sigma / self.value
+        s_new = math.hypot(s_log, sigma_log)
+        k = s_new / s_log
+        value = self.value * math.exp(shift_log)
+
+        def scaled(ci):
+            return None if ci is None else tuple(None if e is None else value * (e / self.value) ** k for e in ci)
+
+        extra = (sigma_log / s_new) ** 2
+        shares = {key: v * (1.0 - extra) for key, v in (self.shares or {}).items()} | {source: extra}
+        return dataclasses.replace(self, value=value, sigma=value * s_new, ci68=scaled(self.ci68),
+                                   ci95=scaled(self.ci95), shares=shares)
+
     def to_json_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"value": self.value, "sigma": self.sigma,
                                "ci68": list(self.ci68) if self.ci68 else None,
@@ -127,6 +147,8 @@ class FitResult:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     #: what a developer or camera did to the images (``lensfit.processing.Processing``), where assessed
     processing: Any = None
+    #: which f-number is reported, nominal or the blur's own (``lensfit.fit.nominal.definition``)
+    f_number_definition: dict[str, Any] | None = None
 
     @property
     def ok(self) -> bool:
@@ -166,7 +188,8 @@ class FitResult:
                 "loss": self.loss,
                 "warnings": self.warnings,
             },
-        } | ({"processing": self.processing.to_json_dict()} if self.processing is not None else {})
+        } | ({"processing": self.processing.to_json_dict()} if self.processing is not None else {}) | (
+            {"f_number_definition": self.f_number_definition} if self.f_number_definition is not None else {})
 
 
 def _finite(x: float) -> float | None:

@@ -1,0 +1,189 @@
+"""The f-number a real lens's blur shows against the one it is sold by: a survey of published designs.
+
+A lens's f-number is its paraxial focal length over its paraxial entrance-pupil diameter, EFL/EPD
+(what the aperture ring says). What a blur-versus-depth fit measures is the cone of the real
+rays: the second moment of the defocused spot grows with the defocus as the real rays' spread of
+angles, which pupil aberrations (the real entrance pupil is not the paraxial one), the
+non-paraxial angles of a fast cone and the real best focus move away from EFL/EPD. This survey
+traces, for every all-spherical objective in optiland's sample library and every design lensfit
+ships, the real rays of the axial point (``synth.lens``, checked against optiland in the tests)
+through focus, fits the circle-of-confusion V to the exact second-moment diameters, and reports
+the f-number that V gives (``N_effective``, the pupil magnification known) over EFL/EPD, wide open
+and one to three stops down. ``lensfit.fit.nominal`` carries the spread into the reported f-number.
+
+Run ``python -m lensfit.bench.designs`` to print the table, ``--write`` to store it in
+``data_specs/f_number_survey.toml`` (the table the prior's documentation cites). Needs optiland
+(the test extra installs it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: Focus distance of the survey, in focal lengths (a portrait distance; the ratio changes little
+#: with it: see :func:`effective_ratio`'s ``x_over_f``).
+X_OVER_F = 40.0
+#: Stops below full aperture surveyed.
+STOPS = (0, 1, 2, 3)
+#: The distances of the through-focus sweep, as shares of the focus distance: both sides of focus,
+#: far enough that the V's slopes dominate the floor.
+SWEEP = (0.75, 1.4, 15)
+SURVEY_FILE = Path(__file__).resolve().parents[2] / "data_specs" / "f_number_survey.toml"
+
+
+@dataclass(frozen=True)
+class Row:
+    design: str
+    source: str
+    efl_mm: float
+    pupil_magnification: float
+    f_number: float  # EFL / EPD, paraxial
+    stops_down: int
+    ratio: float  # N_effective / (EFL / EPD)
+
+
+def from_optiland(lens):
+    """Our prescription of an optiland lens (spherical surfaces only; None otherwise), at its
+    primary wavelength, with its f-number (paraxial EFL/EPD): (prescription, f-number). The clear
+    apertures are optiland's (the paraxial marginal and chief rays' heights at full field): where
+    the real marginal rays of a fast design outrun them, the axial beam is cut, as in the lens."""
+    from synth.lens.prescription import Prescription, Surface
+
+    lens.update_paraxial()  # the clear apertures: paraxial marginal plus chief ray heights
+    surfaces = lens.surface_group.surfaces
+    wavelength = lens.primary_wavelength
+    wavelength = float(getattr(wavelength, "value", wavelength))
+    z = [float(np.ravel(np.asarray(s.geometry.cs.z))[0]) for s in surfaces]
+    rows = []
+    for i in range(1, len(surfaces) - 1):
+        s = surfaces[i]
+        kind = type(s.geometry).__name__
+        if kind not in ("StandardGeometry", "Plane") or float(getattr(s.geometry, "k", 0.0) or 0.0) != 0.0:
+            return None
+        radius = float(np.ravel(np.asarray(s.geometry.radius))[0])
+        radius = radius if math.isfinite(radius) else math.inf
+        n = float(np.ravel(np.asarray(s.material_post.n(wavelength)))[0])
+        thickness = z[i + 1] - z[i] if i + 1 < len(surfaces) - 1 else 0.0
+        semi = float(np.ravel(np.asarray(s.semi_aperture))[0])
+        if math.isfinite(radius):
+            semi = min(semi, 0.999 * abs(radius))
+        rows.append(Surface(radius, thickness, n, semi, bool(s.is_stop)))
+    if sum(r.stop for r in rows) != 1:
+        return None
+    rows[-1] = Surface(rows[-1].radius_mm, 0.0, 1.0, rows[-1].semi_aperture_mm, rows[-1].stop)
+    return Prescription("optiland", tuple(rows)), float(lens.paraxial.FNO())
+
+
+def effective_ratio(rx, f_number: float, x_over_f: float = X_OVER_F, grid: int = 201) -> float:
+    """N_effective / (EFL/EPD) of ``rx`` stopped to ``f_number``, focused (best focus, least RMS
+    spot) at ``x_over_f`` focal lengths from its entrance pupil: the V ``c = K |1/D - 1/X|``
+    (with a floor in quadrature) fitted to the exact second-moment diameters ``4 sigma_x`` of the
+    axial point's real-ray spots, and ``A = K / S``, ``S`` the pinhole distance a calibration
+    measures (exit-pupil-to-sensor over P); the ratio is ``EPD / A``."""
+    from scipy.optimize import least_squares
+
+    from synth.lens.focus import axial_rays, best_focus_image_z, disk_grid
+    from synth.lens.prescription import paraxial, trace
+
+    rx = rx.with_f_number(f_number)
+    para = paraxial(rx)
+    z_ep, epd = para.entrance_pupil_z_mm, para.entrance_pupil_diameter_mm
+    x = x_over_f * para.efl_mm
+    z_sensor = best_focus_image_z(rx, z_ep - x)
+    s_px = (z_sensor - para.exit_pupil_z_mm) / para.pupil_magnification
+    u, v = disk_grid(grid)
+    reach = 0.75 * epd  # overfills the pupil: the stop cuts the beam
+    distances = x * np.linspace(*SWEEP)
+    c = []
+    for d in distances:
+        origin, direction = axial_rays(z_ep, z_ep - d, u * reach, v * reach)
+        (px, _, pz), (dx, _, dz), passed, _ = trace(rx, origin, direction)
+        c.append(4.0 * float(np.std((px + (z_sensor - pz) / dz * dx)[passed])))
+    c, w = np.asarray(c), 1.0 / distances
+    fit = least_squares(lambda q: np.hypot(q[0] * (w - q[1]), q[2]) - c,
+                        [float(c.max() / np.ptp(w)), 1.0 / x, float(c.min())])
+    return float(epd * s_px / abs(fit.x[0]))
+
+
+def shipped():
+    """The designs lensfit ships (``data_specs/lenses``): (name, prescription, f-number)."""
+    from synth.lens.files import list_prescriptions, load_prescription
+    from synth.lens.prescription import paraxial
+
+    for name in list_prescriptions():
+        rx = load_prescription(name)
+        yield name, rx, float(rx.design_f_number or paraxial(rx).f_number)
+
+
+def sample_objectives():
+    """optiland's all-spherical sample objectives: (name, prescription, f-number)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import optiland.samples.objectives as objectives
+
+        for name, cls in inspect.getmembers(objectives, inspect.isclass):
+            if cls.__module__ != objectives.__name__:
+                continue
+            got = from_optiland(cls())
+            if got is not None:
+                yield name, got[0], got[1]
+
+
+def survey(stops=STOPS, designs=None) -> list[Row]:
+    """The table: every design of ``designs`` (default: optiland's sample objectives and the
+    shipped ones) wide open and ``stops`` down."""
+    from synth.lens.prescription import paraxial
+
+    rows = []
+    for source, found in designs or (("optiland.samples.objectives", sample_objectives()),
+                                     ("data_specs/lenses", shipped())):
+        for name, rx, fno in found:
+            para = paraxial(rx.with_f_number(fno))
+            for k in stops:
+                n = fno * 2.0 ** (k / 2.0)
+                rows.append(Row(name, source, para.efl_mm, para.pupil_magnification, n, k, effective_ratio(rx, n)))
+    return rows
+
+
+def to_toml(rows: list[Row]) -> str:
+    lines = ["# N_effective / (EFL/EPD) of published designs: written by `python -m lensfit.bench.designs --write`",
+             "# (lensfit/bench/designs.py says how); lensfit.fit.nominal carries their spread into the f-number.",
+             f"x_over_f = {X_OVER_F:g}", ""]
+    for r in rows:
+        lines += ["[[design]]", f'name = "{r.design}"', f'source = "{r.source}"', f"efl_mm = {r.efl_mm:.4g}",
+                  f"pupil_magnification = {r.pupil_magnification:.4g}", f"f_number = {r.f_number:.4g}",
+                  f"stops_down = {r.stops_down}", f"ratio = {r.ratio:.5f}", ""]
+    return "\n".join(lines)
+
+
+def read_survey(path: Path = SURVEY_FILE) -> list[Row]:
+    import tomllib
+
+    data = tomllib.loads(path.read_text())
+    return [Row(d["name"], d["source"], d["efl_mm"], d["pupil_magnification"], d["f_number"], d["stops_down"],
+                d["ratio"]) for d in data["design"]]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m lensfit.bench.designs", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--write", action="store_true", help=f"store the table in {SURVEY_FILE.name}")
+    args = ap.parse_args(argv)
+    rows = survey()
+    for r in rows:
+        print(f"{r.design:26s} {r.source:28s} f {r.efl_mm:8.2f} mm  P {r.pupil_magnification:5.2f}  "
+              f"f/{r.f_number:<5.2f} -{r.stops_down}  N_eff/N {r.ratio:.4f}")
+    if args.write:
+        SURVEY_FILE.write_text(to_toml(rows))
+        print(f"wrote {SURVEY_FILE}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
