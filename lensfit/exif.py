@@ -10,6 +10,7 @@ settings and to note them beside each image; the pixel pitch comes from
 
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,6 +78,14 @@ def _get(tags: dict[str, Any], name: str) -> Any:
     return None
 
 
+#: EXIF is read from the file's first bytes only (a JPEG's APP1 segment holds at most 64 kB; RAW
+#: files put their IFDs near the start), and maker notes (whose size the file states) only for a
+#: Canon body, from its first kilobytes: a maker note of 100 MB, or one claiming 2 GB, kept
+#: exifread busy for minutes.
+EXIF_READ_BYTES = 8 << 20
+MAKER_NOTE_READ_BYTES = 1 << 20
+
+
 def read_camera_record(path: str | Path) -> CameraRecord:
     """The EXIF of one image file (an empty record where it has none or cannot be parsed)."""
     import logging
@@ -86,7 +95,12 @@ def read_camera_record(path: str | Path) -> CameraRecord:
     logging.getLogger("exifread").setLevel(logging.CRITICAL)  # (it logs "no exif data" for every PNG)
     try:
         with Path(path).open("rb") as fh:
-            tags = exifread.process_file(fh, details=True, builtin_types=True, extract_thumbnail=False)
+            head = fh.read(EXIF_READ_BYTES)
+        tags = exifread.process_file(io.BytesIO(head), details=False, builtin_types=True, extract_thumbnail=False)
+        if _get(tags, "SubjectDistance") is None and (_text(_get(tags, "Make")) or "").lower().startswith("canon"):
+            # Canon's focus distance is in its maker note, the one read (from its first kilobytes).
+            tags = {**exifread.process_file(io.BytesIO(head[:MAKER_NOTE_READ_BYTES]), details=True,
+                                            builtin_types=True, extract_thumbnail=False), **tags}
     except Exception:  # noqa: BLE001 -- exifread raises many kinds on files it does not know
         return CameraRecord()
     return record_from_tags(tags)

@@ -34,7 +34,7 @@ from typing import Any
 from lensfit.errors import InputError, SpecError
 from lensfit.exif import CameraRecord, read_camera_record
 from lensfit.processing import developer_of
-from lensfit.stack import JPEG_SUFFIXES, RASTER_SUFFIXES, RAW_SUFFIXES, image_size
+from lensfit.images import JPEG_SUFFIXES, RASTER_SUFFIXES, RAW_SUFFIXES, image_size
 
 GROUPINGS = ("exif", "per-image", "one")
 #: A resized copy (web export) changes the width FocalPlaneXResolution refers to; a RAW

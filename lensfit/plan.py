@@ -82,11 +82,13 @@ class Board:
         sq = float(entry["square_mm"])
         marker, cells = None, None
         if entry["kind"] == "charuco":
-            import re
+            from lensfit.targets import aruco_dictionary, aruco_dictionary_names
 
             marker = float(entry["marker_mm"])
-            bits = re.match(r"DICT_(\d+)X\d+", str(entry.get("dictionary", "")))
-            cells = (int(bits.group(1)) if bits else 6) + 2  # (ArUco's original and AprilTag dictionaries: ~6)
+            name = str(entry.get("dictionary", "DICT_4X4_50"))
+            if name not in aruco_dictionary_names():
+                raise InputError("target.dictionary", name, "one of OpenCV's ArUco dictionaries (DICT_4X4_50, ...)")
+            cells = aruco_dictionary(name).markerSize + 2  # the marker's bits and its black border
         # edges between neighbouring interior corners
         return cls(cols * sq, rows * sq, sq, (cols - 2) * (rows - 1) + (cols - 1) * (rows - 2), marker, cells)
 

@@ -111,7 +111,7 @@ def developer_of(path: Path, record: Any) -> str | None:
     """What developed the image at ``path`` by its EXIF (``record``, a ``lensfit.exif.CameraRecord``):
     a raw developer's ``Software`` tag, or a camera that wrote a JPEG; None (RAW and DNG files,
     files without such tags, lensfit's own renders)."""
-    from lensfit.stack import JPEG_SUFFIXES, RAW_SUFFIXES
+    from lensfit.images import JPEG_SUFFIXES, RAW_SUFFIXES
 
     suffix = path.suffix.lower()
     software, maker = record.software or "", record.make or ""
@@ -179,7 +179,7 @@ def apply(result: Any, found: Processing, policy: str = "refuse") -> None:
         return
     reason = found.reason()
     for quantities in result.settings.values():
-        for q in ("f_number", "f_number_effective", "aperture_diameter_mm"):
+        for q in ("f_number", "f_number_effective", "aperture_diameter_mm", "aperture_diameter_effective_mm"):
             before = quantities.get(q)
             if before is not None:  # (a reason of its own is kept after the processing's)
                 quantities[q] = Estimate(None, reason=reason if before.value is not None or not before.reason

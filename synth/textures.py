@@ -63,7 +63,7 @@ def _image_raster(p: dict) -> np.ndarray:
     scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
     v = img.astype(np.float64) / scale
     if p["encoding"] == "srgb":
-        from lensfit.stack import srgb_to_linear
+        from lensfit.images import srgb_to_linear
 
         v = srgb_to_linear(v)
     if (p.get("dark", 0.0), p.get("light", 1.0)) != (0.0, 1.0):

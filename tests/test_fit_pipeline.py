@@ -340,7 +340,7 @@ def test_a_jpeg_stack_fits_like_the_linear_one(calibration_stack, calibration_sa
 
     from PIL import Image
 
-    from lensfit.stack import read_image
+    from lensfit.images import read_image
 
     folder = tmp_path / "jpeg"
     folder.mkdir()

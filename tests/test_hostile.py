@@ -24,7 +24,8 @@ import tifffile
 from lensfit.cli import main as lensfit_main
 from lensfit.errors import InputError, OutputError, SpecError
 from lensfit.outputs import OutputLock, check_output, written_by
-from lensfit.stack import load_stack, read_image
+from lensfit.images import read_image
+from lensfit.stack import load_stack
 from synth.cli import main as synth_main
 
 SCENE = """
@@ -345,6 +346,30 @@ def test_image_entries_outside_the_stack_are_refused(tmp_path, how):
         load_stack(folder)
     stack = load_stack(folder, allow_outside=True)  # the explicit opt-in
     assert stack.read(0).mean() == pytest.approx(30000 / 65535)
+
+
+@pytest.mark.parametrize("what", ["file", "folder"])
+def test_a_link_swapped_in_after_the_check_is_not_followed_out_of_the_stack(tmp_path, what):
+    """The names were checked when the stack was loaded; an image (or the folder it sits in)
+    replaced by a link to a file outside before it is read is refused when read, naming it, and
+    never decoded; read as it was, it reads."""
+    (tmp_path / "secret").mkdir()
+    outside = _png(tmp_path / "secret" / "outside.png", value=60000)
+    folder = tmp_path / "stack"
+    (folder / "sub").mkdir(parents=True)
+    inside = _png(folder / "sub" / "a.png")
+    _stack(folder, "sub/a.png")
+    stack = load_stack(folder)
+    assert stack.read(0).mean() == pytest.approx(30000 / 65535)
+    if what == "file":
+        inside.unlink()
+        inside.symlink_to(outside)
+    else:
+        (folder / "sub").rename(tmp_path / "moved")
+        (folder / "sub").symlink_to(tmp_path / "secret")
+        (tmp_path / "secret" / "a.png").symlink_to(outside)
+    with pytest.raises(SpecError, match="a.png.*outside the stack folder"):
+        stack.read(0)
 
 
 def test_etc_passwd_is_not_read(tmp_path, capsys):

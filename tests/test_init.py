@@ -147,6 +147,33 @@ def test_exif_fields_in_lensfit_units(tmp_path):
     assert read_camera_record(tmp_path / "c.jpg").f_number is None
 
 
+def test_exif_is_read_from_the_files_head_and_maker_notes_only_for_canon(tmp_path, monkeypatch):
+    """A maker note of 100 MB (or one claiming 2 GB) kept exifread busy for minutes: the EXIF is
+    parsed from the file's first EXIF_READ_BYTES without maker notes, and only a Canon body's
+    (its focus distance) from the first MAKER_NOTE_READ_BYTES; what the EXIF says still comes out."""
+    import exifread
+
+    from lensfit import exif
+
+    calls = []
+    original = exifread.process_file
+
+    def spy(fh, **kw):
+        calls.append((kw.get("details"), len(fh.getbuffer())))
+        return original(fh, **kw)
+
+    monkeypatch.setattr(exifread, "process_file", spy)
+    big = jpeg_with_exif(tmp_path / "n.jpg", make="NIKON CORPORATION", model="D850", focal=85.0)
+    with big.open("ab") as fh:  # a file far larger than its EXIF (bytes after the JPEG's end)
+        fh.write(bytes(12 << 20))
+    r = exif.read_camera_record(big)
+    assert r.focal_length_mm == 85.0 and calls == [(False, exif.EXIF_READ_BYTES)]
+    calls.clear()
+    r = exif.read_camera_record(jpeg_with_exif(tmp_path / "c.jpg"))  # Canon, no SubjectDistance
+    assert r.focal_length_mm == 50.0 and [d for d, _ in calls] == [False, True]
+    assert all(n <= exif.MAKER_NOTE_READ_BYTES for d, n in calls if d)
+
+
 def test_init_groups_by_f_number_and_focus_and_takes_pitch_from_the_camera_table(tmp_path, capsys):
     photos = tmp_path / "p"
     photos.mkdir()

@@ -16,7 +16,8 @@ from lensfit.errors import InputError, SpecError
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.estimators import edge as edge_estimator
 from lensfit.psf import pixel_edge_profile
-from lensfit.stack import load_stack, read_image
+from lensfit.images import read_image
+from lensfit.stack import load_stack
 from synth.render import render
 from synth.scene import scene_from_dict
 from synth.stack import write_stack

@@ -15,7 +15,8 @@ from lensfit.estimators.halo import halo_amounts, pooled
 from lensfit.measure import measure
 from lensfit.pipeline import measure_and_fit
 from lensfit.processing import DEVELOPERS, from_exif
-from lensfit.stack import load_stack, read_image
+from lensfit.images import read_image
+from lensfit.stack import load_stack
 
 
 def _encode(linear):

@@ -206,7 +206,7 @@ def test_help_does_not_import_jax():
 def test_preview_contact_sheet_is_the_render_in_srgb(tmp_path, capsys):
     """Every shot in the sheet, encoded with the sRGB curve: decoding it (lensfit's decoder)
     gives back the linear render on one exposure scale; an existing sheet needs --force."""
-    from lensfit.stack import srgb_to_linear
+    from lensfit.images import srgb_to_linear
 
     scene = write(tmp_path, SMALL)
     out, sheet_path = tmp_path / "stack", tmp_path / "sheet.png"

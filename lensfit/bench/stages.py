@@ -179,7 +179,7 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
 
 
 def _shape(folder: Path) -> tuple[int, int]:
-    from lensfit.stack import image_size
+    from lensfit.images import image_size
 
     spec = tomllib.loads((folder / "stack.toml").read_text())
     w, h = image_size(folder / spec["image"][0]["file"])

@@ -58,7 +58,8 @@ def definition(ideal: bool) -> dict[str, Any]:
 def apply(result: Any, ideal: bool) -> None:
     """Say in ``result`` (a ``FitResult``) which f-number it reports; unless the lens is ``ideal``,
     take every setting's f-number and aperture diameter to the nominal ones with the designs'
-    spread, keeping the blur's own f-number as ``f_number_effective``."""
+    spread, keeping the blur's own readings as ``f_number_effective`` and
+    ``aperture_diameter_effective_mm``."""
     result.f_number_definition = definition(ideal)
     if ideal:
         return
@@ -71,4 +72,5 @@ def apply(result: Any, ideal: bool) -> None:
         quantities["f_number"] = n.widened(sd, SOURCE, -mean)
         a = quantities.get("aperture_diameter_mm")
         if a is not None and a.value is not None:
+            quantities["aperture_diameter_effective_mm"] = a  # (the real cone's: the Airy pattern's)
             quantities["aperture_diameter_mm"] = a.widened(sd, SOURCE, mean)

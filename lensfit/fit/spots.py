@@ -46,7 +46,9 @@ def airy_per_setting(result: Any, wavelength_nm: float = DEFAULT_WAVELENGTH_NM) 
     at = Layout(len(data.labels))
     out: dict[str, float] = {}
     for k, label in enumerate(data.labels):
-        a = result.settings[label]["aperture_diameter_mm"].value
+        quantities = result.settings[label]
+        # The real cone's aperture where the nominal one is reported (lensfit.fit.nominal).
+        a = quantities.get("aperture_diameter_effective_mm", quantities["aperture_diameter_mm"]).value
         if a is None and len(result._full) == at.size:
             a = math.exp(result._full[at.LOG_F] - result._full[at.log_n(k)])
         fpx = float(data.focal_length_px[k])
