@@ -45,10 +45,21 @@ def _source(path: Path, data: bytes | None):
     return path if data is None else io.BytesIO(data)
 
 
-def read_inside(path: Path, folder: Path) -> bytes:
+#: Bytes per pixel an image file may hold at most (uncompressed 32-bit float RGBA), over the pixel
+#: budget: a larger file is refused before it is read (a sparse file of 4 GB is small on disk).
+FILE_BYTES_PER_PX = 16
+FILE_OVERHEAD_BYTES = 16 << 20
+
+
+def read_inside(path: Path, folder: Path, max_pixels: int | None = None) -> bytes:
     """The bytes of ``path``, refused unless the file opened lies inside ``folder``: checked on the
     open descriptor (its real path, or its device and inode against the resolved path's), so that
-    a link swapped in between a check of the name and the read is not followed out of the folder."""
+    a link swapped in between a check of the name and the read is not followed out of the folder.
+    A file larger than any image of ``max_pixels`` pixels (default: ``lensfit.limits``) is refused
+    unread."""
+    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
+
+    budget = (max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6)) * FILE_BYTES_PER_PX + FILE_OVERHEAD_BYTES
     inside = folder.resolve()
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -66,6 +77,10 @@ def read_inside(path: Path, folder: Path) -> bytes:
         if not real.is_relative_to(inside):
             raise SpecError(path, "", f"leads outside the stack folder {folder} (to {real}); copy the image into "
                             "the folder (or pass --allow-outside-stack)")
+        size = os.fstat(fd).st_size
+        if size > budget:
+            raise SpecError(path, "", f"holds {size / 1e9:.1f} GB, more than any image within the pixel budget "
+                            "(--max-megapixels) needs; is it an image?")
         return fh.read()
 
 

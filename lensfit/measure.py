@@ -35,6 +35,8 @@ from lensfit.targets import Detection, Target, detection_copies
 EDGE_CONTEXT = ("end_depths_mm",)
 SATURATION_LEVEL = 0.995
 SATURATED_FRACTION_LIMIT = 0.01
+
+
 def _hold_bytes() -> int:
     """A quarter of the machine's memory, at most 4 GB (2 GB where the system does not say)."""
     import os

@@ -98,7 +98,7 @@ class Stack:
         if self.hold is not None and index in self.hold:
             return self.hold[index]
         entry = self.images[index]
-        data = None if self.outside_allowed else read_inside(entry.file, self.path)
+        data = None if self.outside_allowed else read_inside(entry.file, self.path, self.max_pixels)
         image = read_image(entry.file, entry.encoding, black_level=entry.black_level, white_level=entry.white_level,
                            max_pixels=self.max_pixels, data=data)
         if entry.rotate_deg:

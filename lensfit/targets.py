@@ -17,6 +17,7 @@ Kinds (``stack.toml`` ``[[target]] kind``):
 from __future__ import annotations
 
 import functools
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -321,7 +322,10 @@ def _dark_on_light(grey: np.ndarray, quad: np.ndarray) -> bool:
 
 
 @functools.lru_cache(maxsize=32)
-def _detector_for(dictionary: str, squares: tuple, square_mm: float, marker_mm: float, legacy: bool):
+def _detector_for(dictionary: str, squares: tuple, square_mm: float, marker_mm: float, legacy: bool,
+                  thread: int = 0):
+    """One detector per board and per thread (``lensfit.parallel`` searches images in threads;
+    OpenCV does not promise that one detector object serves two threads at once)."""
     import cv2
 
     board = charuco_board(squares, square_mm, marker_mm, dictionary, legacy)
@@ -331,4 +335,4 @@ def _detector_for(dictionary: str, squares: tuple, square_mm: float, marker_mm: 
 def _charuco_detector(target: Target):
     s = target.spec
     return _detector_for(s["dictionary"], tuple(s["squares"]), float(s["square_mm"]), float(s["marker_mm"]),
-                         bool(s.get("legacy_pattern", False)))
+                         bool(s.get("legacy_pattern", False)), threading.get_ident())

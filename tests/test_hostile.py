@@ -372,6 +372,20 @@ def test_a_link_swapped_in_after_the_check_is_not_followed_out_of_the_stack(tmp_
         stack.read(0)
 
 
+def test_a_huge_sparse_image_file_is_refused_unread(tmp_path):
+    """A file of 4 GB (sparse: small on disk) under an image's name is refused from its size before
+    a byte of it is read into memory, naming it."""
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    _png(folder / "a.png")
+    _stack(folder, "a.png")
+    stack = load_stack(folder)
+    with (folder / "a.png").open("r+b") as fh:
+        fh.truncate(4 * 1024**3)
+    with pytest.raises(SpecError, match=r"a\.png.*4\.3 GB.*max-megapixels"):
+        stack.read(0)
+
+
 def test_etc_passwd_is_not_read(tmp_path, capsys):
     folder = _stack(tmp_path / "stack", "../../../../../../../../etc/passwd")
     code, _, err = run_cli(capsys, lensfit_main, "fit", folder)

@@ -35,7 +35,7 @@ STOPS = (0, 1, 2, 3)
 #: The distances of the through-focus sweep, as shares of the focus distance: both sides of focus,
 #: far enough that the V's slopes dominate the floor.
 SWEEP = (0.75, 1.4, 15)
-SURVEY_FILE = Path(__file__).resolve().parents[2] / "data_specs" / "f_number_survey.toml"
+SURVEY_NAME = "f_number_survey.toml"
 
 
 @dataclass(frozen=True)
@@ -163,25 +163,32 @@ def to_toml(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
-def read_survey(path: Path = SURVEY_FILE) -> list[Row]:
+def survey_file() -> Path:
+    """``data_specs/f_number_survey.toml`` (where the package's data_specs are)."""
+    from lensfit.specs import specs_dir
+
+    return specs_dir() / SURVEY_NAME
+
+
+def read_survey(path: Path | None = None) -> list[Row]:
     import tomllib
 
-    data = tomllib.loads(path.read_text())
+    data = tomllib.loads((path or survey_file()).read_text())
     return [Row(d["name"], d["source"], d["efl_mm"], d["pupil_magnification"], d["f_number"], d["stops_down"],
                 d["ratio"]) for d in data["design"]]
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m lensfit.bench.designs", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--write", action="store_true", help=f"store the table in {SURVEY_FILE.name}")
+    ap.add_argument("--write", action="store_true", help=f"store the table in data_specs/{SURVEY_NAME}")
     args = ap.parse_args(argv)
     rows = survey()
     for r in rows:
         print(f"{r.design:26s} {r.source:28s} f {r.efl_mm:8.2f} mm  P {r.pupil_magnification:5.2f}  "
               f"f/{r.f_number:<5.2f} -{r.stops_down}  N_eff/N {r.ratio:.4f}")
     if args.write:
-        SURVEY_FILE.write_text(to_toml(rows))
-        print(f"wrote {SURVEY_FILE}")
+        survey_file().write_text(to_toml(rows))
+        print(f"wrote {survey_file()}")
     return 0
 
 

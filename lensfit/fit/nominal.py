@@ -50,9 +50,9 @@ def definition(ideal: bool) -> dict[str, Any]:
     return {"reported": "nominal", "design_log_ratio": {"mean": round(mean, 5), "sd": round(sd, 5)},
             "note": "EFL / entrance pupil, as the lens is sold: the blur measures the real rays' cone "
                     "(f_number_effective), which a real lens's aberrations set apart from it; the ratio over "
-                    f"published designs wide open (log-normal, mean {100 * mean:+.1f} %, sd {100 * sd:.1f} %) is divided "
-                    "out and its spread carried in the interval. [lens] ideal = true in stack.toml declares a lens "
-                    "without aberrations (a renderer's thin lens)"}
+                    f"published designs wide open (log-normal, mean {100 * mean:+.1f} %, sd {100 * sd:.1f} %) is "
+                    "divided out and its spread carried in the interval. [lens] ideal = true in stack.toml declares "
+                    "a lens without aberrations (a renderer's thin lens)"}
 
 
 def apply(result: Any, ideal: bool) -> None:
