@@ -24,8 +24,9 @@ demo: setup
 	$(VENV)/bin/synth render data_specs/scenes/demo.toml --out out/demo --force
 	$(VENV)/bin/lensfit fit out/demo --out out/demo_results.json --plot out/demo_fit.png --samples out/demo_samples.csv --force
 
+# two worker processes (fewer on a one-core machine), each test file in one of them
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --maxprocesses 2 --dist loadfile
 
 # the documentation site into build/docs (strict: a warning fails); tests/test_docs.py builds it too
 docs: setup
