@@ -15,6 +15,9 @@ from typing import Callable, Iterable, Iterator, TypeVar
 
 from lensfit.errors import InputError
 
+#: The most threads ``jobs`` may ask for.
+MAX_JOBS = 256
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -31,8 +34,9 @@ def check_jobs(jobs: int | None) -> int:
     """``jobs`` as a count of threads (None: :func:`default_jobs`)."""
     if jobs is None:
         return default_jobs()
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or not 1 <= jobs <= 256:
-        raise InputError("jobs", jobs, "a whole number from 1 to 256", "the images processed at once, e.g. the cores")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or not 1 <= jobs <= MAX_JOBS:
+        raise InputError("jobs", jobs, f"a whole number from 1 to {MAX_JOBS}",
+                         "the images processed at once, e.g. the cores")
     return jobs
 
 

@@ -17,7 +17,7 @@ from lensfit.cli.bench import (_bench_command, _bench_fit_command, _bench_lenses
                                _bench_stages_command, _bench_api_command)
 from lensfit.cli.capture import _init_command, _plan_command, _target_command
 from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
-                                _diffraction, _input_options, _number, _pupil)
+                                _diffraction, _input_options, _jobs, _number, _pupil)
 from lensfit.cli.dof import _dof_command
 from lensfit.cli.fit import _fit_command, _measure_command
 
@@ -280,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="whole-process pairs (lensfit fit, OpenCV) run back to back; medians (default 3)")
     bs.add_argument("--warm-runs", type=int, default=3, metavar="K",
                     help="warm calls per configuration after the cold one; each stage's median (default 3)")
-    bs.add_argument("--jobs", type=int, nargs="+", default=[1], metavar="N",
+    bs.add_argument("--jobs", type=_jobs, nargs="+", default=[1], metavar="N",
                     help="also run the whole `lensfit fit` at each --jobs N (e.g. 1 2) and report the speed-up and "
                          "whether the results are identical (default 1)")
     bs.add_argument("--json", action="store_true", help="print JSON")

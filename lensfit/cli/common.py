@@ -83,13 +83,15 @@ def _pupil(text: str) -> float | tuple[float, float]:
 
 
 def _jobs(text: str) -> int:
-    """--jobs: a whole number of threads, 1 to 256."""
+    """--jobs: a whole number of threads, 1 to ``lensfit.parallel.MAX_JOBS``."""
+    from lensfit.parallel import MAX_JOBS
+
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"got {text!r}: a whole number of images at once, e.g. 2") from None
-    if not 1 <= value <= 256:
-        raise argparse.ArgumentTypeError(f"got {value}: from 1 to 256")
+    if not 1 <= value <= MAX_JOBS:
+        raise argparse.ArgumentTypeError(f"got {value}: from 1 to {MAX_JOBS}")
     return value
 
 

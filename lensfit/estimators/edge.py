@@ -103,6 +103,7 @@ from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.estimators.edge_fit import FitQueue, fit_profiles
 from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
 from lensfit.estimators.profile import line_end_covariance, select as _select, windows
+from lensfit.parallel import in_threads
 
 SUB_PIXEL_PX = 0.5
 SUB_PIXEL_SIGMA_PX = 0.2
@@ -188,38 +189,8 @@ def _radius_terms(theta, cov) -> tuple[float, float, float, float]:
     return rho, slope, var_rho, math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - math.sqrt(rho)
 
 
-class _Ahead:
-    """The images ``sources`` (arrays, or callables that read them) in order, the next one read in a
-    background thread while the caller works on the current one (decoding releases the GIL): a
-    stack too large to hold is read again with its reading hidden behind the edges' gathering."""
-
-    def __init__(self, sources: list[Any]):
-        self.sources, self.k, self.pending = sources, 0, None
-        self.pool = None
-        if any(callable(src) for src in sources) and len(sources) > 1:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lensfit-read-ahead")
-
-    @staticmethod
-    def _load(source: Any) -> np.ndarray:
-        return np.asarray(source() if callable(source) else source, np.float64)
-
-    def next(self) -> np.ndarray:
-        if self.pending is not None:
-            image, self.pending = self.pending.result(), None
-        else:
-            image = self._load(self.sources[self.k])
-        self.k += 1
-        if self.pool is not None and self.k < len(self.sources):
-            self.pending = self.pool.submit(self._load, self.sources[self.k])
-        return image
-
-    def close(self) -> None:
-        if self.pool is not None:
-            if self.pending is not None:
-                self.pending.cancel()
-            self.pool.shutdown(wait=True)
+def _load(source: Any) -> np.ndarray:
+    return np.asarray(source() if callable(source) else source, np.float64)
 
 
 def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True,
@@ -302,14 +273,18 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 enqueue(i, profile)
         else:
             skip = [results[i] is not None and attempt == 1 and radius[i] is None for i in range(len(tasks))]
-            loader = _Ahead([items[k][0] for k in dict.fromkeys(o for o, s in zip(owner, skip) if not s)])
+            # The next image is read in a background thread while this one's edges are gathered
+            # (decoding releases the GIL): a stack too large to hold is read again with its reading
+            # hidden behind the gathering, two images in memory at a time.
+            loader = in_threads(_load, [items[k][0] for k in dict.fromkeys(o for o, s in zip(owner, skip) if not s)],
+                                jobs=2)
             try:
                 for i, task in enumerate(tasks):
                     if skip[i]:
                         continue
                     if owner[i] not in images:
                         images.clear()  # one image in memory at a time (and the next one being read)
-                        images[owner[i]] = loader.next()
+                        images[owner[i]] = next(loader)
                     half, margin, truncated = windows(task, radius[i] if attempt else None)
                     sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
                     if sel is None or len(sel[0]) < 8:

@@ -114,15 +114,6 @@ def _refuse(result: Any, label: str, other: dict[str, Estimate]) -> None:
         result.code = Outcome.NOT_IDENTIFIABLE
 
 
-def _shares(est: Estimate, extra: float) -> dict[str, float] | None:
-    """The shares of ``est``'s variance with a term of relative size ``extra`` (of the new total)."""
-    if not est.shares:
-        return {"floor_choice": extra} if extra > 0 else None
-    out = {k: v * (1.0 - extra) for k, v in est.shares.items()}
-    out["floor_choice"] = extra
-    return out
-
-
 def _linear(est: Estimate, alt: float, lower: float | None = None) -> Estimate:
     """``est`` with ``(alt - value)^2`` added to its variance, intervals scaled about the value."""
     d = alt - est.value
@@ -136,7 +127,7 @@ def _linear(est: Estimate, alt: float, lower: float | None = None) -> Estimate:
         return (max(lo, lower) if lo is not None and lower is not None else lo, hi)
 
     return dataclasses.replace(est, sigma=sigma, ci68=scaled(est.ci68), ci95=scaled(est.ci95),
-                               shares=_shares(est, (d / sigma) ** 2 if sigma > 0 else 0.0))
+                               shares=est.shares_with("floor_choice", (d / sigma) ** 2 if sigma > 0 else 0.0))
 
 
 def _log(est: Estimate, alt: float) -> Estimate:

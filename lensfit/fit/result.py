@@ -82,10 +82,15 @@ class Estimate:
         def scaled(ci):
             return None if ci is None else tuple(None if e is None else value * (e / self.value) ** k for e in ci)
 
-        extra = (sigma_log / s_new) ** 2
-        shares = {key: v * (1.0 - extra) for key, v in (self.shares or {}).items()} | {source: extra}
         return dataclasses.replace(self, value=value, sigma=value * s_new, ci68=scaled(self.ci68),
-                                   ci95=scaled(self.ci95), shares=shares)
+                                   ci95=scaled(self.ci95), shares=self.shares_with(source, (sigma_log / s_new) ** 2))
+
+    def shares_with(self, source: str, extra: float) -> dict[str, float] | None:
+        """The shares of this estimate's variance once a term from ``source`` makes up ``extra`` of
+        the new total (the others scaled down to make room)."""
+        if not self.shares:
+            return {source: extra} if extra > 0 else None
+        return {key: v * (1.0 - extra) for key, v in self.shares.items()} | {source: extra}
 
     def to_json_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"value": self.value, "sigma": self.sigma,
