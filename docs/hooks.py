@@ -126,6 +126,11 @@ def validation_markdown() -> str:
     api = folder / "api_vs_cli.json"
     if api.is_file():
         parts.append(api_markdown(json.loads(api.read_text())))
+    hostile = folder / "hostile.json"
+    if hostile.is_file():
+        from lensfit.bench.hostile import markdown as hostile_markdown
+
+        parts.append(hostile_markdown(json.loads(hostile.read_text())))
     return "\n\n".join(parts)
 
 

@@ -14,6 +14,12 @@ DEFAULT_MAX_MEGAPIXELS = 120.0
 #: Largest image side, px, that any file may declare (also under a raised pixel budget).
 MAX_SIDE_PX = 100_000
 
+#: Bounds of a calibration's numbers read back from a samples file (as stack.toml's
+#: [[intrinsics]] bounds them): focal length, its sigma and the principal point in px, and the
+#: distortion coefficients.
+INTRINSICS_MAX_PX = 1e7
+DISTORTION_MAX = 1e6
+
 
 def check_image_size(path, height_px: int, width_px: int, max_pixels: int) -> None:
     """Refuse an image whose header declares more than ``max_pixels`` (or an absurd side)."""

@@ -134,8 +134,13 @@ def photo_files(folder: Path, prefer: str = "raw") -> tuple[list[Path], list[str
 
 
 def _label(i: int) -> str:
-    letters = string.ascii_lowercase
-    return letters[i] if i < 26 else letters[i // 26 - 1] + letters[i % 26]
+    """Setting labels a, b, ..., z, aa, ab, ..., zz, aaa, ... (bijective base 26)."""
+    letters, out = string.ascii_lowercase, ""
+    i += 1
+    while i:
+        i, r = divmod(i - 1, 26)
+        out = letters[r] + out
+    return out
 
 
 def _round(x: float | None, digits: int = 4) -> float | None:
@@ -229,6 +234,11 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     if not files:
         raise InputError("photos", str(folder), "a folder holding PNG, TIFF, JPEG, DNG or camera RAW files",
                          "copy the photos of the target into it")
+    from lensfit.stack import MAX_IMAGES
+
+    if len(files) > MAX_IMAGES:  # (before any file is opened: stack.toml could not list them)
+        raise InputError("photos", f"{len(files)} image files in {shown(str(folder))}", f"at most {MAX_IMAGES}, what "
+                         "one stack may list", "put each stack's photos in a folder of their own")
     max_pixels = max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6)
     sizes = {}
     for p in files:

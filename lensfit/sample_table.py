@@ -43,6 +43,29 @@ class Sample:
     disk_sigma_px: float | None = None
 
 
+def _given(value: Any, default: Any) -> Any:
+    """``value`` unless it was left out (a 0 is a value, and is checked as one)."""
+    return default if value is None or value == "" else value
+
+
+def _check_intrinsics(path: Path, label: str, k: Intrinsics) -> None:
+    from lensfit.limits import DISTORTION_MAX, INTRINSICS_MAX_PX
+
+    checks = (("focal_length_px", (k.focal_length_px,), 0.0, INTRINSICS_MAX_PX, False),
+              ("focal_length_sigma_px", (k.focal_length_sigma_px,), 0.0, INTRINSICS_MAX_PX, True),
+              ("principal_point_px", k.principal_point_px, -INTRINSICS_MAX_PX, INTRINSICS_MAX_PX, True),
+              ("distortion", k.distortion, -DISTORTION_MAX, DISTORTION_MAX, True))
+    for name, values, lo, hi, closed in checks:
+        try:
+            ok = all((lo <= float(v) if closed else lo < float(v)) and float(v) <= hi for v in values)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise SpecError(path, f"intrinsics.{label}.{name}", f"got {list(values) if len(values) > 1 else values[0]!r}:"
+                            f" finite numbers {'from' if closed else 'above'} {lo:g} to {hi:g} expected (as lensfit "
+                            "measure writes them)")
+
+
 @dataclass
 class SampleTable:
     """Samples plus what was learnt on the way (intrinsics, poses, detections)."""
@@ -157,6 +180,7 @@ class SampleTable:
             except (AttributeError, KeyError, TypeError, ValueError) as exc:
                 raise SpecError(path, f"intrinsics.{label}", f"unreadable calibration ({exc!r}); expected the fields "
                                 "lensfit measure writes") from None
+            _check_intrinsics(path, label, table.intrinsics[label])
         for i, r in enumerate(doc["samples"]):
             try:
                 start = r.get("start_px") or (0.0, 0.0)
@@ -166,8 +190,8 @@ class SampleTable:
                 table.samples.append(Sample(
                     image=str(r.get("image", "")), setting=str(r["setting"]), target=str(r.get("target", "")),
                     edge=str(r.get("edge", "")), distance_mm=float(r["distance_mm"]),
-                    distance_start_mm=float(r.get("distance_start_mm") or r["distance_mm"]),
-                    distance_end_mm=float(r.get("distance_end_mm") or r["distance_mm"]),
+                    distance_start_mm=float(_given(r.get("distance_start_mm"), r["distance_mm"])),
+                    distance_end_mm=float(_given(r.get("distance_end_mm"), r["distance_mm"])),
                     coc_diameter_px=None if r.get("coc_diameter_px") is None else float(r["coc_diameter_px"]),
                     sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
                     estimator=str(r.get("estimator", "")), flags=str(r.get("flags", "") or ""),

@@ -63,6 +63,16 @@ def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
                     if row[c] is not None and not math.isfinite(row[c]):
                         raise SpecError(path, f"line {i}: {c}", f"{v!r} is not a finite number; leave the cell "
                                         "empty where an edge has no measurement")
+            for c in ("start_px", "end_px"):
+                v = (row.get(c) or "").strip()
+                if v:
+                    try:
+                        row[c] = tuple(float(x) for x in v.split())
+                    except ValueError:
+                        row[c] = ()
+                    if len(row[c]) != 2 or not all(math.isfinite(x) for x in row[c]):
+                        raise SpecError(path, f"line {i}: {c}", f"{v!r} is not two finite pixel coordinates "
+                                        "\"x y\"; leave the cell empty where they are not known")
             rows.append(row)
     return rows
 
@@ -71,6 +81,16 @@ def csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
     """The pixel pitch and per-setting focal lengths (and, where a calibration fitted them, its
     radial distortion k1, k2) a samples CSV repeats on its rows (empty where the columns are
     absent); rows of one setting must agree."""
+    from lensfit.limits import DISTORTION_MAX, INTRINSICS_MAX_PX
+
+    bounds = {"focal_length_px": (0.0, INTRINSICS_MAX_PX), "focal_length_sigma_px": (0.0, INTRINSICS_MAX_PX),
+              "distortion_k1": (-DISTORTION_MAX, DISTORTION_MAX), "distortion_k2": (-DISTORTION_MAX, DISTORTION_MAX)}
+    for i, r in enumerate(rows, start=2):
+        for column, (lo, hi) in bounds.items():
+            v = r.get(column)
+            if v is not None and not (lo <= v <= hi and (v > 0 or column != "focal_length_px")):
+                raise SpecError(path, f"line {i}: {column}", f"got {v!r}; expected a number from {lo:g} to {hi:g} "
+                                "(write samples with lensfit measure)")
     out: dict[str, Any] = {}
     pitches = {r["pixel_pitch_mm"] for r in rows if r.get("pixel_pitch_mm") is not None}
     if len(pitches) > 1:
@@ -86,9 +106,15 @@ def csv_calibration(path: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
         if r.get("distortion_k1") is not None and r.get("distortion_k2") is not None:  # a calibration's fit
             entry.update(source="calibrated", distortion=[r["distortion_k1"], r["distortion_k2"], 0.0, 0.0, 0.0])
         first = intrinsics.setdefault(str(r["setting"]), entry)
-        if first["focal_length_px"] != entry["focal_length_px"]:
-            raise SpecError(path, f"line {i}: focal_length_px", f"{entry['focal_length_px']} differs from the earlier "
-                            f"{first['focal_length_px']} of setting {r['setting']!r}; a setting has one calibration")
+        for column, key, at in (("focal_length_px", "focal_length_px", None),
+                                ("focal_length_sigma_px", "focal_length_sigma_px", None),
+                                ("distortion_k1", "distortion", 0), ("distortion_k2", "distortion", 1)):
+            mine, earlier = entry.get(key), first.get(key)
+            if at is not None:
+                mine, earlier = (None if mine is None else mine[at]), (None if earlier is None else earlier[at])
+            if mine != earlier:
+                raise SpecError(path, f"line {i}: {column}", f"{mine} differs from the earlier {earlier} of setting "
+                                f"{r['setting']!r}; a setting has one calibration, which every row repeats")
     if intrinsics:
         out["intrinsics"] = intrinsics
     return out

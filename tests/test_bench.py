@@ -527,3 +527,30 @@ def test_a_resumed_run_redoes_a_truncated_or_edited_case(quick_report, tmp_path,
         capsys.readouterr().err
     for f in (cut, swapped):
         assert json.loads(f.read_text())["id"] == f.stem
+
+
+def test_bench_hostile_records_each_case_and_fails_a_case_that_misses(tmp_path, capsys, monkeypatch):
+    """Two quick cases through the command: the record holds each case's status, time and peak
+    memory, the table shows them; a case whose expected message is not met makes the command
+    exit 4 and is marked failed."""
+    from lensfit.bench import hostile
+
+    only = ["target_squares_1e5", "samples_json_nested_100k"]
+    assert main(["bench-hostile", "--only", *only, "--record", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "hostile.json").read_text())
+    assert [c["name"] for c in doc["cases"]] == only and doc["passed"] == 2
+    for c in doc["cases"]:
+        assert c["status"] == 2 and 0 < c["seconds"] < hostile.MAX_SECONDS and 0 < c["peak_mib"] < 1024
+    assert "target[0].squares" in doc["cases"][0]["message"] and "| 2 |" in hostile.markdown(doc)
+    assert main(["bench-hostile", "--only", "nope"]) == 2
+    real = hostile.CASES["target_squares_1e5"]
+
+    def wrong_expectation(root):
+        case = real(root)
+        case.expect_text = "a message the program never writes"
+        return case
+
+    monkeypatch.setitem(hostile.CASES, "target_squares_1e5", wrong_expectation)
+    capsys.readouterr()
+    assert main(["bench-hostile", "--only", "target_squares_1e5", "--json"]) == 4
+    assert json.loads(capsys.readouterr().out)["cases"][0]["passed"] is False

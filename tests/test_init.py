@@ -311,3 +311,32 @@ def test_portrait_photos_are_turned_back_and_fit_as_the_landscape_ones(calibrati
     turned, original = load_stack(photos), load_stack(calibration_stack)
     for k in range(8):
         assert np.array_equal(turned.read(k), original.read(k))
+
+
+def test_init_names_settings_past_zz_and_refuses_more_photos_than_a_stack_lists(tmp_path, capsys):
+    """Per-image settings past 702 photos are labelled as spreadsheet columns (a..z, aa..zz,
+    aaa, ...; an internal error before), and a folder of more photos than a stack may list is
+    refused before any is opened."""
+    import itertools
+    import shutil
+    import string
+
+    from lensfit.stack import MAX_IMAGES
+
+    photos = tmp_path / "p"
+    photos.mkdir()
+    seed = jpeg_with_exif(tmp_path / "seed.jpg")
+    for k in range(703):
+        shutil.copyfile(seed, photos / f"p{k:05d}.jpg")
+    assert lensfit_main(["init", str(photos), "--settings", "per-image"]) == 0
+    labels = [im["setting"] for im in tomllib.loads((photos / "stack.toml").read_text())["image"]]
+    columns = ["".join(t) for n in (1, 2, 3) for t in itertools.product(string.ascii_lowercase, repeat=n)]
+    assert labels == columns[:703]
+    many = tmp_path / "many"
+    many.mkdir()
+    for k in range(MAX_IMAGES + 1):
+        (many / f"p{k:05d}.jpg").write_bytes(b"not opened")
+    capsys.readouterr()
+    assert lensfit_main(["init", str(many)]) == 2
+    err = capsys.readouterr().err
+    assert f"at most {MAX_IMAGES}" in err and len(err.strip().splitlines()) == 1

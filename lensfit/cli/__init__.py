@@ -14,7 +14,7 @@ from typing import Sequence
 from lensfit import __version__
 from lensfit.errors import InputError
 from lensfit.cli.bench import (_bench_command, _bench_fit_command, _bench_lenses_command, _bench_measure_command,
-                               _bench_stages_command, _bench_api_command)
+                               _bench_stages_command, _bench_api_command, _bench_hostile_command)
 from lensfit.cli.capture import _init_command, _plan_command, _target_command
 from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
                                 _diffraction, _input_options, _jobs, _number, _pupil)
@@ -297,6 +297,19 @@ def build_parser() -> argparse.ArgumentParser:
                          "(e.g. docs/validation/records)")
     ba.add_argument("--json", action="store_true", help="print JSON")
     ba.set_defaults(func=_bench_api_command, prog="lensfit bench-api")
+
+    bh = sub.add_parser("bench-hostile", help="hostile inputs at scale: exit status, time and peak memory of each",
+                        description="Benchmark: inputs a hostile or careless user could give, with large counts "
+                                    "(PNG chunk bombs, 100,000 image entries, a million-row samples CSV, TOML nested "
+                                    "100,000 deep, 10,000 photos, a sparse 4 GiB output), each run in a fresh process "
+                                    "as a user would run it; each case's exit status, seconds and peak memory. Exit "
+                                    "4 where a case fails (wrong status, not one line, over 60 s or 1 GiB).")
+    bh.add_argument("--only", nargs="+", metavar="CASE", help="run only these cases (default: all)")
+    bh.add_argument("--record", metavar="DIR",
+                    help="also write the table to DIR/hostile.json for the documentation's validation page "
+                         "(e.g. docs/validation/records)")
+    bh.add_argument("--json", action="store_true", help="print JSON")
+    bh.set_defaults(func=_bench_hostile_command, prog="lensfit bench-hostile")
     return parser
 
 

@@ -314,3 +314,23 @@ def _interval_lines(coverage: dict) -> list[str]:
         lines.insert(0, f"intervals (right sigmas: error/sigma RMS 1, half-width "
                         f"{GAUSSIAN_HALF_WIDTH_RATIO:.2f}x the error):")
     return lines
+
+
+def _bench_hostile_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from lensfit.bench.hostile import CASES, markdown, run
+
+    unknown = [n for n in args.only or [] if n not in CASES]
+    if unknown:
+        raise CliError(f"--only {unknown[0]}: not a case; the cases are {', '.join(CASES)}")
+    _check_record_folder(args.record)
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        doc = run(progress=lambda m: status.update(f"benchmarking: {m}"), only=args.only)
+    if args.record:
+        from lensfit.bench.records import write_json
+
+        write_json(args.record, "hostile", doc)
+    print(json.dumps(doc, indent=1) if args.json else markdown(doc))
+    return EXIT_OK if doc["passed"] == doc["total"] else EXIT_BENCH_FAILED

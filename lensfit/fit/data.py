@@ -164,6 +164,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
         if not DISTANCE_RANGE_MM[0] <= d <= DISTANCE_RANGE_MM[1]:
             raise InputError(f"samples[{i}].distance_mm", d, f"between {DISTANCE_RANGE_MM[0]:g} and "
                              f"{DISTANCE_RANGE_MM[1]:g} mm", "distances are in mm from the lens")
+        _check_optional(i, r)
         if c is not None and sg is not None and (c < 0 or sg <= 0):
             bad = "coc_diameter_px" if c < 0 else "sigma_px"
             raise InputError(f"samples[{i}].{bad}", r[bad], "> 0 px" if bad == "sigma_px" else ">= 0 px",
@@ -198,10 +199,8 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                          "fit (each adds its own parameters)", "fit the settings in groups, or check the setting column")
     idx = {k: i for i, k in enumerate(labels)}
     dist = np.array([float(r["distance_mm"]) for r in used])
-    d0 = np.array([float(r.get("distance_start_mm") or r["distance_mm"]) for r in used])
-    d1 = np.array([float(r.get("distance_end_mm") or r["distance_mm"]) for r in used])
-    if np.any(d0 <= 0) or np.any(d1 <= 0):
-        raise InputError("samples.distance_start_mm", float(min(d0.min(), d1.min())), "> 0 mm")
+    d0 = np.array([float(_or(r.get("distance_start_mm"), r["distance_mm"])) for r in used])
+    d1 = np.array([float(_or(r.get("distance_end_mm"), r["distance_mm"])) for r in used])
     w_mean, _ = inverse_distance_moments(d0, d1)
     w_nodes = 1.0 / (d0[:, None] + _NODES_T[None, :] * (d1 - d0)[:, None])
     fpx = _per_setting(focal_length_px if focal_length_px is not None else ctx.get("focal_length_px"),
@@ -228,6 +227,45 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                    _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
                    np.array([i in kept for i in used_rows], bool),
                    any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows), fdof)
+
+
+#: The optional numbers of a sample and the ranges they must lie in (closed; the lower bound of
+#: a sigma is above 0).
+OPTIONAL_RANGES = {"distance_start_mm": DISTANCE_RANGE_MM, "distance_end_mm": DISTANCE_RANGE_MM,
+                   "field_radius_px": (0.0, MAX_BLUR_PX), "disk_diameter_px": (0.0, MAX_BLUR_PX),
+                   "disk_sigma_px": (MIN_SIGMA_PX, MAX_BLUR_PX)}
+
+
+def _or(value: Any, default: Any) -> Any:
+    return default if value is None else value
+
+
+def _check_optional(i: int, row: dict[str, Any]) -> None:
+    """A sample's optional numbers (the edge's ends, its field radius, the uniform disk's reading)
+    finite and in range where given: each is used, and a wrong one would bias the fit silently."""
+    for name, (lo, hi) in OPTIONAL_RANGES.items():
+        value = row.get(name)
+        if value is None:
+            continue
+        try:
+            ok = lo <= float(value) <= hi  # (False for NaN)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            unit = name.rsplit("_", 1)[1]
+            raise InputError(f"samples[{i}].{name}", value, f"a finite number between {lo:g} and {hi:g} {unit}",
+                             "write samples with lensfit measure, or leave the field out")
+    for name in ("start_px", "end_px"):
+        value = row.get(name)
+        if value is None:
+            continue
+        try:
+            ok = len(value) == 2 and all(abs(float(v)) <= MAX_BLUR_PX for v in value)  # (False for NaN)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise InputError(f"samples[{i}].{name}", value, f"two finite pixel coordinates within {MAX_BLUR_PX:g} px",
+                             "write samples with lensfit measure, or leave the field out")
 
 
 def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> np.ndarray:
