@@ -265,6 +265,10 @@ def read_raster(path: Path, black_level: float | None = None, white_level: float
                             "write finite values (e.g. 0 for missing data)")
         if np.isinf(out).any():
             raise SpecError(path, "", "float image holds infinite values")
+        if out.size and float(out.max()) <= 0.0:  # (noise after a black level dips below 0; light is above it)
+            raise SpecError(path, "", f"float image holds no positive value (from {float(out.min()):.4g} to "
+                            f"{float(out.max()):.4g}): no light was recorded; is it a difference image, or were its "
+                            "values negated? write linear light, 0 for black")
     else:
         raise SpecError(path, "", f"unsupported pixel type {img.dtype}")
     try:

@@ -335,9 +335,9 @@ class OutputLock:
                 who = f"process {pid}" if pid > 0 else "another run"
                 raise OutputError(f"{option} {path} is being written by {who} (lock {lock}); wait for it to "
                                   "finish or choose another path; delete the lock only if no such run exists") from None
+            self._held.append(lock)  # (before writing: a full disk fails the write, and the lock must go)
             with os.fdopen(fd, "w") as fh:
                 fh.write(me)
-            self._held.append(lock)
             return
         raise OutputError(f"{option} {path}: could not lock {lock}; delete it if no run is writing there")
 

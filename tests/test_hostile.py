@@ -765,3 +765,50 @@ def test_a_png_chunk_claiming_more_than_the_file_is_refused_before_decoding(tmp_
     bomb.write_bytes(bytes(data))
     with pytest.raises(SpecError, match="'IDAT' chunk claims 2147483647 bytes"):
         read_image(bomb)
+
+
+def test_a_float_tiff_without_light_is_named_not_reported_as_too_few_views(tmp_path):
+    """A float TIFF whose values are all negative (a negated or difference image) was measured
+    and reported as "too few views"; it is refused naming the file and what it holds. Noise dipping
+    below 0 around a black level is light and is read."""
+    import tifffile
+
+    noisy = 0.2 + 0.01 * np.random.default_rng(1).standard_normal((40, 60))
+    tifffile.imwrite(tmp_path / "noisy.tif", (noisy - 0.2).astype(np.float32))  # half the pixels below 0
+    assert read_image(tmp_path / "noisy.tif").max() > 0
+    tifffile.imwrite(tmp_path / "neg.tif", -noisy.astype(np.float32))
+    with pytest.raises(SpecError, match="no positive value") as err:
+        read_image(tmp_path / "neg.tif")
+    assert "neg.tif" in str(err.value)
+
+
+def test_a_disk_full_while_the_lock_is_written_leaves_no_lock(tmp_path, capsys, monkeypatch):
+    """The disk can fill at the lock itself (its process id written into it): the run fails with
+    exit 1 and the empty lock goes with it, so the next run is not refused as "being written"."""
+    import errno
+
+    import lensfit.outputs
+
+    class Full:
+        def __init__(self, fd, *a, **k):
+            os.close(fd)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def write(self, _):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(lensfit.outputs.os, "fdopen", Full)
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = run_cli(capsys, lensfit_main, "target", "--out", out / "board.png")
+    assert code == 1
+    one_line_error(err, "No space left on device")
+    assert list(out.iterdir()) == []
+    monkeypatch.undo()
+    code, _, err = run_cli(capsys, lensfit_main, "target", "--out", out / "board.png")
+    assert code == 0, err
