@@ -103,6 +103,7 @@ from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.estimators.edge_fit import FitQueue, fit_profiles
 from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
 from lensfit.estimators.profile import line_end_covariance, select as _select, windows
+from lensfit.estimators.radial import radial_reading
 from lensfit.parallel import in_threads
 
 SUB_PIXEL_PX = 0.5
@@ -318,6 +319,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             reuse["airy_theta"] = {i: np.asarray(fits[j][0][:5], np.float64) for j, i in enumerate(index) if fits[j][3]}
         shaped: list[int] = []
         disk: dict[int, tuple[float, float, float]] = {}  # the disk's (diameter, RMS, sigma) where shaped
+        radial: dict[int, tuple[float, float]] = {}  # the radial profile's (diameter, sigma) where read
         if second_moment and attempt == 1 and airy is None:
             # The spot's shape is read wherever it can be (see the module docstring); the
             # uniform disk's reading is kept beside it: their difference sizes the shape's
@@ -333,6 +335,10 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             for j, refit in zip(shaped, refits):
                 disk[j] = (diameter[j], fits[j][2], 2.0 * _radius_terms(*fits[j][:2])[3])
                 fits[j] = refit
+                if refit[3] and "window_truncated" not in flags[index[j]]:  # where two disks cannot hold it
+                    got = radial_reading(banded[index[j]], np.asarray(refit[0], np.float64))
+                    if got is not None:
+                        radial[j] = got
         is_shaped = set(shaped)
         for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):
             rho, slope, var_rho, sigma_r = _radius_terms(theta, cov)
@@ -359,7 +365,11 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 C = np.asarray(cov[5:7, 5:7], np.float64)
                 var_c += float(g @ C @ g) + 2.0 * (k / max(r, 1e-6)) * slope * float(g @ np.asarray(cov[1, 5:7]))
             sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
-            if j in is_shaped:
+            if j in radial:  # two disks could not hold it: the radial profile's reading
+                c, noise = radial[j]
+                f.append("radial_profile")
+                sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[j][0]))
+            elif j in is_shaped:
                 # Chi-square inflation measures the profile family's misfit, which the model error
                 # states instead (a share of how far the spot reads from a uniform disk). Where a is
                 # within SHAPE_SIGNIFICANT_Z sigmas of 0 the noise is the disk fit's: at a = 0 the

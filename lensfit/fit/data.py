@@ -141,7 +141,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     kept = set(shaped) - set(swap)  # shaped readings that stay so
     for i in swap:
         rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
-                   "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot"}))}
+                   "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot", "radial_profile"}))}
     stated = ctx.get("pixel_pitch_mm")
     stated = None if isinstance(stated, float) and math.isnan(stated) else stated  # (a table without one)
     pitch = pixel_pitch_mm if pixel_pitch_mm is not None else stated
