@@ -21,7 +21,7 @@ from lensfit.estimators.edge import measure
 pytest.importorskip("optiland")
 
 
-def edge_image(across_px: np.ndarray, noise: float, seed: int, size=(120, 160), angle_deg=4.0):
+def edge_image(across_px: np.ndarray, noise: float, seed: int, size=(120, 160), angle_deg=4.0, clear_px=70.0):
     """A half-plane (0.1 to 0.8) blurred by the spot whose hits lie at ``across_px`` across the edge."""
     hits = np.sort(across_px - across_px.mean())
     h, w = size
@@ -37,7 +37,7 @@ def edge_image(across_px: np.ndarray, noise: float, seed: int, size=(120, 160), 
             light += np.searchsorted(hits, t.ravel()).reshape(h, w) / len(hits)
     image = 0.1 + 0.7 * light / k**2 + noise * np.random.default_rng(seed).standard_normal((h, w))
     along = np.array([-normal[1], normal[0]])
-    task = EdgeTask(np.array(centre) - 45 * along, np.array(centre) + 45 * along, 70.0, 70.0)
+    task = EdgeTask(np.array(centre) - 45 * along, np.array(centre) + 45 * along, clear_px, clear_px)
     return image, task
 
 
@@ -99,3 +99,16 @@ def test_uniform_disks_keep_the_two_disk_reading(petzval_spots):
             est = measure(*map(lambda x: [x] if isinstance(x, EdgeTask) else x, edge_image(hits, noise, seed=k)))[0]
             assert "radial_profile" not in est.flags
             assert est.coc_diameter_px == pytest.approx(2 * radius, rel=0.01)
+
+
+def test_a_halo_the_clean_room_cuts_is_no_reading(petzval_spots):
+    """Where the target leaves less room than the halo needs (a ChArUco board's markers a few
+    pixels beyond the edge), the window is the clean room less the spot's radius: the ring's
+    halo reaches its edge and goes on. That reading would be low; it is refused as a window too
+    narrow for the spot, while the same edge with room reads right."""
+    share, hits, exact = next(p for p in petzval_spots if p[0] == 0.85)
+    image, task = edge_image(hits, 0.002, seed=0, clear_px=20.0)  # room for the ring, not the halo
+    cut = measure(image, [task])[0]
+    assert cut.coc_diameter_px is None and "window_truncated" in cut.flags, cut
+    image, task = edge_image(hits, 0.002, seed=0)
+    assert measure(image, [task])[0].coc_diameter_px == pytest.approx(exact, rel=0.03)

@@ -102,7 +102,7 @@ from lensfit.diffraction import MAX_AIRY_PX
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.estimators.edge_fit import FitQueue, fit_profiles
 from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
-from lensfit.estimators.profile import line_end_covariance, select as _select, windows
+from lensfit.estimators.profile import line_end_covariance, select as _select, window_wanted, windows
 from lensfit.estimators.radial import radial_reading
 from lensfit.parallel import in_threads
 
@@ -239,6 +239,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
     lines: list = [None] * len(tasks)
     expected: list = [None] * len(tasks)  # the first pass's (offset, radius), for the second's weights
     banded: list = [None] * len(tasks)  # the profile with the two-disk fit's weights
+    cramped = [False] * len(tasks)  # the second pass's window narrower than the spot asks for
     key = [(k, tuple(float(x) for x in t.start_px), tuple(float(x) for x in t.end_px), float(t.clear_left_px),
             float(t.clear_right_px)) for k, t in zip(owner, tasks)]
     reuse = profiles if profiles is not None and profiles.get("key") == key else None
@@ -256,7 +257,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         # one) start these: a third less time than the grid from the first pass's radius.
         earlier = reuse.get("airy_theta") if with_airy and reuse is not None else None
         if reuse is not None:
-            results, radius, flags, npixels, lines, expected, banded, batch, index = (
+            results, radius, flags, npixels, lines, expected, banded, batch, index, cramped = (
                 list(v) for v in reuse["state"])
             if earlier is not None and not all(i in earlier for i in index):
                 earlier = None
@@ -287,6 +288,8 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                         images.clear()  # one image in memory at a time (and the next one being read)
                         images[owner[i]] = next(loader)
                     half, margin, truncated = windows(task, radius[i] if attempt else None)
+                    if attempt:  # the clean room, not the spot, set the window
+                        cramped[i] = half < window_wanted(radius[i]) - 1e-9
                     sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
                     if sel is None or len(sel[0]) < 8:
                         results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
@@ -308,7 +311,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 loader.close()
         if attempt == 1 and keep_profiles is not None:
             keep_profiles.update(key=key, state=tuple(list(v) for v in (
-                results, radius, flags, npixels, lines, expected, banded, batch, index)))
+                results, radius, flags, npixels, lines, expected, banded, batch, index, cramped)))
         images.clear()
         if progress and attempt == 1:
             for k in range(len(items)):
@@ -337,8 +340,10 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 fits[j] = refit
                 if refit[3] and "window_truncated" not in flags[index[j]]:  # where two disks cannot hold it
                     got = radial_reading(banded[index[j]], np.asarray(refit[0], np.float64))
-                    if got is not None:
-                        radial[j] = got
+                    if got is not None and got[2] and cramped[index[j]]:  # a halo the clean room cut
+                        flags[index[j]].append("window_truncated")
+                    elif got is not None:
+                        radial[j] = got[:2]
         is_shaped = set(shaped)
         for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):
             rho, slope, var_rho, sigma_r = _radius_terms(theta, cov)

@@ -218,14 +218,21 @@ def _edge_line(s: np.ndarray, d: np.ndarray, v: np.ndarray) -> tuple[float, floa
     return float(offset), float(slope)
 
 
+def window_wanted(radius: float) -> float:
+    """The half-width across the edge a spot of ``radius`` (px) asks for: its reach and as much
+    again (at least 4 px) of level on each side."""
+    return radius + max(4.0, radius)
+
+
 def windows(task: EdgeTask, radius: float | None) -> tuple[float, float, bool]:
     """The profile's half-width across the edge, the length skipped at each end, and whether the
     clean room is too narrow for the spot's reach (``radius`` of the last reading; None: the first
-    pass, which takes all the clean room)."""
+    pass, which takes all the clean room). The half-width is :func:`window_wanted` where the
+    clean room allows, less where it does not."""
     clear = max(0.0, min(task.clear_left_px, task.clear_right_px) - 0.5)
     if radius is None:  # first pass: all the clean room, ends skipped by as much
         return clear, clear, False
-    want = radius + max(4.0, radius)
+    want = window_wanted(radius)
     room = clear - radius
     half = max(2.0, min(want, room))
     truncated = room < radius + 1.5

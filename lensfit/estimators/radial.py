@@ -19,7 +19,10 @@ reading is unbiased and only noisier.
 It is noisier (on exact uniform disks in noise, 1-3 times the two-disk reading's scatter), so it
 is taken only where the data reject two disks: its weighted residual sum of squares below the
 two-disk fit's by more than the extra parameters explain, at ``REJECT_Z`` standard deviations of
-the chi-square. A spot two disks hold keeps their reading, unchanged.
+the chi-square. A spot two disks hold keeps their reading, unchanged. Where the outermost ring holds light,
+the halo reaches the window's edge and may go on beyond it (a ChArUco board's markers leave a
+window of the clean room less the spot's radius): no reading, flag ``window_truncated``, as for
+any spot wider than its window.
 """
 
 from __future__ import annotations
@@ -36,6 +39,11 @@ ANNULI = 8
 REJECT_Z = 5.0
 #: The rings reach this share of the window's smaller side.
 REACH_SHARE = 0.95
+#: The spot reaches the window's edge where its outermost ring holds more than this share of
+#: the light, at ``REACH_Z`` standard errors: the halo may go on beyond, and the reading is
+#: refused as a window too narrow for the spot (flag ``window_truncated``).
+REACH_MIN_SHARE = 0.01
+REACH_Z = 3.0
 
 
 def _unit_h(x: np.ndarray) -> np.ndarray:
@@ -72,11 +80,13 @@ def _two_disk_rss(x, v, w, theta, boxes) -> float:
     return float(np.sum((w * (v - model)) ** 2))
 
 
-def radial_reading(profile: tuple, theta: np.ndarray) -> tuple[float, float] | None:
-    """The second-moment diameter (px) of the edge's spot read as a radial profile and its
-    1 sigma, where the data reject the two-disk fit ``theta`` (``lensfit.estimators.edge_model``:
-    d0, rho, lo, hi, turn, a, logit t) of the same ``profile`` (d, s, values, standard errors,
-    pixel boxes); None where two disks hold the spot, or where the rings give no reading."""
+def radial_reading(profile: tuple, theta: np.ndarray) -> tuple[float, float, bool] | None:
+    """The second-moment diameter (px) of the edge's spot read as a radial profile, its 1 sigma,
+    and whether the spot reaches the window's edge (its outermost ring holds light beyond
+    ``REACH_Z`` standard errors: a halo the window may cut, the reading then a lower bound),
+    where the data reject the two-disk fit ``theta`` (``lensfit.estimators.edge_model``: d0,
+    rho, lo, hi, turn, a, logit t) of the same ``profile`` (d, s, values, standard errors, pixel
+    boxes); None where two disks hold the spot, or where the rings give no reading."""
     d, s_along, v, se, boxes = profile
     d, s_along, v, se = (np.asarray(q, np.float64) for q in (d, s_along, v, se))
     x = d - float(theta[0]) - float(theta[4]) * s_along
@@ -104,4 +114,6 @@ def radial_reading(profile: tuple, theta: np.ndarray) -> tuple[float, float] | N
     g = np.concatenate([[0.0], (m - c2) / total])
     var_c2 = float(g @ cov @ g)
     c = math.sqrt(c2)
-    return c, math.sqrt(max(var_c2, 0.0)) / (2.0 * c)
+    outer = shares[-1] / total, math.sqrt(max(float(cov[-1, -1]), 0.0)) / abs(total)
+    reaches = outer[0] > REACH_MIN_SHARE and outer[0] > REACH_Z * outer[1]
+    return c, math.sqrt(max(var_c2, 0.0)) / (2.0 * c), reaches
