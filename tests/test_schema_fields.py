@@ -39,60 +39,19 @@ STACK = {
                     "principal_point_px": [48.0, 32.0], "distortion": [0.0, 0.0, 0.0, 0.0, 0.0]}],
 }
 
-#: A scene calling for every effect, so that every effect's table is read.
-SCENE = """
-[camera]
-pixel_pitch_mm = 0.006
-width_px = 96
-height_px = 64
+def _scene() -> dict:
+    """test_hostile's small scene, calling for every effect so that every effect's table is read."""
+    from test_hostile import SCENE as SMALL
 
-[lens]
-focal_length_mm = 50.0
-f_number = 4.0
-focus_distance_mm = 1500.0
+    scene = tomllib.loads(SMALL)
+    scene["render"].update(effects=["defocus", "diffraction", "vignetting", "distortion", "chromatic_aberration",
+                                    "exposure", "noise", "mosaic"], format="dng")
+    scene.update(shot=[{"name": "s0", "pose": [{"id": "board"}]}], exposure={"shutter_s": 0.01},
+                 diffraction={"reach_rings": 2}, vignetting={"natural": True}, distortion={"k1": 0.01},
+                 chromatic_aberration={"focal_shift_mm": [0.0, 0.0, 0.0]}, noise={"shot": True},
+                 mosaic={"pattern": "RGGB"}, sensor={"preset": "aps-c-24mp"})
+    return scene
 
-[render]
-samples_per_pixel = 16
-effects = ["defocus", "diffraction", "vignetting", "distortion", "chromatic_aberration", "exposure", "noise", "mosaic"]
-format = "dng"
-
-[[object]]
-id = "board"
-target = "checkerboard"
-squares = [4, 3]
-square_mm = 8.0
-distance_mm = 1200.0
-
-[[shot]]
-name = "s0"
-
-[[shot.pose]]
-id = "board"
-
-[exposure]
-shutter_s = 0.01
-
-[diffraction]
-reach_rings = 2
-
-[vignetting]
-natural = true
-
-[distortion]
-k1 = 0.01
-
-[chromatic_aberration]
-focal_shift_mm = [0.0, 0.0, 0.0]
-
-[noise]
-shot = true
-
-[mosaic]
-pattern = "RGGB"
-
-[sensor]
-preset = "aps-c-24mp"
-"""
 
 SUITE = """
 name = "driven"
@@ -258,7 +217,7 @@ def test_every_stack_toml_field(stack_folder: Path):
 def test_every_scene_field():
     from synth.scene import scene_from_dict
 
-    n, wrong = refusals(scene_from_dict, "scene.schema.json", tomllib.loads(SCENE))
+    n, wrong = refusals(scene_from_dict, "scene.schema.json", _scene())
     assert n > 400 and not wrong, "\n".join(wrong)
 
 
@@ -366,7 +325,7 @@ def test_a_driven_field_through_the_cli_is_one_line_and_exit_2(tmp_path, stack_f
         field = "target[0].square_mm"
     elif kind == "scene":
         scene = tmp_path / "scene.toml"
-        scene.write_text(_toml(with_value(tomllib.loads(SCENE), ("distortion", "k2"), math.inf)))
+        scene.write_text(_toml(with_value(_scene(), ("distortion", "k2"), math.inf)))
         code, _, err = run_cli(capsys, synth_main, "plan", scene)
         field = "distortion.k2"
     else:
