@@ -56,8 +56,14 @@ def calibration_text(cal: dict[str, Any] | None) -> str:
     if cal.get("informative_views"):  # a jackknife, pooled with the corners' model
         how += " with the corners' model"
         views = f"{cal['informative_views']:.1f} informative of {views}"
-    return (f"calibration: focal length {cal['focal_length_px']:.1f} ± {cal['focal_length_sigma_px']:.2g} px "
+    text = (f"calibration: focal length {cal['focal_length_px']:.1f} ± {cal['focal_length_sigma_px']:.2g} px "
             f"({how}, {views}, reprojection RMS {cal['rms_px']:.3g} px)")
+    fov = cal.get("field_of_view_deg")
+    if fov:
+        h, v, d = fov["horizontal"], fov["vertical"], fov["diagonal"]
+        text += (f"; angle of view {h['value']:.2f} x {v['value']:.2f} deg, diagonal {d['value']:.2f} deg "
+                 f"[{d['ci95'][0]:.2f}, {d['ci95'][1]:.2f}]")
+    return text
 
 #: Overlays wider than this (px) are drawn downscaled (the picture, not the measurement).
 OVERLAY_WIDTH_PX = 1400

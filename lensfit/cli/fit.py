@@ -237,7 +237,8 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
             result = fit(table, **options)
         if stack is not None:  # (the pipeline assessed it with the halos; here the EXIF alone)
             apply(result, from_exif(stack), args.processed)
-    document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics)
+    document = results_document(result, ["lensfit", *args.argv], truth, intrinsics=table.intrinsics,
+                                image_shape_px=table.image_shape)
     wavelength = args.diffraction if forced else 550.0
     if rounds:
         document["diffraction"] = {"wavelength_nm": wavelength, "airy_scale_px": rounds[-1], "rounds": len(rounds),

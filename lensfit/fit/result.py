@@ -208,10 +208,14 @@ def _parameter_names(labels: list[str]) -> list[str]:
 
 
 def results_document(result: FitResult, command: Iterable[str] | None = None,
-                     truth: dict[str, Any] | None = None, intrinsics: dict[str, Any] | None = None) -> dict[str, Any]:
+                     truth: dict[str, Any] | None = None, intrinsics: dict[str, Any] | None = None,
+                     image_shape_px: tuple[int, int] | None = None) -> dict[str, Any]:
     """The results JSON with provenance (and, when given, the truth and relative errors, and the
     geometric calibration per setting: ``intrinsics`` maps a label to
-    ``lensfit.calibration.Intrinsics``)."""
+    ``lensfit.calibration.Intrinsics``; with ``image_shape_px`` (height, width), each setting's
+    angles of view, ``lensfit.optics.view``)."""
+    from lensfit.optics.view import field_of_view
+
     from lensfit.outputs import provenance
 
     doc = result.to_json_dict()
@@ -227,6 +231,11 @@ def results_document(result: FitResult, command: Iterable[str] | None = None,
                     "distortion_opencv": [float(x) for x in v.distortion], "rms_px": v.rms_px, "views": v.views,
                     "source": v.source}
             for label, v in intrinsics.items()}
+        if image_shape_px and all(image_shape_px):
+            for label, v in intrinsics.items():
+                doc["calibration"][label]["field_of_view_deg"] = field_of_view(
+                    v.focal_length_px, v.focal_length_sigma_px, v.focal_length_sigma_dof, tuple(image_shape_px),
+                    tuple(v.principal_point_px))
     if truth is not None:
         doc["truth_comparison"] = compare_with_truth(result, truth)
     return doc
