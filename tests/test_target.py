@@ -67,3 +67,34 @@ def test_impossible_boards_are_refused_naming_the_option(tmp_path, capsys, args,
     err = capsys.readouterr().err
     assert says in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def _copies_written_out(linear, white, gammas=(1.0, 2.2)):
+    """The detectors' 8-bit copies as their definition says, on the whole image at once."""
+    import cv2
+
+    v = np.clip(linear / white, 0.0, 1.0)
+    return [np.rint(v * 255.0).astype(np.uint8) if g == 1.0
+            else cv2.convertScaleAbs(cv2.pow(v.astype(np.float32), 1 / g), alpha=255.0) for g in gammas]
+
+
+def test_detection_copies_are_made_in_blocks_when_asked_with_the_same_values():
+    """Copies made block by block, each when first asked for, equal the whole-image definition:
+    exactly below SUBSAMPLED_WHITE_PX; above it the white point comes from every 4th pixel of
+    every 4th row and moves a level at most."""
+    from lensfit import targets
+
+    rng = np.random.default_rng(0)
+    small = rng.gamma(2.0, 0.2, (700, 900))
+    copies = targets.detection_copies(small)
+    assert len(copies._made) == 0
+    first = copies[0]
+    assert len(copies._made) == 1  # the gamma copy not made until asked for
+    exact = _copies_written_out(small, float(np.percentile(small, 99.9)))
+    assert np.array_equal(first, exact[0]) and np.array_equal(copies[1], exact[1])
+    large = rng.gamma(2.0, 0.2, (1500, 3000))
+    assert large.size > targets.SUBSAMPLED_WHITE_PX
+    exact = _copies_written_out(large, float(np.percentile(large, 99.9)))
+    for got, want in zip(targets.detection_copies(large), exact):
+        diff = np.abs(got.astype(int) - want.astype(int))
+        assert diff.max() <= 1 and (diff == 0).mean() > 0.9
