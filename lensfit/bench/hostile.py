@@ -3,8 +3,8 @@
 ``lensfit bench-hostile`` writes every input below into a scratch folder (small files: the
 largest is a 1,000,001-row samples CSV of 17 MB and a sparse 4 GiB results file that holds no
 data), runs the command a user would run on it in a fresh process, and records its exit
-status, wall time, peak resident memory (the process's own, from ``wait4``) and the first line
-it wrote to stderr. A case passes when the status is the expected one, the message is one line
+status, wall time, peak resident memory (the process's own, from ``wait4`` in a small launcher
+process) and the first line it wrote to stderr. A case passes when the status is the expected one, the message is one line
 naming what it should, and the run stays within ``MAX_SECONDS`` and ``MAX_PEAK_BYTES``. The fast
 cases of the same kinds run in ``make test`` (``tests/test_hostile.py``,
 ``tests/test_schema_fields.py``); these take seconds to minutes each and run here.
@@ -14,10 +14,10 @@ cases of the same kinds run in ``make test`` (``tests/test_hostile.py``,
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import shutil
-import signal
 import struct
 import subprocess
 import sys
@@ -227,29 +227,42 @@ def _input_bytes(root: Path) -> int:
     return sum(p.stat().st_blocks * 512 for p in root.rglob("*") if p.is_file())
 
 
+#: Runs a command and writes its exit status and peak resident memory (kB) to stdout: started
+#: from this small interpreter, the command's peak is its own (a process's peak counts the memory
+#: of the one it was forked from, a pytest or a notebook of a gigabyte).
+_LAUNCHER = """
+import json, os, signal, subprocess, sys, time
+proc = subprocess.Popen(sys.argv[2:], stdout=subprocess.DEVNULL, start_new_session=True)
+deadline = time.monotonic() + float(sys.argv[1])
+while True:
+    pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+    if pid:
+        break
+    if time.monotonic() > deadline:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pid, status, usage = os.wait4(proc.pid, 0)
+        break
+    time.sleep(0.02)
+proc.returncode = 0
+print(json.dumps([os.waitstatus_to_exitcode(status), usage.ru_maxrss]))
+"""
+
+
 def run_case(case: Case, before_bytes: int, root: Path | None = None) -> Outcome:
     start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "lensfit", *case.argv], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, start_new_session=True)
-    deadline = start + KILL_SECONDS
-    while True:
-        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-        if pid:
-            break
-        if time.perf_counter() > deadline:
-            os.killpg(proc.pid, signal.SIGKILL)
-            pid, status, usage = os.wait4(proc.pid, 0)
-            break
-        time.sleep(0.02)
+    done = subprocess.run([sys.executable, "-c", _LAUNCHER, str(KILL_SECONDS), sys.executable, "-m", "lensfit",
+                           *case.argv], capture_output=True, text=True, errors="replace")
     seconds = time.perf_counter() - start
-    err = proc.stderr.read().decode("utf-8", "replace") if proc.stderr else ""
-    proc.returncode = 0  # (reaped by wait4 above)
-    code = os.waitstatus_to_exitcode(status)
+    try:
+        code, peak_kb = json.loads(done.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        code, peak_kb = None, 0
+    err = done.stderr
     lines = [ln for ln in err.strip().splitlines() if ln.strip()]
     message = lines[0] if lines else ""
     if root is not None:  # (the scratch folder's name says nothing)
         message = message.replace(f"{root}{os.sep}", "")
-    peak = usage.ru_maxrss * 1024  # (kilobytes on Linux)
+    peak = peak_kb * 1024  # (kilobytes on Linux)
     one_line = len([ln for ln in lines if "error" in ln]) <= 1 and "Traceback" not in err
     passed = (code in case.expect_status and one_line and seconds <= MAX_SECONDS and peak <= MAX_PEAK_BYTES
               and (code == 0 or case.expect_text in message))

@@ -323,6 +323,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         shaped: list[int] = []
         disk: dict[int, tuple[float, float, float]] = {}  # the disk's (diameter, RMS, sigma) where shaped
         radial: dict[int, tuple[float, float]] = {}  # the radial profile's (diameter, sigma) where read
+        halo_cut: set[int] = set()  # spots whose halo goes on past a window the clean room narrowed
         if second_moment and attempt == 1 and airy is None:
             # The spot's shape is read wherever it can be (see the module docstring); the
             # uniform disk's reading is kept beside it: their difference sizes the shape's
@@ -341,7 +342,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 if refit[3] and "window_truncated" not in flags[index[j]]:  # where two disks cannot hold it
                     got = radial_reading(banded[index[j]], np.asarray(refit[0], np.float64))
                     if got is not None and got[2] and cramped[index[j]]:  # a halo the clean room cut
-                        flags[index[j]].append("window_truncated")
+                        halo_cut.add(j)
                     elif got is not None:
                         radial[j] = got[:2]
         is_shaped = set(shaped)
@@ -361,7 +362,8 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             # across the edge; the uniform disk's diameter where a = 0.
             k = math.sqrt(m)
             c = 2.0 * r * k
-            f = list(flags[i]) + (["shaped_spot"] if j in is_shaped else [])
+            f = list(flags[i]) + (["shaped_spot"] if j in is_shaped else []) + (["window_truncated"] if j in halo_cut
+                                                                                else [])
             # 1 sigma of c from that of R (_radius_terms); the shape's share by the gradient of c
             # in (a, logit t), with its covariance with R^2.
             var_c = (2.0 * k * sigma_r) ** 2

@@ -17,9 +17,11 @@ into light that is always positive, and read uniform disks 0.2-0.8 % large; unco
 reading is unbiased and only noisier.
 
 It is noisier (on exact uniform disks in noise, 1-3 times the two-disk reading's scatter), so it
-is taken only where the data reject two disks: its weighted residual sum of squares below the
+is taken only where the data reject two disks (its weighted residual sum of squares below the
 two-disk fit's by more than the extra parameters explain, at ``REJECT_Z`` standard deviations of
-the chi-square. A spot two disks hold keeps their reading, unchanged. Where the outermost ring holds light,
+the chi-square) and where the two readings differ by more than the rings' own 1 sigma: where
+they do not, the two-disk reading's bias is below what the rings can show, and it is the less
+noisy of the two. A spot two disks hold keeps their reading, unchanged. Where the outermost ring holds light,
 the halo reaches the window's edge and may go on beyond it (a ChArUco board's markers leave a
 window of the clean room less the spot's radius): no reading, flag ``window_truncated``, as for
 any spot wider than its window.
@@ -70,6 +72,14 @@ def disk_profiles(x: np.ndarray, radii: np.ndarray, boxes: tuple[float, float]) 
     return (H(x + 0.5 * (a + b)) - H(x + 0.5 * (a - b)) - H(x - 0.5 * (a - b)) + H(x - 0.5 * (a + b))) / (a * b)
 
 
+def _two_disk_diameter(theta) -> float:
+    """The two-disk fit's second-moment diameter, 2 R sqrt(1 - a (1 - t^2))."""
+    rho = float(theta[1])
+    R = math.sqrt(0.5 * (rho + math.hypot(rho, 1e-6)) + 1e-12)
+    t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
+    return 2.0 * R * math.sqrt(max(1.0 - float(theta[5]) * (1.0 - t * t), 0.0))
+
+
 def _two_disk_rss(x, v, w, theta, boxes) -> float:
     lo, hi, a = float(theta[2]), float(theta[3]), float(theta[5])
     rho = float(theta[1])
@@ -114,6 +124,9 @@ def radial_reading(profile: tuple, theta: np.ndarray) -> tuple[float, float, boo
     g = np.concatenate([[0.0], (m - c2) / total])
     var_c2 = float(g @ cov @ g)
     c = math.sqrt(c2)
+    sigma = math.sqrt(max(var_c2, 0.0)) / (2.0 * c)
+    if not abs(c - _two_disk_diameter(theta)) > sigma:
+        return None  # the two disks' reading is as good as the rings can tell, and less noisy
     outer = shares[-1] / total, math.sqrt(max(float(cov[-1, -1]), 0.0)) / abs(total)
     reaches = outer[0] > REACH_MIN_SHARE and outer[0] > REACH_Z * outer[1]
-    return c, math.sqrt(max(var_c2, 0.0)) / (2.0 * c), reaches
+    return c, sigma, reaches
