@@ -6,6 +6,8 @@ PSF model
     of radius ``t R`` (0 < t < 1) and ``1 - a`` in one of radius R. ``a > 0`` is a bright core in
     a halo, ``a < 0`` (down to ``-t^2 / (1 - t^2)``, where the centre's intensity reaches 0) a
     bright rim: the two faces of spherical aberration on either side of a real lens's focus.
+    Where the data reject two disks too (a bright ring in a faint halo), any radial profile of
+    eight rings (``lensfit.estimators.radial``, flag ``radial_profile``).
     Both integrated over square pixels with 100 % fill factor in closed form
     (``lensfit.psf.pixel_edge_profile``). No Gaussian stand-in: a Gaussian fitted to a disk is
     biased.
