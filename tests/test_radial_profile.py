@@ -89,14 +89,15 @@ def test_a_fast_petzvals_spots_read_at_their_second_moment_on_both_sides_of_focu
     assert max(ring_misses) > 0.05  # what the two-disk family alone read: the test can fail
 
 
-def test_uniform_disks_keep_the_two_disk_reading(petzval_spots):
+def test_uniform_disks_keep_the_two_disk_reading():
     """A spot two disks hold (a thin lens's uniform disk) never takes the noisier radial reading."""
     rng = np.random.default_rng(3)
     for k, radius in enumerate((1.5, 4.0, 10.0)):
         r = radius * np.sqrt(rng.random(200_000))
         hits = r * np.cos(2 * np.pi * rng.random(r.size))
         for noise in (0.002, 0.01):
-            est = measure(*map(lambda x: [x] if isinstance(x, EdgeTask) else x, edge_image(hits, noise, seed=k)))[0]
+            image, task = edge_image(hits, noise, seed=k)
+            est = measure(image, [task])[0]
             assert "radial_profile" not in est.flags
             assert est.coc_diameter_px == pytest.approx(2 * radius, rel=0.01)
 
