@@ -66,11 +66,11 @@ def _disk_g(xs):
     return 0.5 * xs + (xs * jnp.arcsin(xs) + jnp.sqrt(one_minus) - one_minus * jnp.sqrt(one_minus) / 3.0) / jnp.pi
 
 
-def _disk_h(xs):
+def _disk_h(xs, xp=jnp):
     x2 = xs * xs
-    root = jnp.sqrt(1.0 - x2)
+    root = xp.sqrt(1.0 - x2)
     return (0.25 * x2 + 1.0 / 16.0
-            + ((4.0 * x2 + 1.0) / 8.0 * jnp.arcsin(xs) + 0.625 * xs * root - xs * (1.0 - x2) * root / 12.0) / jnp.pi)
+            + ((4.0 * x2 + 1.0) / 8.0 * xp.arcsin(xs) + 0.625 * xs * root - xs * (1.0 - x2) * root / 12.0) / xp.pi)
 
 
 disk_esf_integral = _antiderivative(_disk_g, lambda x: x, lambda: disk_esf,
@@ -113,6 +113,25 @@ def pixel_edge_profile(d, radius_px, nx, ny):
                + H(d - 0.5 * (a + b_safe))) / (a * b_safe)
     one_box = (G(d + 0.5 * a) - G(d - 0.5 * a)) / a
     return jnp.where(thin, one_box, two_box)
+
+
+def pixel_edge_profiles_np(d, radii, boxes) -> np.ndarray:
+    """:func:`pixel_edge_profile` in NumPy for many radii at once, ``(len(d), len(radii))``;
+    ``boxes``: the two box widths (|n_x|, |n_y|, or a footprint widened as
+    ``lensfit.estimators.profile.footprint`` does), the narrower held at 1e-3 or more. For callers
+    that evaluate a few profiles per edge outside a compiled fit, where JAX's dispatch would cost
+    more than the arithmetic."""
+    R = np.maximum(np.asarray(radii, np.float64), 1e-6)[None, :]
+    d = np.asarray(d, np.float64)[:, None]
+    a, b = max(abs(boxes[0]), abs(boxes[1])), max(min(abs(boxes[0]), abs(boxes[1])), 1e-3)
+
+    def H(t):
+        x = t / R
+        inside = np.abs(x) < 1.0
+        core = _disk_h(np.where(inside, x, 0.0), np)
+        return R * R * np.where(inside, core, np.where(x >= 1.0, 0.5 * x * x + 0.125, 0.0))
+
+    return (H(d + 0.5 * (a + b)) - H(d + 0.5 * (a - b)) - H(d - 0.5 * (a - b)) + H(d - 0.5 * (a + b))) / (a * b)
 
 
 def disk_kernel(diameter: float, oversample: int = 8) -> np.ndarray:

@@ -43,8 +43,9 @@ class Sample:
     disk_sigma_px: float | None = None
 
 
-def _given(value: Any, default: Any) -> Any:
-    """``value`` unless it was left out (a 0 is a value, and is checked as one)."""
+def given_or(value: Any, default: Any) -> Any:
+    """``value`` unless it was left out (None, or an empty CSV cell): a 0 is a value, and is
+    checked as one."""
     return default if value is None or value == "" else value
 
 
@@ -190,8 +191,8 @@ class SampleTable:
                 table.samples.append(Sample(
                     image=str(r.get("image", "")), setting=str(r["setting"]), target=str(r.get("target", "")),
                     edge=str(r.get("edge", "")), distance_mm=float(r["distance_mm"]),
-                    distance_start_mm=float(_given(r.get("distance_start_mm"), r["distance_mm"])),
-                    distance_end_mm=float(_given(r.get("distance_end_mm"), r["distance_mm"])),
+                    distance_start_mm=float(given_or(r.get("distance_start_mm"), r["distance_mm"])),
+                    distance_end_mm=float(given_or(r.get("distance_end_mm"), r["distance_mm"])),
                     coc_diameter_px=None if r.get("coc_diameter_px") is None else float(r["coc_diameter_px"]),
                     sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
                     estimator=str(r.get("estimator", "")), flags=str(r.get("flags", "") or ""),

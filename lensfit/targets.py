@@ -134,11 +134,7 @@ class DetectionCopies(Sequence):
     def __len__(self) -> int:
         return len(self._gammas)
 
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            return [self[i] for i in range(*k.indices(len(self)))]
-        if k < 0:
-            k += len(self)
+    def __getitem__(self, k: int) -> np.ndarray:
         if not 0 <= k < len(self):
             raise IndexError(k)
         if k not in self._made:

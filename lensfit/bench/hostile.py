@@ -89,13 +89,20 @@ def _png_chunk_bombs(root: Path) -> Case:
                 ["measure", str(folder), "--out", str(root / "png_bombs.csv")], (2,), "IDAT")
 
 
-def _squares(root: Path) -> Case:
-    folder = root / "squares"
+def _one_image_stack(root: Path, name: str, manifest: str) -> list[str]:
+    """A stack folder ``root/name`` of one small PNG and the given stack.toml; the arguments of
+    ``lensfit measure`` on it."""
+    folder = root / name
     folder.mkdir()
     _png(folder / "a.png")
-    (folder / "stack.toml").write_text(_stack_toml(["a.png"], squares="[100000, 100000]"))
+    (folder / "stack.toml").write_text(manifest)
+    return ["measure", str(folder), "--out", str(root / f"{name}.csv")]
+
+
+def _squares(root: Path) -> Case:
     return Case("target_squares_1e5", "a target of 100,000 x 100,000 squares",
-                ["measure", str(folder), "--out", str(root / "squares.csv")], (2,), "target[0].squares")
+                _one_image_stack(root, "squares", _stack_toml(["a.png"], squares="[100000, 100000]")), (2,),
+                "target[0].squares")
 
 
 def _many_images(root: Path) -> Case:
@@ -112,12 +119,9 @@ def _many_images(root: Path) -> Case:
 
 
 def _nested_toml(root: Path) -> Case:
-    folder = root / "nested"
-    folder.mkdir()
-    _png(folder / "a.png")
-    (folder / "stack.toml").write_text(_stack_toml(["a.png"]) + "x_deep = " + "[" * 100_000 + "]" * 100_000 + "\n")
-    return Case("toml_nested_100k", "a stack.toml nested 100,000 deep",
-                ["measure", str(folder), "--out", str(root / "nested.csv")], (2,), "nested too deeply")
+    deep = _stack_toml(["a.png"]) + "x_deep = " + "[" * 100_000 + "]" * 100_000 + "\n"
+    return Case("toml_nested_100k", "a stack.toml nested 100,000 deep", _one_image_stack(root, "nested", deep), (2,),
+                "nested too deeply")
 
 
 _CSV_HEAD = "setting,distance_mm,coc_diameter_px,sigma_px\n"

@@ -342,7 +342,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 disk[j] = (diameter[j], fits[j][2], 2.0 * _radius_terms(*fits[j][:2])[3])
                 fits[j] = refit
                 if refit[3] and "window_truncated" not in flags[index[j]]:  # where two disks cannot hold it
-                    got = radial_reading(banded[index[j]], np.asarray(refit[0], np.float64))
+                    got = radial_reading(banded[index[j]], np.asarray(refit[0], np.float64), refit[2])
                     if got is not None and got[2] and cramped[index[j]]:  # a halo the clean room cut
                         halo_cut.add(j)
                     elif got is not None:

@@ -34,6 +34,9 @@ import math
 
 import numpy as np
 
+from lensfit.estimators.edge_model import squared_radius
+from lensfit.psf import pixel_edge_profiles_np
+
 #: Rings of the radial profile, out to the window's reach.
 ANNULI = 8
 #: The two-disk fit is rejected where the rings lower the chi-square by more than the extra
@@ -49,55 +52,22 @@ REACH_MIN_SHARE = 0.01
 REACH_Z = 3.0
 
 
-def _unit_h(x: np.ndarray) -> np.ndarray:
-    """Second antiderivative of the unit disk's edge-spread function (``lensfit.psf``), numpy."""
-    inside = np.abs(x) < 1.0
-    xs = np.where(inside, x, 0.0)
-    x2 = xs * xs
-    root = np.sqrt(1.0 - x2)
-    core = (0.25 * x2 + 1.0 / 16.0 + ((4.0 * x2 + 1.0) / 8.0 * np.arcsin(xs) + 0.625 * xs * root
-                                      - xs * (1.0 - x2) * root / 12.0) / math.pi)
-    return np.where(inside, core, np.where(x >= 1.0, 0.5 * x * x + 0.125, 0.0))
-
-
-def disk_profiles(x: np.ndarray, radii: np.ndarray, boxes: tuple[float, float]) -> np.ndarray:
-    """Pixel-integrated edge-spread functions of uniform disks, ``(len(x), len(radii))``: the
-    closed form of ``lensfit.psf.pixel_edge_profile`` (two boxes, ``boxes``), in numpy."""
-    R = np.maximum(np.asarray(radii, np.float64), 1e-6)[None, :]
-    x = np.asarray(x, np.float64)[:, None]
-    a, b = max(abs(boxes[0]), abs(boxes[1])), max(min(abs(boxes[0]), abs(boxes[1])), 1e-3)
-
-    def H(t):
-        return R * R * _unit_h(t / R)
-
-    return (H(x + 0.5 * (a + b)) - H(x + 0.5 * (a - b)) - H(x - 0.5 * (a - b)) + H(x - 0.5 * (a + b))) / (a * b)
-
-
 def _two_disk_diameter(theta) -> float:
     """The two-disk fit's second-moment diameter, 2 R sqrt(1 - a (1 - t^2))."""
-    rho = float(theta[1])
-    R = math.sqrt(0.5 * (rho + math.hypot(rho, 1e-6)) + 1e-12)
+    R = math.sqrt(float(squared_radius(np, float(theta[1]))) + 1e-12)
     t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
     return 2.0 * R * math.sqrt(max(1.0 - float(theta[5]) * (1.0 - t * t), 0.0))
 
 
-def _two_disk_rss(x, v, w, theta, boxes) -> float:
-    lo, hi, a = float(theta[2]), float(theta[3]), float(theta[5])
-    rho = float(theta[1])
-    R = math.sqrt(0.5 * (rho + math.hypot(rho, 1e-6)) + 1e-12)
-    t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
-    P = disk_profiles(x, np.array([R, t * R]), boxes)
-    model = lo + (hi - lo) * (P[:, 0] + a * (P[:, 1] - P[:, 0]))
-    return float(np.sum((w * (v - model)) ** 2))
-
-
-def radial_reading(profile: tuple, theta: np.ndarray) -> tuple[float, float, bool] | None:
+def radial_reading(profile: tuple, theta: np.ndarray, rms: float) -> tuple[float, float, bool] | None:
     """The second-moment diameter (px) of the edge's spot read as a radial profile, its 1 sigma,
     and whether the spot reaches the window's edge (its outermost ring holds light beyond
     ``REACH_Z`` standard errors: a halo the window may cut, the reading then a lower bound),
     where the data reject the two-disk fit ``theta`` (``lensfit.estimators.edge_model``: d0,
-    rho, lo, hi, turn, a, logit t) of the same ``profile`` (d, s, values, standard errors, pixel
-    boxes); None where two disks hold the spot, or where the rings give no reading."""
+    rho, lo, hi, turn, a, logit t; ``rms``: its RMS residual in standard errors over the bins less
+    its 7 parameters, as ``lensfit.estimators.edge_fit`` reports it) of the same ``profile`` (d, s,
+    values, standard errors, pixel boxes); None where two disks hold the spot, or where the rings
+    give no reading."""
     d, s_along, v, se, boxes = profile
     d, s_along, v, se = (np.asarray(q, np.float64) for q in (d, s_along, v, se))
     x = d - float(theta[0]) - float(theta[4]) * s_along
@@ -106,13 +76,14 @@ def radial_reading(profile: tuple, theta: np.ndarray) -> tuple[float, float, boo
     if not (reach > 0.5 and len(x) > 3 * (ANNULI + 1)):
         return None
     r = np.linspace(0.0, reach, ANNULI + 1)
-    P = disk_profiles(x, r, boxes)
+    P = pixel_edge_profiles_np(x, r, boxes)
     rings = (r[1:] ** 2 * P[:, 1:] - r[:-1] ** 2 * P[:, :-1]) / (r[1:] ** 2 - r[:-1] ** 2)
     A = np.column_stack([np.ones_like(x), rings]) * w[:, None]
     coef, *_ = np.linalg.lstsq(A, v * w, rcond=None)
     rss = float(np.sum((A @ coef - v * w) ** 2))
     extra = ANNULI + 1 - 5  # the rings' parameters beyond the two disks' R, lo, hi, a, t
-    if not _two_disk_rss(x, v, w, theta, boxes) - rss > extra + REJECT_Z * math.sqrt(2.0 * extra):
+    two_disk_rss = rms * rms * max(len(x) - 7, 1)
+    if not two_disk_rss - rss > extra + REJECT_Z * math.sqrt(2.0 * extra):
         return None
     shares = coef[1:]
     total = float(shares.sum())

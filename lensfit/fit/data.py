@@ -199,8 +199,10 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                          "fit (each adds its own parameters)", "fit the settings in groups, or check the setting column")
     idx = {k: i for i, k in enumerate(labels)}
     dist = np.array([float(r["distance_mm"]) for r in used])
-    d0 = np.array([float(_or(r.get("distance_start_mm"), r["distance_mm"])) for r in used])
-    d1 = np.array([float(_or(r.get("distance_end_mm"), r["distance_mm"])) for r in used])
+    from lensfit.sample_table import given_or
+
+    d0 = np.array([float(given_or(r.get("distance_start_mm"), r["distance_mm"])) for r in used])
+    d1 = np.array([float(given_or(r.get("distance_end_mm"), r["distance_mm"])) for r in used])
     w_mean, _ = inverse_distance_moments(d0, d1)
     w_nodes = 1.0 / (d0[:, None] + _NODES_T[None, :] * (d1 - d0)[:, None])
     fpx = _per_setting(focal_length_px if focal_length_px is not None else ctx.get("focal_length_px"),
@@ -234,10 +236,6 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
 OPTIONAL_RANGES = {"distance_start_mm": DISTANCE_RANGE_MM, "distance_end_mm": DISTANCE_RANGE_MM,
                    "field_radius_px": (0.0, MAX_BLUR_PX), "disk_diameter_px": (0.0, MAX_BLUR_PX),
                    "disk_sigma_px": (MIN_SIGMA_PX, MAX_BLUR_PX)}
-
-
-def _or(value: Any, default: Any) -> Any:
-    return default if value is None else value
 
 
 def _check_optional(i: int, row: dict[str, Any]) -> None:
