@@ -10,9 +10,13 @@ Self-contained (pictures inline as PNG data), readable offline and mailable:
    the detected corners (crosses) and every measured edge drawn where it was measured,
    coloured by its blur diameter (px); right, the same edges coloured by residual / sigma
    (measured minus model, in units of the edge's stated sigma; blue below the model, red
-   above, dashed where the robust loss down-weighted the edge, grey where nothing was
-   measured). A per-image table gives edges, distances and the RMS residual: a bad image
-   (a moved target, a wrong setting label, motion blur) stands out there.
+   above, dashed where the robust loss down-weighted the edge, dotted magenta where nothing was
+   measured). A per-image table gives the corners found and how far they reproject from the
+   calibration, edges read and why the others were not, distances and the RMS residual: a bad
+   image (a moved target, a wrong setting label, motion blur) stands out there;
+4. where the boards were: each board's outline seen from above (camera at the origin, looking
+   up the page) and from the side, coloured by setting, with each setting's fitted focus
+   distance.
 
 Matplotlib (Agg) draws; nothing is shown on screen.
 """
@@ -98,6 +102,7 @@ def overlay_figure(image: np.ndarray, name: str, samples: list, blur: np.ndarray
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
+    from matplotlib import patheffects
     from matplotlib.collections import LineCollection
     from matplotlib.colors import Normalize
 
@@ -116,11 +121,13 @@ def overlay_figure(image: np.ndarray, name: str, samples: list, blur: np.ndarray
         ax.imshow(shown, cmap="gray", vmin=0, vmax=255, interpolation="antialiased")
         ok = np.isfinite(values)
         if (~ok).any():
-            ax.add_collection(LineCollection(segments[~ok], colors="0.6", linewidths=1.2))
+            ax.add_collection(LineCollection(segments[~ok], colors="magenta", linewidths=1.6, linestyles=":"))
         if ok.any():
             styles = ["--" if (np.isfinite(wt) and wt < DOWN_WEIGHTED) else "-" for wt in w[ok]]
             lc = LineCollection(segments[ok], cmap=cmap, norm=norm, linewidths=2.6, linestyles=styles)
             lc.set_array(np.clip(values[ok], norm.vmin, norm.vmax))
+            # a dark casing keeps the pale middle of the colour scale legible on the white board
+            lc.set_path_effects([patheffects.Stroke(linewidth=4.2, foreground="black"), patheffects.Normal()])
             ax.add_collection(lc)
             fig.colorbar(lc, ax=ax, shrink=0.8, label=label)
         for _, pts in corners:
@@ -131,7 +138,7 @@ def overlay_figure(image: np.ndarray, name: str, samples: list, blur: np.ndarray
         ax.set_xticks([])
         ax.set_yticks([])
     axes[0].set_title(f"{name}: detected corners (+) and measured edges", fontsize=10)
-    axes[1].set_title("residual of each edge (dashed: down-weighted; grey: not measured)", fontsize=10)
+    axes[1].set_title("residual of each edge (dashed: down-weighted; dotted magenta: not measured)", fontsize=10)
     return fig
 
 
@@ -143,20 +150,101 @@ def samples_by_image(table: SampleTable) -> dict[str, np.ndarray]:
     return {name: np.array(idx) for name, idx in groups.items()}
 
 
-def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarray) -> list[dict[str, Any]]:
-    """Per image: setting, edges found / measured / used, distance range, RMS residual / sigma and
-    the number of suspicious edges."""
+def _flag_counts(flags: list[str]) -> str:
+    """"radial_profile 3, short_edge 1": the flags of some edges, most frequent first."""
+    counts: dict[str, int] = {}
+    for text in flags:
+        for flag in filter(None, text.split(";")):
+            counts[flag] = counts.get(flag, 0) + 1
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarray,
+               images: list[tuple[str, str]] = ()) -> list[dict[str, Any]]:
+    """Per image: setting, corners found and their reprojection RMS from the calibration, edges
+    found / measured / used, why edges were not measured (their flags) and the measured edges'
+    flags, distance range, RMS residual / sigma and the number of suspicious and down-weighted
+    edges. ``images``: (name, setting) of every image of the stack, so that those that gave no
+    edges get a row saying why."""
     rows = []
-    for name, idx in samples_by_image(table).items():
+    groups = samples_by_image(table)
+    for name, setting in images:
+        if name not in groups:
+            found = sum(len(pts) for _, pts in table.corners_px.get(name, []))
+            rows.append({"image": name, "setting": setting, "corners": found, "reprojection_rms_px": math.nan,
+                         "edges": 0, "measured": 0, "used": 0, "distance_mm": None, "rms_residual_sigma": math.nan,
+                         "suspicious": 0, "down_weighted": 0, "flags": "", "not_measured": "",
+                         "why_none": "no target found" if not found else
+                                     "target left out (see the warnings)"})
+    for name, idx in groups.items():
         d = np.array([table.samples[i].distance_mm for i in idx])
         zi = z[idx][np.isfinite(z[idx])]
-        rows.append({"image": name, "setting": table.samples[idx[0]].setting, "edges": len(idx),
-                     "measured": int(np.isfinite(blur[idx]).sum()), "used": int(zi.size),
+        poses = [pose for (image, _), pose in table.poses.items() if image == name]
+        measured = np.isfinite(blur[idx])
+        rows.append({"image": name, "setting": table.samples[idx[0]].setting,
+                     "corners": sum(len(pts) for _, pts in table.corners_px.get(name, [])),
+                     "reprojection_rms_px": max((p.rms_px for p in poses), default=math.nan),
+                     "edges": len(idx), "measured": int(measured.sum()), "used": int(zi.size),
                      "distance_mm": (float(d.min()), float(d.max())),
                      "rms_residual_sigma": float(np.sqrt(np.mean(zi**2))) if zi.size else math.nan,
                      "suspicious": int((np.abs(zi) > SUSPICIOUS_SIGMAS).sum()),
-                     "down_weighted": int((w[idx][np.isfinite(w[idx])] < DOWN_WEIGHTED).sum())})
-    return rows
+                     "down_weighted": int((w[idx][np.isfinite(w[idx])] < DOWN_WEIGHTED).sum()),
+                     "flags": _flag_counts([table.samples[i].flags for i, m in zip(idx, measured) if m]),
+                     "not_measured": _flag_counts([table.samples[i].flags or "unreadable"
+                                                   for i, m in zip(idx, measured) if not m]),
+                     "why_none": ""})
+    order = {name: k for k, (name, _) in enumerate(images)}
+    return sorted(rows, key=lambda r: order.get(r["image"], len(order)))
+
+
+def _board_outline_mm(entry: dict[str, Any] | None) -> np.ndarray | None:
+    """A target's outline in its own frame (5 x 3, mm, closed), or None where its size is unknown."""
+    if not entry:
+        return None
+    if entry.get("kind") == "charuco" and "squares" in entry and "square_mm" in entry:
+        w, h = (n * float(entry["square_mm"]) for n in entry["squares"])
+    elif isinstance(entry.get("size_mm"), list) and len(entry["size_mm"]) == 2:
+        w, h = (float(v) for v in entry["size_mm"])
+    else:
+        return None
+    return np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0], [0, 0, 0]], float)
+
+
+def pose_figure(table: SampleTable, result: FitResult, targets: list[dict[str, Any]], setting_of: dict[str, str]):
+    """Where the boards were (see the module notes); a matplotlib Figure, or None without poses."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    if not table.poses:
+        return None
+    by_id = {t.get("id"): t for t in targets}
+    labels = list(dict.fromkeys(setting_of.values())) or ["?"]
+    colours = {label: plt.get_cmap("tab10")(k % 10) for k, label in enumerate(labels)}
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), layout="constrained")
+    for (image, tid), pose in table.poses.items():
+        outline = _board_outline_mm(by_id.get(tid))
+        pts = pose.to_camera(outline if outline is not None else np.zeros((1, 3)))
+        colour = colours.get(setting_of.get(image, "?"), "k")
+        for ax, k in ((axes[0], 0), (axes[1], 1)):
+            ax.plot(pts[:, k], pts[:, 2], "-" if len(pts) > 1 else "o", color=colour, lw=1.5)
+    for label, quantities in result.settings.items():
+        est = quantities.get("focus_distance_mm")
+        if est is not None and est.value is not None and math.isfinite(est.value):
+            for ax in axes:
+                ax.axhline(est.value, color=colours.get(label, "k"), ls="--", lw=1)
+    for ax, name in ((axes[0], "x (mm, right)"), (axes[1], "y (mm, down)")):
+        ax.plot([0], [0], "k^", ms=9)
+        ax.set_xlabel(name)
+        ax.set_ylabel("z (mm, from the camera)")
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    axes[0].set_title("boards seen from above (dashed: focus distance)", fontsize=10)
+    axes[1].set_title("boards seen from the side", fontsize=10)
+    handles = [plt.Line2D([], [], color=c, lw=2) for c in colours.values()]
+    axes[1].legend(handles, [f"setting {k}" for k in colours], fontsize=8, loc="best")
+    return fig
 
 
 def _to_sigma(value: float | None, sigma: float | None, unbounded: str = "") -> str:
@@ -197,10 +285,11 @@ def _estimates_table(result: FitResult, document: dict[str, Any]) -> str:
                 else:
                     row += "<td></td><td></td>"
             out.append(row + "</tr>")
-    return "<table>" + "".join(out) + "</table>"
+    return "<div class='scroll'><table>" + "".join(out) + "</table></div>"
 
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1350px;margin:1em auto;padding:0 1em;color:#222}
+.scroll{overflow-x:auto;max-width:100%}code{overflow-wrap:anywhere}p{overflow-wrap:anywhere}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
 th{background:#f0f0f0}td:first-child,th:first-child{text-align:left}.bad{color:#b00;font-weight:bold}
 img{max-width:100%}.warn{color:#a60}.note{color:#555;font-size:90%}h2{margin-top:1.5em}"""
@@ -257,26 +346,39 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
     parts.append(f"<img alt='fit plot' src='data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}'>")
 
     blur, z, w = _edge_values(table, result)
-    rows = image_rows(table, blur, z, w)
-    parts.append("<h2>Images</h2><table><tr><th>image</th><th>setting</th><th>edges</th><th>measured</th>"
+    images = [(im.file.name, im.setting) for im in stack.images] if stack is not None else []
+    rows = image_rows(table, blur, z, w, images)
+    parts.append("<h2>Images</h2><div class='scroll'><table><tr><th>image</th><th>setting</th><th>corners</th>"
+                 "<th>reprojection RMS (px)</th><th>edges</th><th>measured</th><th>not measured: why</th>"
                  "<th>used</th><th>distance (mm)</th><th>RMS residual / sigma</th>"
-                 f"<th>|residual| &gt; {SUSPICIOUS_SIGMAS:g} sigma</th><th>down-weighted</th></tr>")
+                 f"<th>|residual| &gt; {SUSPICIOUS_SIGMAS:g} sigma</th><th>down-weighted</th>"
+                 "<th>flags of measured edges</th></tr>")
     for r in rows:
         flag = " class='bad'" if r["suspicious"] > max(2, 0.1 * r["used"]) else ""
         anchor = html.escape(r["image"])
-        parts.append(f"<tr><td><a href='#{anchor}'>{anchor}</a></td><td>{html.escape(r['setting'])}</td>"
-                     f"<td>{r['edges']}</td><td>{r['measured']}</td><td>{r['used']}</td>"
-                     f"<td>{r['distance_mm'][0]:.0f}-{r['distance_mm'][1]:.0f}</td>"
-                     f"<td>{r['rms_residual_sigma']:.2f}</td><td{flag}>{r['suspicious']}</td>"
-                     f"<td>{r['down_weighted']}</td></tr>")
-    parts.append("</table>")
+        name = f"<a href='#{anchor}'>{anchor}</a>" if r["edges"] else anchor
+        dist = f"{r['distance_mm'][0]:.0f}-{r['distance_mm'][1]:.0f}" if r["distance_mm"] else ""
+        rms = "" if math.isnan(r["reprojection_rms_px"]) else f"{r['reprojection_rms_px']:.2g}"
+        resid = "" if math.isnan(r["rms_residual_sigma"]) else f"{r['rms_residual_sigma']:.2f}"
+        why = html.escape(r["why_none"] or r["not_measured"])
+        none_class = " class='bad'" if r["why_none"] else ""
+        parts.append(f"<tr><td>{name}</td><td>{html.escape(r['setting'])}</td><td>{r['corners']}</td><td>{rms}</td>"
+                     f"<td>{r['edges']}</td><td>{r['measured']}</td><td{none_class}>"
+                     f"{why}</td><td>{r['used']}</td><td>{dist}</td><td>{resid}</td><td{flag}>{r['suspicious']}</td>"
+                     f"<td>{r['down_weighted']}</td><td>{html.escape(r['flags'])}</td></tr>")
+    parts.append("</table></div>")
+    if stack is not None:
+        fig = pose_figure(table, result, stack.targets, dict(images))
+        if fig is not None:
+            parts.append(f"<h2>Where the boards were</h2><img alt='board poses' src='data:image/png;base64,{_png(fig)}'>")
+            plt.close(fig)
     groups = samples_by_image(table)
     if stack is not None:
         finite = blur[np.isfinite(blur)]
         blur_range = (0.0, float(np.percentile(finite, 99)) if finite.size else 1.0)
         by_name = {im.file.name: im.index for im in stack.images}
         for k, r in enumerate(rows):
-            if r["image"] not in by_name:
+            if r["image"] not in by_name or r["image"] not in groups:
                 continue
             idx = groups[r["image"]]
             image = stack.read(by_name[r["image"]])

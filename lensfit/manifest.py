@@ -26,6 +26,7 @@ the text, the CLI writes it.
 from __future__ import annotations
 
 import functools
+import math
 import string
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -209,10 +210,41 @@ def target_entries(target_file: Path | None) -> tuple[list[dict[str, Any]], str 
     return targets, None
 
 
+#: A measured square may differ from the drawn one by at most this ratio either way (printers
+#: scale by a few per cent; more is a unit slip or a different board).
+MEASURED_SQUARE_RATIO = 1.25
+
+
+def as_measured(targets: list[dict[str, Any]], measured_square_mm: float | None) -> tuple[list[dict[str, Any]], str]:
+    """The targets with the printed board's ``square_mm`` replaced by the measured side and its
+    ``marker_mm`` scaled with it, and a note saying so (or, without a measurement, asking for one)."""
+    boards = [t for t in targets if t.get("kind") == "charuco"]
+    if measured_square_mm is None:
+        if not boards:
+            return targets, ""
+        return targets, (f"measure a printed square with a ruler: where it is not {boards[0].get('square_mm')} mm, run "
+                         "lensfit init again with --measured-square-mm MM (distances, and so the focus distance, "
+                         "scale with the board)")
+    if len(boards) != 1:
+        raise InputError("measured_square_mm", measured_square_mm, "given for exactly one printed ChArUco board",
+                         f"the target file has {len(boards)}; set square_mm and marker_mm of each in stack.toml")
+    board = boards[0]
+    drawn = float(board["square_mm"])
+    ratio = measured_square_mm / drawn
+    if not (math.isfinite(ratio) and 1 / MEASURED_SQUARE_RATIO <= ratio <= MEASURED_SQUARE_RATIO):
+        raise InputError("measured_square_mm", measured_square_mm, f"within {100 * (MEASURED_SQUARE_RATIO - 1):.0f} % "
+                         f"of the {drawn:g} mm the board was drawn with", "measure one square's side in millimetres "
+                         "(a printer scales by a few per cent)")
+    scaled = dict(board, square_mm=float(measured_square_mm), marker_mm=round(float(board["marker_mm"]) * ratio, 6))
+    return ([scaled if t is board else t for t in targets],
+            f"target '{board.get('id')}': square_mm {measured_square_mm:g} as measured (drawn {drawn:g} mm: printed at "
+            f"{100 * ratio:.1f} %), marker_mm scaled with it to {scaled['marker_mm']:g}")
+
+
 def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
                    pixel_pitch_mm: float | None = None, sensor: str | None = None,
                    sensor_width_mm: float | None = None, grouping: str = "exif", prefer: str = "raw",
-                   max_pixels: int | None = None) -> Draft:
+                   max_pixels: int | None = None, measured_square_mm: float | None = None) -> Draft:
     """Draft stack.toml for the photos in ``folder`` (see the module notes).
 
     Raises
@@ -284,8 +316,8 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     camera, pitch_source = _pitch(records, files, width, pixel_pitch_mm, sensor, sensor_width_mm, folder)
     notes.append(f"pixel pitch: {pitch_source}")
     targets, target_note = target_entries(Path(target_file) if target_file is not None else None)
-    if target_note:
-        notes.append(target_note)
+    targets, measured_note = as_measured(targets, measured_square_mm)
+    notes += [note for note in (target_note, measured_note) if note]
 
     keys = []
     for i, r in enumerate(records):

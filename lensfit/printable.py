@@ -2,13 +2,20 @@
 and the ``[[target]]`` entry of ``stack.toml`` that describes it.
 
 The board is drawn by OpenCV (``CharucoBoard.generateImage``, the same drawing detection
-expects) at a resolution where every marker cell is a whole number of pixels
-(``lensfit.targets.charuco_texels_per_square``), then enlarged by a whole factor (nearest
-neighbour, so the edges stay exact) to at least the requested dots per inch, and placed in the
-middle of a white page. The file's resolution (PNG ``pHYs``, PDF page size) is set so that a
-square prints at exactly ``square_mm`` when printed at 100 % ("actual size", no "fit to page").
-Printers and drivers still scale a little: measure a printed square and, where it differs,
-scale ``square_mm`` and ``marker_mm`` in the entry by the measured ratio.
+expects) at a resolution where every marker cell is a whole number of texels
+(``lensfit.targets.charuco_texels_per_square``) and placed in the middle of a white page.
+
+- PDF and SVG are vector pages (matplotlib): the drawing's dark texels become one filled path of
+  rectangles in millimetres, so the board prints sharp at any printer resolution; the page is
+  the paper's size.
+- PNG is a raster: the drawing enlarged by a whole factor (nearest neighbour, so the edges stay
+  exact) to at least the requested dots per inch, its resolution written in ``pHYs``.
+
+Every page carries, in the margin, a label (the target's id, squares, square and marker sizes,
+dictionary) and a 10 mm-chequered scale bar, and the files record the ``[[target]]`` entry
+(PDF Subject, SVG description, PNG text). A square prints at exactly ``square_mm`` when printed
+at 100 % ("actual size", no "fit to page"); printers and drivers still scale a little: measure a
+printed square (or the scale bar) and give it to ``lensfit init --measured-square-mm``.
 """
 
 from __future__ import annotations
@@ -31,15 +38,62 @@ MARGIN_MM = 12.0
 MARKER_RATIO = 0.75
 
 
+#: Scale bar: chequered in steps of this many mm, at most this long, this tall.
+SCALE_STEP_MM, SCALE_MAX_MM, SCALE_HEIGHT_MM = 10.0, 100.0, 2.5
+#: The outline of the scale bar's white cells, mm.
+SCALE_LINE_MM = 0.2
+#: Label text height (cap height), mm, and the gap between the sheet's edge and label or bar.
+LABEL_MM, EDGE_GAP_MM = 2.5, 4.0
+
+
 @dataclass(frozen=True)
 class PrintableBoard:
-    """A board on a page: ``image`` (uint8, height x width, the whole page), ``dpi`` (exact dots
-    per inch of the file), ``page_mm`` (width, height) and ``entry`` (stack.toml's [[target]])."""
+    """A board on a page: ``image`` (uint8, height x width, the whole page at ``dpi``, label and
+    scale bar included), ``dpi`` (exact dots per inch of the raster), ``page_mm`` (width,
+    height), ``entry`` (stack.toml's [[target]]), ``drawing`` (OpenCV's board at whole texels,
+    0 dark, 255 light) and ``board_origin_mm`` (the board's top-left corner on the page)."""
 
     image: np.ndarray
     dpi: float
     page_mm: tuple[float, float]
     entry: dict[str, Any]
+    drawing: np.ndarray
+    board_origin_mm: tuple[float, float]
+
+    @property
+    def label(self) -> str:
+        """The line printed in the top margin: what board this is."""
+        e = self.entry
+        return (f"lensfit target '{e['id']}': ChArUco {e['squares'][0]} x {e['squares'][1]} squares of "
+                f"{e['square_mm']:g} mm, markers {e['marker_mm']:g} mm, {e['dictionary']}")
+
+    @property
+    def instruction(self) -> str:
+        """The line printed beside the scale bar: how to check the print."""
+        return (f"{self.scale_bar_mm:g} mm. Print at 100 % (actual size). A square not "
+                f"{self.entry['square_mm']:g} mm? lensfit init --measured-square-mm")
+
+    def texts(self) -> list[tuple[str, float, float, float]]:
+        """(text, x, baseline y, room to the right) mm of the label and the instruction."""
+        x0, (page_w, page_h) = self.board_origin_mm[0], self.page_mm
+        x1 = x0 + self.scale_bar_mm + 3.0
+        return [(self.label, x0, EDGE_GAP_MM + LABEL_MM, page_w - EDGE_GAP_MM - x0),
+                (self.instruction, x1, page_h - EDGE_GAP_MM, page_w - EDGE_GAP_MM - x1)]
+
+    @property
+    def scale_bar_mm(self) -> float:
+        """Length of the scale bar: whole steps, at most SCALE_MAX_MM and half the board's width
+        (the rest of the line holds the instruction)."""
+        width = self.entry["squares"][0] * self.entry["square_mm"] / 2
+        return max(SCALE_STEP_MM, min(SCALE_MAX_MM, SCALE_STEP_MM * math.floor(width / SCALE_STEP_MM)))
+
+    def scale_bar(self) -> list[tuple[float, float, float, float, bool]]:
+        """The scale bar's cells (x, y, width, height mm from the page's top-left, dark?): a row
+        of SCALE_STEP_MM cells, alternately dark and outlined, in the bottom margin."""
+        x0 = self.board_origin_mm[0]
+        y0 = self.page_mm[1] - EDGE_GAP_MM - SCALE_HEIGHT_MM
+        n = round(self.scale_bar_mm / SCALE_STEP_MM)
+        return [(x0 + k * SCALE_STEP_MM, y0, SCALE_STEP_MM, SCALE_HEIGHT_MM, k % 2 == 0) for k in range(n)]
 
 
 def paper_size(name: str) -> tuple[float, float]:
@@ -102,15 +156,95 @@ def charuco_page(paper: str = "a4-landscape", squares: tuple[int, int] = (9, 6),
     px_per_square = n * scale
     exact_dpi = px_per_square * 25.4 / square_mm
     board = charuco_board((cols, rows), square_mm, marker_mm, dictionary)
-    drawing = board.generateImage((cols * n, rows * n), marginSize=0, borderBits=1)
-    drawing = np.repeat(np.repeat(drawing, scale, axis=0), scale, axis=1)
+    texels = board.generateImage((cols * n, rows * n), marginSize=0, borderBits=1)
+    drawing = np.repeat(np.repeat(texels, scale, axis=0), scale, axis=1)
     width_px, height_px = round(page_w / 25.4 * exact_dpi), round(page_h / 25.4 * exact_dpi)
     page = np.full((height_px, width_px), 255, np.uint8)
     y0, x0 = (height_px - drawing.shape[0]) // 2, (width_px - drawing.shape[1]) // 2
     page[y0:y0 + drawing.shape[0], x0:x0 + drawing.shape[1]] = drawing
     entry = {"id": target_id, "kind": "charuco", "squares": [cols, rows], "square_mm": float(square_mm),
              "marker_mm": float(marker_mm), "dictionary": dictionary}
-    return PrintableBoard(page, exact_dpi, (page_w, page_h), entry)
+    printable = PrintableBoard(page, exact_dpi, (page_w, page_h), entry, texels,
+                               (x0 * 25.4 / exact_dpi, y0 * 25.4 / exact_dpi))
+    _mark_raster(printable)
+    return printable
+
+
+def _mark_raster(board: PrintableBoard) -> None:
+    """Draw the label and the scale bar into the raster page (in place)."""
+    import cv2
+
+    px = board.dpi / 25.4
+    line_px = max(1, round(SCALE_LINE_MM * px))
+    for x, y, w, h, dark in board.scale_bar():  # white cells outlined inside their own width
+        p0, p1 = (round(x * px), round(y * px)), (round((x + w) * px) - 1, round((y + h) * px) - 1)
+        cv2.rectangle(board.image, p0, p1, 0, -1)
+        if not dark:
+            cv2.rectangle(board.image, (p0[0] + line_px, p0[1] + line_px), (p1[0] - line_px, p1[1] - line_px), 255, -1)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    (_, cap_px), _ = cv2.getTextSize("H", font, 1.0, 1)
+    size = LABEL_MM * px / cap_px
+    thick = max(1, round(0.25 * px))
+    for text, x, y, room_mm in board.texts():
+        (w_px, _), _ = cv2.getTextSize(text, font, size, thick)
+        fit = min(size, size * room_mm * px / max(w_px, 1))
+        cv2.putText(board.image, text, (round(x * px), round(y * px)), font, fit, 0, thick, cv2.LINE_AA)
+
+
+def _dark_rectangles(drawing: np.ndarray) -> list[tuple[int, int, int, int]]:
+    """The dark texels of ``drawing`` as rectangles (column, row, width, height in texels): runs
+    of each row, joined down the rows while the same run continues."""
+    dark = drawing < 128
+    rects, open_runs = [], {}
+    for r in range(dark.shape[0] + 1):
+        runs = set()
+        if r < dark.shape[0]:
+            change = np.flatnonzero(np.diff(np.concatenate([[0], dark[r].astype(np.int8), [0]])))
+            runs = set(zip(change[::2].tolist(), change[1::2].tolist()))
+        for run in [run for run in open_runs if run not in runs]:
+            start = open_runs.pop(run)
+            rects.append((run[0], start, run[1] - run[0], r - start))
+        for run in runs:
+            open_runs.setdefault(run, r)
+    return rects
+
+
+def page_figure(board: PrintableBoard):
+    """The page as a matplotlib Figure of the paper's size, drawn in millimetres: the board as one
+    filled path, the label and the scale bar (for the vector PDF and SVG)."""
+    from matplotlib.figure import Figure
+    from matplotlib.patches import PathPatch, Rectangle
+    from matplotlib.path import Path as MplPath
+
+    page_w, page_h = board.page_mm
+    fig = Figure(figsize=(page_w / 25.4, page_h / 25.4))
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.set_xlim(0.0, page_w)
+    ax.set_ylim(page_h, 0.0)
+    ax.set_axis_off()
+    texel_mm = board.entry["square_mm"] * board.entry["squares"][0] / board.drawing.shape[1]
+    x0, y0 = (page_w - board.drawing.shape[1] * texel_mm) / 2, (page_h - board.drawing.shape[0] * texel_mm) / 2
+    verts, codes = [], []
+    for c, r, w, h in _dark_rectangles(board.drawing):
+        x, y = x0 + c * texel_mm, y0 + r * texel_mm
+        verts += [(x, y), (x + w * texel_mm, y), (x + w * texel_mm, y + h * texel_mm), (x, y + h * texel_mm), (x, y)]
+        codes += [MplPath.MOVETO, MplPath.LINETO, MplPath.LINETO, MplPath.LINETO, MplPath.CLOSEPOLY]
+    ax.add_patch(PathPatch(MplPath(verts, codes), facecolor="black", edgecolor="none", linewidth=0))
+    for x, y, w, h, dark in board.scale_bar():  # white cells outlined inside their own width
+        ax.add_patch(Rectangle((x, y), w, h, facecolor="black", edgecolor="none", linewidth=0))
+        if not dark:
+            ax.add_patch(Rectangle((x + SCALE_LINE_MM, y + SCALE_LINE_MM), w - 2 * SCALE_LINE_MM,
+                                   h - 2 * SCALE_LINE_MM, facecolor="white", edgecolor="none", linewidth=0))
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    points = LABEL_MM / 0.72 * 72 / 25.4  # a cap height of about 0.72 em
+    for text, x, y, room_mm in board.texts():
+        artist = ax.text(x, y, text, fontsize=points, va="baseline", ha="left")
+        width_mm = artist.get_window_extent(renderer).width / fig.dpi * 25.4
+        if width_mm > room_mm:  # a small sheet: the line shrinks to fit
+            artist.set_fontsize(points * room_mm / width_mm)
+    return fig
 
 
 def target_toml(entry: dict[str, Any]) -> str:
@@ -121,19 +255,34 @@ def target_toml(entry: dict[str, Any]) -> str:
     return "[[target]]\n" + "\n".join(lines) + "\n"
 
 
-def write_page(board: PrintableBoard, path: str | Path, program: str = "lensfit") -> None:
-    """Write the page as PNG (with its dpi) or PDF (one page of the paper's size) by suffix."""
-    from PIL import Image, PngImagePlugin
+#: The page formats ``write_page`` writes, by suffix.
+PAGE_SUFFIXES = (".pdf", ".svg", ".png")
 
+
+def write_page(board: PrintableBoard, path: str | Path, program: str = "lensfit") -> None:
+    """Write the page by suffix: PDF or SVG (vector, the paper's size) or PNG (the raster at its
+    dpi), each recording the entry."""
     from lensfit.outputs import software_tag
 
     path = Path(path)
-    img = Image.fromarray(board.image, mode="L")
-    if path.suffix.lower() == ".pdf":
-        img.save(path, "PDF", resolution=board.dpi, creator=software_tag(program),
-                 title=f"ChArUco {board.entry['squares'][0]}x{board.entry['squares'][1]}, "
-                       f"{board.entry['square_mm']:g} mm squares")
+    kind = path.suffix.lower()
+    title = (f"ChArUco {board.entry['squares'][0]} x {board.entry['squares'][1]}, "
+             f"{board.entry['square_mm']:g} mm squares")
+    record = target_toml(board.entry)
+    if kind in (".pdf", ".svg"):
+        import matplotlib
+
+        fig = page_figure(board)
+        meta = ({"Title": title, "Creator": software_tag(program), "Subject": record} if kind == ".pdf"
+                else {"Title": title, "Creator": software_tag(program), "Description": record, "Date": None})
+        if kind == ".pdf":
+            meta["CreationDate"] = None  # the same board, the same file
+        with matplotlib.rc_context({"pdf.fonttype": 42, "svg.hashsalt": "lensfit", "svg.fonttype": "path"}):
+            fig.savefig(path, format=kind[1:], metadata=meta)
     else:
+        from PIL import Image, PngImagePlugin
+
         info = PngImagePlugin.PngInfo()
         info.add_text("Software", software_tag(program))
-        img.save(path, "PNG", dpi=(board.dpi, board.dpi), pnginfo=info)
+        info.add_text("Description", record)
+        Image.fromarray(board.image, mode="L").save(path, "PNG", dpi=(board.dpi, board.dpi), pnginfo=info)

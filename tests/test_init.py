@@ -24,9 +24,9 @@ SHOTS = [(700.0, (0.0, 0.0), (0.0, 0.0)), (850.0, (25.0, 0.0), (10.0, 0.0)), (10
          (2200.0, (15.0, -15.0), (0.0, 0.0))]
 
 
-def camera_scene(fmt: str, f_number: float = 2.8) -> str:
+def camera_scene(fmt: str, f_number: float = 2.8, print_scale: float = 1.0) -> str:
     """A 12 mm lens on a 7.2 x 4.8 mm sensor photographing an A4 print of the board at 0.7-2.2 m,
-    focused at 1.3 m."""
+    focused at 1.3 m; the page printed at ``print_scale`` of its size (a printer's scaling)."""
     effects = '["defocus"]' if fmt == "jpeg" else '["defocus", "mosaic"]'
     text = f"""name = "round-trip"
 [camera]
@@ -44,13 +44,13 @@ samples_per_pixel = 16
 [background]
 value = 0.3
 """
-    text += """[[object]]
+    text += f"""[[object]]
 id = "page"
 target = "image"
 file = "board.png"
 dark = 0.05
 light = 0.85
-size_mm = [297.0, 210.0]
+size_mm = [{297.0 * print_scale}, {210.0 * print_scale}]
 distance_mm = 1000.0
 """
     for d, tilt, offset in SHOTS:
@@ -66,9 +66,9 @@ def board(tmp_path_factory):
     return folder
 
 
-def photos_of(board: Path, tmp: Path, fmt: str) -> tuple[Path, dict]:
+def photos_of(board: Path, tmp: Path, fmt: str, print_scale: float = 1.0) -> tuple[Path, dict]:
     """Render the scene, copy only the photos to a new folder; returns it and the truth."""
-    (tmp / "scene.toml").write_text(camera_scene(fmt))
+    (tmp / "scene.toml").write_text(camera_scene(fmt, print_scale=print_scale))
     shutil.copy(board / "board.png", tmp / "board.png")
     assert synth_main(["render", str(tmp / "scene.toml"), "--out", str(tmp / "stack")]) == 0
     photos = tmp / "photos"
@@ -103,6 +103,45 @@ def test_print_photograph_init_fit_recovers_the_lens(board, tmp_path, fmt, capsy
     assert s["focus_distance_mm"]["value"] == pytest.approx(t["focus_distance_mm"], rel=0.03)
     lo, hi = s["f_number"]["ci95"]
     assert lo < t["f_number"] < hi
+
+
+def test_a_print_at_97_percent_is_right_once_its_measured_square_is_given(board, tmp_path, capsys):
+    """Printers scale: the page printed at 97 % has squares of 29.1 mm. Taken at its drawn size,
+    every distance, the focus distance with them, reads 3 % far (and init says to measure); with
+    the square measured and given to init, the focus distance is within 0.3 % of the truth."""
+    photos, truth = photos_of(board, tmp_path, "jpeg", print_scale=0.97)
+    drawn = tomllib.loads((board / "board.toml").read_text())["target"][0]
+    focus = truth["settings"]["a"]["focus_distance_mm"]
+    errors = {}
+    for measured in (None, 0.97 * drawn["square_mm"]):
+        extra = [] if measured is None else ["--measured-square-mm", f"{measured:g}"]
+        assert lensfit_main(["init", str(photos), "--target", str(board / "board.toml"), "--force", *extra]) == 0
+        said = capsys.readouterr().out
+        target = tomllib.loads((photos / "stack.toml").read_text())["target"][0]
+        out = tmp_path / "results.json"
+        assert lensfit_main(["fit", str(photos), "--out", str(out), "--force"]) == 0
+        est = json.loads(out.read_text())["settings"]["a"]["focus_distance_mm"]
+        errors[measured] = est["value"] / focus - 1
+        if measured is None:
+            assert "--measured-square-mm" in said and target["square_mm"] == drawn["square_mm"]
+        else:
+            assert "printed at 97.0 %" in said
+            assert target["marker_mm"] == pytest.approx(0.97 * drawn["marker_mm"])
+            assert est["ci95"][0] < focus < est["ci95"][1]
+    assert 0.02 < errors[None] < 0.045
+    assert abs(errors[0.97 * drawn["square_mm"]]) < 0.003
+
+
+@pytest.mark.parametrize("measured", ["3", "300", "nan"])
+def test_a_measured_square_far_from_the_drawn_one_is_refused(board, tmp_path, capsys, measured):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    jpeg_with_exif(photos / "a.jpg", plane_res=1000.0, plane_unit=4)
+    assert lensfit_main(["init", str(photos), "--target", str(board / "board.toml"),
+                         "--measured-square-mm", measured]) == 2
+    err = capsys.readouterr().err
+    assert "--measured-square-mm" in err and len(err.strip().splitlines()) == 1
+    assert not (photos / "stack.toml").exists()
 
 
 # --------------------------------------------------------------------------- init's reading, grouping, refusals

@@ -52,11 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
     dof.add_argument("--json", action="store_true", help="print a JSON object instead of a table")
     dof.set_defaults(func=_dof_command, prog="lensfit dof")
 
-    tg = sub.add_parser("target", help="write a printable ChArUco board (PDF/PNG) and its stack.toml entry",
-                        description="Lay out a ChArUco board at its true size on a sheet of paper (PDF or PNG, "
-                                    "by --out's suffix) and print the [[target]] entry of stack.toml that "
-                                    "describes it. Print at 100 % and measure a square before use.")
-    tg.add_argument("--out", required=True, metavar="FILE", help="board.pdf or board.png")
+    tg = sub.add_parser("target", help="write a printable ChArUco board (PDF/SVG/PNG) and its stack.toml entry",
+                        description="Lay out a ChArUco board at its true size on a sheet of paper (vector PDF or "
+                                    "SVG, or a PNG raster, by --out's suffix), labelled with what board it is and "
+                                    "a scale bar, and print the [[target]] entry of stack.toml that describes it. "
+                                    "Print at 100 % and measure a square before use (lensfit init "
+                                    "--measured-square-mm).")
+    tg.add_argument("--out", required=True, metavar="FILE", help="board.pdf, board.svg or board.png")
     tg.add_argument("--paper", default="a4-landscape", metavar="SIZE",
                     help="a4, a3, a2, letter, tabloid (+ -landscape) or WxH in mm (default a4-landscape)")
     tg.add_argument("--squares", type=int, nargs=2, default=(9, 6), metavar=("COLS", "ROWS"),
@@ -65,7 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     tg.add_argument("--marker-mm", type=_number, metavar="MM", help="marker side (default 0.75 x the square)")
     tg.add_argument("--dictionary", default="DICT_5X5_100", metavar="NAME",
                     help="OpenCV ArUco dictionary (default DICT_5X5_100)")
-    tg.add_argument("--dpi", type=_number, default=300.0, help="at least this resolution (default 300)")
+    tg.add_argument("--dpi", type=_number, default=300.0,
+                    help="a PNG's resolution, at least this (default 300; PDF and SVG are vector)")
     tg.add_argument("--id", default="board", help="the target's id in stack.toml (default board)")
     tg.add_argument("--entry", metavar="FILE.toml",
                     help="also write the [[target]] entry to this file (for lensfit init --target)")
@@ -82,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     it.add_argument("--target", metavar="FILE.toml",
                     help="[[target]] entry of the printed board (lensfit target --entry FILE; or a stack.toml); "
                          "default: the board lensfit target draws by default, noted as assumed")
+    it.add_argument("--measured-square-mm", type=_number, metavar="MM",
+                    help="a printed square's side as measured with a ruler: the target's square_mm and marker_mm "
+                         "are scaled by it over the square_mm it was drawn with (printers scale by a few per cent)")
     it.add_argument("--pixel-pitch", type=_number, metavar="MM", help="sensor pixel pitch, mm (overrides the EXIF)")
     it.add_argument("--sensor-width", type=_number, metavar="MM",
                     help="sensor active width, mm (the pitch is this / image width)")

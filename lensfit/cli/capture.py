@@ -17,11 +17,11 @@ _TARGET_OPTIONS = {"paper": "--paper", "squares": "--squares", "square_mm": "--s
 
 def _target_command(args: argparse.Namespace) -> int:
     from lensfit.outputs import claimed, write_all
-    from lensfit.printable import charuco_page, target_toml, write_page
+    from lensfit.printable import PAGE_SUFFIXES, charuco_page, target_toml, write_page
 
     out = Path(args.out)
-    if out.suffix.lower() not in (".png", ".pdf"):
-        raise CliError(f"--out {out}: give a .pdf or .png file name")
+    if out.suffix.lower() not in PAGE_SUFFIXES:
+        raise CliError(f"--out {out}: give a .pdf, .svg or .png file name")
     try:
         board = charuco_page(args.paper, tuple(args.squares), args.square_mm, args.marker_mm, args.dictionary,
                              args.dpi, args.id)
@@ -39,9 +39,11 @@ def _target_command(args: argparse.Namespace) -> int:
     e = board.entry
     print(f"# {out}: {e['squares'][0]} x {e['squares'][1]} squares of {e['square_mm']:g} mm "
           f"({e['squares'][0] * e['square_mm']:g} x {e['squares'][1] * e['square_mm']:g} mm) on "
-          f"{board.page_mm[0]:g} x {board.page_mm[1]:g} mm, {board.dpi:.1f} dpi.")
-    print("# Print at 100 % (actual size), mount it flat, measure a square: where it is not "
-          f"{e['square_mm']:g} mm, scale square_mm and marker_mm below by the measured ratio.")
+          f"{board.page_mm[0]:g} x {board.page_mm[1]:g} mm, "
+          + ("vector." if out.suffix.lower() != ".png" else f"{board.dpi:.1f} dpi."))
+    print("# Print at 100 % (actual size), mount it flat and measure a square (or the scale bar) with a ruler: "
+          f"where a square is not {e['square_mm']:g} mm, give what you measured to lensfit init "
+          "--measured-square-mm MM (printers scale by a few per cent; the focus distance scales with it).")
     print("# Then photograph it: RAW (or RAW + JPEG), a tripod, image stabilisation off, focus set once per "
           "setting and autofocus off between shots, in-camera lens corrections (distortion, vignetting) off; "
           "the board at 6 or more distances on both sides of the focus, some shots tilted 20-40 degrees "
@@ -53,7 +55,8 @@ def _target_command(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- init
 
-_INIT_OPTIONS = {"pixel_pitch_mm": "--pixel-pitch", "sensor_width_mm": "--sensor-width", "sensor": "--sensor",
+_INIT_OPTIONS = {"measured_square_mm": "--measured-square-mm", "pixel_pitch_mm": "--pixel-pitch",
+                 "sensor_width_mm": "--sensor-width", "sensor": "--sensor",
                  "settings": "--settings", "prefer": "--prefer", "photos": "PHOTOS_DIR"}
 
 
@@ -74,7 +77,8 @@ def _init_command(args: argparse.Namespace) -> int:
         with claimed([("--out", out)], force=args.force):
             draft = draft_manifest(folder, target_file=args.target, pixel_pitch_mm=args.pixel_pitch,
                                    sensor=args.sensor, sensor_width_mm=args.sensor_width, grouping=args.settings,
-                                   prefer=args.prefer, max_pixels=int(args.max_megapixels * 1e6))
+                                   prefer=args.prefer, max_pixels=int(args.max_megapixels * 1e6),
+                                   measured_square_mm=args.measured_square_mm)
             write_text(out, draft.text, force=args.force)
     except InputError as exc:
         raise _fail_input(exc, _INIT_OPTIONS) from None
