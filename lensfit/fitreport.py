@@ -290,7 +290,8 @@ def _estimates_table(result: FitResult, document: dict[str, Any]) -> str:
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1350px;margin:1em auto;padding:0 1em;color:#222}
 .scroll{overflow-x:auto;max-width:100%}code{overflow-wrap:anywhere}p{overflow-wrap:anywhere}
-table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
+table{border-collapse:collapse;margin:.5em 0;font-size:90%}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
+td.text{text-align:left}
 th{background:#f0f0f0}td:first-child,th:first-child{text-align:left}.bad{color:#b00;font-weight:bold}
 img{max-width:100%}.warn{color:#a60}.note{color:#555;font-size:90%}h2{margin-top:1.5em}"""
 
@@ -361,11 +362,11 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
         rms = "" if math.isnan(r["reprojection_rms_px"]) else f"{r['reprojection_rms_px']:.2g}"
         resid = "" if math.isnan(r["rms_residual_sigma"]) else f"{r['rms_residual_sigma']:.2f}"
         why = html.escape(r["why_none"] or r["not_measured"])
-        none_class = " class='bad'" if r["why_none"] else ""
+        none_class = " class='text bad'" if r["why_none"] else " class='text'"
         parts.append(f"<tr><td>{name}</td><td>{html.escape(r['setting'])}</td><td>{r['corners']}</td><td>{rms}</td>"
                      f"<td>{r['edges']}</td><td>{r['measured']}</td><td{none_class}>"
                      f"{why}</td><td>{r['used']}</td><td>{dist}</td><td>{resid}</td><td{flag}>{r['suspicious']}</td>"
-                     f"<td>{r['down_weighted']}</td><td>{html.escape(r['flags'])}</td></tr>")
+                     f"<td>{r['down_weighted']}</td><td class='text'>{html.escape(r['flags'])}</td></tr>")
     parts.append("</table></div>")
     if stack is not None:
         fig = pose_figure(table, result, stack.targets, dict(images))

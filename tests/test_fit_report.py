@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import html
+import json
 import re
+import shutil
+import subprocess
 
 import numpy as np
 import pytest
@@ -52,7 +56,8 @@ def test_report_has_every_image_with_its_corners_and_edges(calibration_stack, ca
     shown = re.findall(r"<h3 id='([^']+)'", text)
     assert shown == [im.file.name for im in stack.images if im.file.name in calibration_samples.corners_px
                      and any(s.image == im.file.name for s in calibration_samples.samples)]
-    assert len(re.findall(r"data:image/png;base64,", text)) == len(shown) + 1  # overlays + the fit plot
+    # overlays + the fit plot + where the boards were
+    assert len(re.findall(r"data:image/png;base64,", text)) == len(shown) + 2
     # the corners kept for the overlays are the detections: inside the image, one set per image
     h, w = stack.shape
     for name, dets in calibration_samples.corners_px.items():
@@ -88,3 +93,53 @@ def test_estimates_carry_the_digits_their_sigma_allows(value, sigma, shown):
     from lensfit.fitreport import _to_sigma
 
     assert _to_sigma(value, sigma, "inf") == shown
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+#: The page's own reading of itself in the browser, stored on <body> for --dump-dom to carry out.
+_PROBE = """<script>
+const doc = document.documentElement, imgs = [...document.images];
+const tables = [...document.querySelectorAll('table')].map(t => [...t.rows].map(r => [...r.cells].map(c => c.innerText)));
+const header = document.querySelector('p.note').innerText;
+document.body.setAttribute('data-probe', JSON.stringify({scroll: doc.scrollWidth, client: doc.clientWidth,
+  images: imgs.length, broken: imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length,
+  wide: [...document.querySelectorAll('p, h1, h2, h3, img, div.scroll')].filter(e => e.getBoundingClientRect().right > doc.clientWidth + 1).length,
+  tables, header, text: document.body.innerText}));
+</script></body>"""
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs headless Chromium (Debian's package chromium; .ci/run installs it)")
+def test_report_reads_right_in_a_browser_at_800_px(calibration_stack, calibration_samples, tmp_path):
+    """The report rendered by headless Chromium in an 800 px wide window and read back from the
+    browser's own layout: nothing wider than the window (tables scroll inside their box), every
+    picture decodes, one count of down-weighted edges in the header and the table, and per image
+    the corners' reprojection RMS and the board-pose view are there."""
+    stack = load_stack(calibration_stack)
+    result = fit(calibration_samples)
+    document = results_document(result, ["lensfit", "fit", "stack"], None, intrinsics=calibration_samples.intrinsics)
+    write_fit_report(tmp_path / "report.html", result, document, calibration_samples, stack)
+    page = tmp_path / "probe.html"
+    page.write_text((tmp_path / "report.html").read_text().replace("</body>", _PROBE), encoding="utf-8")
+    dom = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                          "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                          f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,1000", "--dump-dom",
+                          page.as_uri()], capture_output=True, text=True, timeout=120, check=True).stdout
+    probe = json.loads(html.unescape(re.search(r'data-probe="([^"]*)"', dom).group(1)))
+    assert probe["scroll"] <= probe["client"] <= 800 and probe["wide"] == 0
+    assert probe["broken"] == 0 and probe["images"] >= 3
+    images = next(t for t in probe["tables"] if "reprojection RMS (px)" in t[0])
+    head = images[0]
+    rows = {r[0]: dict(zip(head, r)) for r in images[1:]}
+    assert set(rows) == {im.file.name for im in stack.images}
+    down = int(np.sum(result.weights < 0.5))
+    assert f"{down} down-weighted" in probe["header"]
+    assert sum(int(r["down-weighted"]) for r in rows.values()) == down
+    poses = calibration_samples.poses
+    for name, r in rows.items():
+        rms = [p.rms_px for (image, _), p in poses.items() if image == name]
+        if rms:
+            assert float(r["reprojection RMS (px)"]) == pytest.approx(max(rms), rel=0.05)
+        else:  # no pose: no edges either, and the row says why
+            assert r["reprojection RMS (px)"] == "" and r["edges"] == "0" and r["not measured: why"]
+        assert int(r["corners"]) == sum(len(pts) for _, pts in calibration_samples.corners_px[name])
+    assert "Where the boards were" in probe["text"] and "command: lensfit fit stack" in probe["text"]
