@@ -126,6 +126,11 @@ def validation_markdown() -> str:
     api = folder / "api_vs_cli.json"
     if api.is_file():
         parts.append(api_markdown(json.loads(api.read_text())))
+    costs = folder / "plan_costs.json"
+    if costs.is_file():
+        from synth.plan_costs import markdown as costs_markdown
+
+        parts.append(costs_markdown(json.loads(costs.read_text())))
     hostile = folder / "hostile.json"
     if hostile.is_file():
         from lensfit.bench.hostile import markdown as hostile_markdown

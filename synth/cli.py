@@ -137,6 +137,25 @@ def _bench_command(args: argparse.Namespace) -> int:
     from synth.bench import run_bench
 
     console = Console(stderr=True)
+    if args.plan_costs:
+        from synth import plan_costs
+
+        with console.status("benchmarking") as status:
+            result = plan_costs.run(progress=lambda msg: status.update(f"benchmarking: {msg}"))
+        if args.record:
+            console.print(f"wrote {plan_costs.record(result, args.record)}")
+        if args.json:
+            print(json.dumps(result, indent=1))
+            return EXIT_OK
+        table = Table(title=f"synth plan's estimates against warm renders, {result['cores']} cores")
+        for col in ("scene", "shots", "estimated s", "measured s", "measured / estimated"):
+            table.add_column(col, justify="right")
+        for r in result["cases"]:
+            table.add_row(r["case"], str(r["shots"]), f"{r['estimated_s']:.2f}", f"{r['measured_s']:.2f}",
+                          f"{r['ratio']:.2f}" + ("" if r["within"] else " (outside)"))
+        Console().print(table)
+        print(f"{result['passed']} of {result['total']} within {result['within_factor']:g}x")
+        return EXIT_OK
     if args.against_mitsuba:
         from synth.bench import against_mitsuba
         from synth.render import check_overrides
@@ -239,6 +258,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--against-mitsuba", action="store_true",
                    help="instead: whole processes, synth render --method raytrace against Mitsuba 3 rendering the "
                         "same scene at the same spp, PAIRS times back to back")
+    b.add_argument("--plan-costs", action="store_true",
+                   help="instead: synth plan's time estimates against warm renders of shipped scenes (thin and "
+                        "compound lenses, several wavelengths)")
+    b.add_argument("--record", metavar="DIR", help="--plan-costs: also write the record DIR/plan_costs.json "
+                                                   "(the documentation's is docs/validation/records)")
     b.add_argument("--scene", metavar="TOML", help="--against-mitsuba: the scene (default: the demo scene)")
     b.add_argument("--spp", type=int, default=32, metavar="N", help="--against-mitsuba: samples per pixel (default 32)")
     b.add_argument("--pairs", type=int, default=3, metavar="K", help="--against-mitsuba: process pairs (default 3)")

@@ -21,6 +21,9 @@ METHODS = ("auto", "raytrace", "convolve", "mitsuba")
 # synth bench: ~320 M/s on a flat board, ~260 on a tilted one, compiled, every pixel traced; an upper
 # bound on a render's time, which samples only the pixels outside constant regions (synth.flat: 5-35 % on the demo)
 RAYTRACE_SAMPLES_PER_S = 250e6
+# synth bench --plan-costs: 32-38 M lens samples x surfaces per second through the four shipped designs
+# (6-13 surfaces, 16 and 64 spp); every pixel is traced through a compound lens
+COMPOUND_SURFACE_SAMPLES_PER_S = 34e6
 CONVOLVE_SUBPIXELS_PER_S = 25e6
 MITSUBA_SAMPLES_PER_S = 4.5e6  # Mitsuba 3 scalar_rgb, thinlens, direct (synth.mitsuba; synth bench --against-mitsuba)
 
@@ -78,6 +81,11 @@ def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[fl
         return samples / MITSUBA_SAMPLES_PER_S, f"{samples / 1e6:.0f} M lens samples (Mitsuba 3)"
     if method == "raytrace":
         samples = cam.width_px * cam.height_px * spp
+        rx = getattr(cam, "prescription", None)
+        if rx is not None:
+            n = len(rx.surfaces)
+            return (samples * n / COMPOUND_SURFACE_SAMPLES_PER_S,
+                    f"{samples / 1e6:.0f} M lens samples through {n} surfaces")
         return samples / RAYTRACE_SAMPLES_PER_S * max(1, len(shot.objects)) ** 0.5, f"{samples / 1e6:.0f} M lens samples"
     sub = 0.0
     for o in shot.objects:
