@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import html
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
 
 def assert_recovered_or_refused(result, truth: dict[str, float], rel: float, k_sigma: float | None = None,
                                 setting: str = "a") -> None:
@@ -33,3 +40,30 @@ def calibration_scene(**render) -> dict:
                     "dictionary": "DICT_4X4_50", "size_mm": [190.0, 130.0], "distance_mm": 800.0}],
         "shot": shots,
     }
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+#: A page's own reading of itself in the browser, stored on <body> for --dump-dom to carry out.
+_PROBE = """<script>
+const doc = document.documentElement, imgs = [...document.images];
+const tables = [...document.querySelectorAll('table')].map(t => [...t.rows].map(r => [...r.cells].map(c => c.innerText)));
+const header = (document.querySelector('p.note') || {innerText: ''}).innerText;
+document.body.setAttribute('data-probe', JSON.stringify({scroll: doc.scrollWidth, client: doc.clientWidth,
+  images: imgs.length, broken: imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length,
+  wide: [...document.querySelectorAll('p, h1, h2, h3, img, div.scroll')].filter(e => e.getBoundingClientRect().right > doc.clientWidth + 1).length,
+  tables, header, text: document.body.innerText}));
+</script></body>"""
+
+
+def read_in_browser(page: Path, tmp_path: Path, width_px: int = 800) -> dict:
+    """Render ``page`` in headless Chromium in a window ``width_px`` wide and return what the
+    browser read of its own layout (``_PROBE``): scroll and client width, elements wider than the
+    window, images and how many failed to decode, every table's cells, the first note, the text."""
+    probe_page = tmp_path / f"probe-{page.name}"
+    probe_page.write_text(page.read_text(encoding="utf-8").replace("</body>", _PROBE), encoding="utf-8")
+    dom = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                          "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                          f"--user-data-dir={tmp_path / 'chromium-profile'}", f"--window-size={width_px},1000",
+                          "--dump-dom", probe_page.as_uri()], capture_output=True, text=True, timeout=120,
+                         check=True).stdout
+    return json.loads(html.unescape(re.search(r'data-probe="([^"]*)"', dom).group(1)))

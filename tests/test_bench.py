@@ -14,6 +14,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from helpers import CHROMIUM, read_in_browser
 from lensfit.bench.suites import load_suite
 from lensfit.cli import main
 from lensfit.bench.report import pareto
@@ -85,6 +86,32 @@ def test_quick_report_is_complete(quick_report):
     md = (quick_report / "report.md").read_text()
     for name in ("price_of_accuracy", "errors", "estimated_vs_true", "coverage", "efficiency"):
         assert f"plots/{name}.png" in md and (quick_report / "plots" / f"{name}.png").is_file()
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs headless Chromium (Debian's package chromium; .ci/run installs it)")
+def test_quick_report_reads_in_a_browser_at_800_px(quick_report, tmp_path):
+    """The benchmark page in headless Chromium, 800 px wide: nothing wider than the window (the
+    per-case tables scroll in their box), every plot decodes, an RMS error is never signed."""
+    probe = read_in_browser(quick_report / "report.html", tmp_path)
+    assert probe["scroll"] <= probe["client"] <= 800 and probe["wide"] == 0
+    assert probe["images"] == 5 and probe["broken"] == 0
+    for table in probe["tables"]:
+        for col, name in enumerate(table[0]):
+            if name == "RMS error":
+                assert all(not row[col].startswith(("+", "-")) or row[col] == "-" for row in table[1:])
+
+
+def test_bench_lenses_shows_p_only_where_the_bracket_fit_gave_every_quantity():
+    from lensfit.cli.bench import p_fitted_text
+
+    given = {"relative_error": 0.01}
+    fit_row = {"result": "ok", "pupil_magnification": 1.2, "pupil_magnification_sigma": 0.05,
+               "errors": {"focal_length_mm": given, "f_number": given, "focus_distance_mm": given}}
+    assert p_fitted_text("thick (bracket, P fitted)", fit_row) == "1.200 ± 0.050"
+    assert p_fitted_text("thin", fit_row) == ""
+    refused = dict(fit_row, errors=dict(fit_row["errors"], f_number={"relative_error": None}))
+    assert p_fitted_text("thick (bracket, P fitted)", refused) == ""
+    assert p_fitted_text("thick (bracket, P fitted)", dict(fit_row, result="not_identifiable")) == ""
 
 
 @pytest.mark.parametrize("hits, n", [(40, 40), (38, 40), (30, 40), (0, 5), (95, 100), (1, 1)])

@@ -5,15 +5,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import html
-import json
 import re
-import shutil
-import subprocess
 
 import numpy as np
 import pytest
 
+from helpers import CHROMIUM, read_in_browser
 from lensfit.cli import main as lensfit_main
 from lensfit.fitreport import _edge_values, image_rows, write_fit_report
 from lensfit.fit import fit, results_document
@@ -95,19 +92,6 @@ def test_estimates_carry_the_digits_their_sigma_allows(value, sigma, shown):
     assert _to_sigma(value, sigma, "inf") == shown
 
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-#: The page's own reading of itself in the browser, stored on <body> for --dump-dom to carry out.
-_PROBE = """<script>
-const doc = document.documentElement, imgs = [...document.images];
-const tables = [...document.querySelectorAll('table')].map(t => [...t.rows].map(r => [...r.cells].map(c => c.innerText)));
-const header = document.querySelector('p.note').innerText;
-document.body.setAttribute('data-probe', JSON.stringify({scroll: doc.scrollWidth, client: doc.clientWidth,
-  images: imgs.length, broken: imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length,
-  wide: [...document.querySelectorAll('p, h1, h2, h3, img, div.scroll')].filter(e => e.getBoundingClientRect().right > doc.clientWidth + 1).length,
-  tables, header, text: document.body.innerText}));
-</script></body>"""
-
-
 @pytest.mark.skipif(CHROMIUM is None, reason="needs headless Chromium (Debian's package chromium; .ci/run installs it)")
 def test_report_reads_right_in_a_browser_at_800_px(calibration_stack, calibration_samples, tmp_path):
     """The report rendered by headless Chromium in an 800 px wide window and read back from the
@@ -118,13 +102,7 @@ def test_report_reads_right_in_a_browser_at_800_px(calibration_stack, calibratio
     result = fit(calibration_samples)
     document = results_document(result, ["lensfit", "fit", "stack"], None, intrinsics=calibration_samples.intrinsics)
     write_fit_report(tmp_path / "report.html", result, document, calibration_samples, stack)
-    page = tmp_path / "probe.html"
-    page.write_text((tmp_path / "report.html").read_text().replace("</body>", _PROBE), encoding="utf-8")
-    dom = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                          "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                          f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,1000", "--dump-dom",
-                          page.as_uri()], capture_output=True, text=True, timeout=120, check=True).stdout
-    probe = json.loads(html.unescape(re.search(r'data-probe="([^"]*)"', dom).group(1)))
+    probe = read_in_browser(tmp_path / "report.html", tmp_path)
     assert probe["scroll"] <= probe["client"] <= 800 and probe["wide"] == 0
     assert probe["broken"] == 0 and probe["images"] >= 3
     images = next(t for t in probe["tables"] if "reprojection RMS (px)" in t[0])

@@ -56,12 +56,16 @@ def run(draws: int = 3, seed: int = 0, estimators=("edge",), progress=None) -> d
     enable_compilation_cache()
     rng = np.random.default_rng(seed)
     rows = []
-    for c in COC_PX:
+    for k, c in enumerate(COC_PX):
+        if progress:
+            progress(f"slanted edges {k + 1} of {len(COC_PX)}: rendering a CoC of {c:g} px")
         image, tasks, truth = _render(c)  # edge geometry from the truth
         for name in estimators:
             fn = get_estimator(name)
             fn(image, tasks)  # warm-up (compilation)
             for noise in NOISE:
+                if progress:
+                    progress(f"slanted edges {k + 1} of {len(COC_PX)}: {name}, CoC {c:g} px, noise {noise:g}")
                 errs, sigmas, seconds = [], [], 0.0
                 for _ in range(draws):
                     var = noise**2 * (image + 0.5)  # shot + read: noise**2 at mid grey
@@ -80,8 +84,6 @@ def run(draws: int = 3, seed: int = 0, estimators=("edge",), progress=None) -> d
                              "median_sigma_px": float(np.median(sigmas)) if errs.size else None,
                              "within_1_sigma": float(np.mean(np.abs(errs) <= sigmas)) if errs.size else None,
                              "seconds_per_edge": seconds / max(draws * len(tasks), 1)})
-                if progress:
-                    progress(f"{name} c={c:g} noise={noise:g}")
     return {"rows": rows, "estimators": list(estimators), "draws": draws,
             "note": "slanted-edge squares rendered by synth (raytrace/convolve auto, 256 spp); noise: "
                     "Gaussian with variance noise^2 * (value + 0.5) (shot + read), seeded"}
@@ -103,6 +105,8 @@ def run_stack(stack, estimators=("edge", "target"), progress=None) -> list[dict]
     maps = {i["file"]: np.load(stack / i["maps"]) for i in truth["images"]}
     rows = []
     for name in estimators:
+        if progress:
+            progress(f"the {name} estimator on {stack.name} against its per-pixel truth")
         t = time.perf_counter()
         table = measure(stack, name)
         seconds = time.perf_counter() - t
@@ -118,8 +122,6 @@ def run_stack(stack, estimators=("edge", "target"), progress=None) -> list[dict]
                      "rms_error_px": float(np.sqrt(np.mean(errs**2))), "median_abs_error_px": float(np.median(np.abs(errs))),
                      "bias_px": float(errs.mean()), "within_1_sigma": float(np.mean(np.abs(errs) <= sigmas)),
                      "seconds_total": seconds, "seconds_per_edge": seconds / max(len(table), 1)})
-        if progress:
-            progress(f"{name} on {stack.name}")
     return rows
 
 
@@ -177,7 +179,9 @@ def run_exact(noise: float = 0.005, draws: int = 40, seed: int = 0, progress=Non
     fn = get_estimator("edge")
     rng = np.random.default_rng(seed)
     rows = []
-    for c in EXACT_COC_PX:
+    for k, c in enumerate(EXACT_COC_PX):
+        if progress:
+            progress(f"exact edges {k + 1} of {len(EXACT_COC_PX)}: CoC {c:g} px, {draws} noise draws")
         clean = []
         for slant in EXACT_SLANTS_DEG:
             for offset in (0.0, 0.37):
@@ -195,7 +199,5 @@ def run_exact(noise: float = 0.005, draws: int = 40, seed: int = 0, progress=Non
                      "noisy_bias": float(noisy.mean()) if noisy.size else None,
                      "noisy_bias_se": float(noisy.std() / np.sqrt(noisy.size)) if noisy.size > 1 else None,
                      "budget": disk_scale_sigma(c)})
-        if progress:
-            progress(f"exact edges c={c:g}")
     return {"rows": rows, "noise": noise, "draws": draws, "slants_deg": list(EXACT_SLANTS_DEG),
             "note": "relative bias of the edge estimator on exact disk-blurred, pixel-integrated edges"}

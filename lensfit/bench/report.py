@@ -307,7 +307,7 @@ def _tables(summary: dict[str, Any], suite: Suite) -> list[tuple[str, list[str],
         for q in QUANTITIES:
             d = c["quantities"][q]
             configs.append([c["scene"], c["render"], c["effects"], c["noise"], c["estimator"], c["solver"], q,
-                            _pct(d["rms_relative_error"]), _pct(d["bias"]), f"{d['passed']}/{d['total']}",
+                            _pct(d["rms_relative_error"]).lstrip("+"), _pct(d["bias"]), f"{d['passed']}/{d['total']}",
                             _pct(d["observed_scatter"], 4).lstrip("+"), _pct(d["stated_sigma"], 4).lstrip("+"),
                             _pct(d["crlb"], 4).lstrip("+"), _num(d["efficiency"], ".2f"),
                             _pct(d["coverage68"], 0).lstrip("+"), _pct(d["coverage95"], 0).lstrip("+")])
@@ -389,7 +389,8 @@ def write_report(records: list[dict[str, Any]], suite: Suite, prov: dict[str, An
     e = html.escape
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{e(title)}</title>",
              "<style>body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;"
-             "font-size:12px;margin-bottom:2em}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
+             "font-size:12px}.scroll{overflow-x:auto;max-width:100%;margin-bottom:2em}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
              "th{background:#eee}td:first-child,th:first-child{text-align:left}.FAIL{color:#b00;font-weight:bold}"
              "img{max-width:100%}</style></head><body>", f"<h1>{e(title)}</h1>", f"<p>{e(suite.description)}</p>",
              f"<p>{len(records)} cases.</p>"]
@@ -401,11 +402,12 @@ def write_report(records: list[dict[str, Any]], suite: Suite, prov: dict[str, An
         data = base64.b64encode(plots[name]).decode()
         parts.append(f"<h2>{e(caption)}</h2><img alt='{e(caption)}' src='data:image/png;base64,{data}'>")
     for heading, header, body in tables:
-        parts.append(f"<h2>{e(heading)}</h2><table><tr>" + "".join(f"<th>{e(h)}</th>" for h in header) + "</tr>")
+        parts.append(f"<h2>{e(heading)}</h2><div class='scroll'><table><tr>"
+                     + "".join(f"<th>{e(h)}</th>" for h in header) + "</tr>")
         for row in body:
             parts.append("<tr>" + "".join(f"<td class='{e(c)}'>{e(c)}</td>" if c == "FAIL" else f"<td>{e(c)}</td>"
                                           for c in row) + "</tr>")
-        parts.append("</table>")
+        parts.append("</table></div>")
     if refused:
         parts.append("<h2>Refusals and errors</h2><ul>" + "".join(
             f"<li>{e(r['id'])}: {e(r.get('error') or '; '.join(r['reasons']))}</li>" for r in refused) + "</ul>")

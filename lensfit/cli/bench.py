@@ -194,8 +194,7 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
     for row in result["rows"]:
         for how, fr in row["fits"].items():
             e = fr["errors"]
-            p_fit = "" if not how.startswith("thick (bracket") or fr["pupil_magnification"] is None else \
-                f"{fr['pupil_magnification']:.3f} ± {fr['pupil_magnification_sigma']:.3f}"
+            p_fit = p_fitted_text(how, fr)
             table.add_row(row["lens"], f"{row['pupil_magnification']:.3f}", how, pct(e["focal_length_mm"]),
                           pct(e["f_number"]), pct(e.get("f_number_real_ray")), pct(e["focus_distance_mm"]),
                           inside(e), p_fit)
@@ -210,6 +209,17 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
         rendered = "reused" if row["seconds_render"] is None else f"render {row['seconds_render']:.0f} s"
         print(f"{row['lens']}: calibrated f_px error {cal}; {rendered}, measure {row['seconds_measure']:.0f} s")
     return EXIT_OK
+
+
+def p_fitted_text(how: str, fit_row: dict) -> str:
+    """bench-lenses' "P fitted" cell: the bracket fit's P and sigma, only where that fit gave
+    every quantity (beside a refusal P is its starting value, not a finding)."""
+    errors = fit_row["errors"]
+    refused = fit_row["result"] != "ok" or any(errors.get(q) is None or errors[q]["relative_error"] is None
+                                               for q in ("focal_length_mm", "f_number", "focus_distance_mm"))
+    if not how.startswith("thick (bracket") or fit_row["pupil_magnification"] is None or refused:
+        return ""
+    return f"{fit_row['pupil_magnification']:.3f} ± {fit_row['pupil_magnification_sigma']:.3f}"
 
 
 def _bench_command(args: argparse.Namespace) -> int:
