@@ -16,7 +16,8 @@ printed board, the plan
    per edge ``c = (f/N) S |1/d - 1/X| / p`` with the sensor distance ``1/S = 1/f - 1/X``,
    each edge measured with sigma ``sqrt(edge_sigma_px^2 + (edge_sigma_rel c)^2)``, every
    interior edge of the board once per shot, and the calibration's focal length in px
-   (``S / p``) known to ``calibration_sigma_rel``;
+   (``S / p``) known to ``calibration_sigma_rel``, which scales the target distances the poses
+   give with it, and so f, N and X alike;
 4. returns the smallest n whose 95 % half-intervals (1.96 sigma) reach the goal for every
    quantity, and the whole cost curve.
 
@@ -117,9 +118,21 @@ def _blur_px(f: float, N: float, x: float, w: np.ndarray, pitch: float) -> np.nd
 
 
 def bound(f: float, N: float, x: float, w_shots: np.ndarray, board: Board, pitch: float, *,
-          edge_sigma_px: float, edge_sigma_rel: float, calibration_sigma_rel: float) -> dict[str, float]:
+          edge_sigma_px: float, edge_sigma_rel: float, calibration_sigma_rel: float,
+          distances_scale: bool = True) -> dict[str, float]:
     """Relative 1-sigma Cramer-Rao bounds on f, N, X for shots at inverse distances ``w_shots``
-    (1/mm), ``board.edges`` edges each (see the module notes). inf where not determined."""
+    (1/mm), ``board.edges`` edges each (see the module notes). inf where not determined.
+
+    ``distances_scale``: the calibration's focal length in px and the target distances its poses
+    give are one measurement: a relative error e in the first scales every distance by 1 + e,
+    and with them the fitted f, N and X (the blur's slope A S / p |1/d - 1/X| keeps A). The
+    bound is then the blur's own (the focal length in px exact) with ``calibration_sigma_rel``
+    added in quadrature to each quantity. False: the distances held exact and the focal length
+    in px a separate observation, as the fit's solver sees them (``lensfit.fit.cramer_rao``)."""
+    if distances_scale:
+        blur_only = bound(f, N, x, w_shots, board, pitch, edge_sigma_px=edge_sigma_px, edge_sigma_rel=edge_sigma_rel,
+                          calibration_sigma_rel=1e-7, distances_scale=False)
+        return {q: math.hypot(v, calibration_sigma_rel) for q, v in blur_only.items()}
     theta = np.array([math.log(f), x * f, math.log(N)])  # x scaled by f: columns of similar size
 
     def model(t):

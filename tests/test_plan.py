@@ -37,7 +37,7 @@ def test_plan_bound_equals_the_fits_cramer_rao(distances):
     assert res.ok
     ref = cramer_rao(res, F, {"a": (N, X)})["a"]
     ours = bound(F, N, 1 / X, 1 / __import__("numpy").array(distances), BOARD, PITCH, edge_sigma_px=0.05,
-                 edge_sigma_rel=0.02, calibration_sigma_rel=0.001)
+                 edge_sigma_rel=0.02, calibration_sigma_rel=0.001, distances_scale=False)
     for q, true in (("focal_length_mm", F), ("f_number", N), ("focus_distance_mm", X)):
         assert ours[q] == pytest.approx(ref[q] / true, rel=0.01), q
 
@@ -116,3 +116,57 @@ def test_the_usable_range_measures_when_rendered():
         mine = [s for s in table.samples if s.image == image]
         read = [s for s in mine if s.coc_diameter_px is not None]
         assert len(read) >= 0.8 * board.edges and not any("window_truncated" in s.flags for s in mine), image
+
+
+def test_a_calibration_error_scales_every_distance_and_so_f_n_and_x_alike():
+    """The limit of perfect edges: what is left of each bound is the calibration's focal length in
+    px, whose relative error scales every pose distance, and with them f, N and X by the same
+    factor (written out: c = (f/N) S |1/d - 1/X| / p is unchanged when d, X, S and f scale
+    together with N, the aperture f/N kept)."""
+    import numpy as np
+
+    w = 1 / np.array([450.0, 700.0, 1600.0, 2400.0])
+    b = bound(F, N, 1 / X, w, BOARD, PITCH, edge_sigma_px=1e-9, edge_sigma_rel=1e-9, calibration_sigma_rel=0.003)
+    for q in ("focal_length_mm", "f_number", "focus_distance_mm"):
+        assert b[q] == pytest.approx(0.003, rel=1e-3), q
+    held = bound(F, N, 1 / X, w, BOARD, PITCH, edge_sigma_px=1e-9, edge_sigma_rel=1e-9, calibration_sigma_rel=0.003,
+                 distances_scale=False)
+    assert held["focus_distance_mm"] < 1e-4  # distances held exact: the focus distance would owe nothing to it
+
+
+@pytest.mark.slow
+def test_a_planned_capture_measures_and_reaches_the_plans_accuracy(tmp_path):
+    """Plan a capture, render the planned shots with synth (the distances as planned, turned by
+    20-25 degrees in turn as the checklist asks), fit: every planned shot gives readings, the fit's
+    sigmas are within 1.5x of the plan's bounds, its 95 % intervals reach the goal and hold the
+    truth."""
+    from lensfit.fit import fit
+    from lensfit.measure import measure
+    from synth.render import render
+    from synth.scene import scene_from_dict
+    from synth.stack import write_stack
+
+    f, n, x, pitch, w, h = 16.0, 2.8, 900.0, 0.006, 960, 640
+    entry = {"kind": "charuco", "squares": [6, 4], "square_mm": 30.0, "marker_mm": 22.0, "dictionary": "DICT_4X4_50"}
+    board = Board.from_entry(entry)
+    plan = plan_capture(f, n, x, pixel_pitch_mm=pitch, width_px=w, height_px=h, board=board, goal_rel=0.01)
+    tilts = [[0, 0], [25, 0], [0, -25], [-20, 15], [0, 25], [20, -20]]
+    scene = {"camera": {"pixel_pitch_mm": pitch, "width_px": w, "height_px": h},
+             "lens": {"focal_length_mm": f, "f_number": n, "focus_distance_mm": x},
+             "render": {"samples_per_pixel": 16}, "background": {"value": 0.3},
+             "object": [{"id": "board", "target": "charuco", **{k: v for k, v in entry.items() if k != "kind"},
+                         "size_mm": [190.0, 130.0], "distance_mm": x}],
+             "shot": [{"pose": [{"id": "board", "distance_mm": d, "tilt_deg": tilts[k % len(tilts)]}]}
+                      for k, d in enumerate(plan.distances_mm)]}
+    write_stack(render(scene_from_dict(scene)), tmp_path / "s")
+    table = measure(tmp_path / "s")
+    assert plan.shots == len(plan.distances_mm) >= 6
+    for k in range(plan.shots):
+        read = [s for s in table.samples if s.image == f"shot_{k:03d}.png" and s.coc_diameter_px is not None]
+        assert len(read) >= 0.7 * board.edges, k
+    res = fit(table)
+    for q, true in (("focal_length_mm", f), ("f_number", n), ("focus_distance_mm", x)):
+        e = res.settings["a"][q]
+        assert e.sigma / true <= 1.5 * plan.sigma[q], q
+        lo, hi = e.ci95
+        assert lo < true < hi and (hi - lo) / 2 / true <= plan.goal_rel, q
