@@ -170,3 +170,26 @@ def test_a_planned_capture_measures_and_reaches_the_plans_accuracy(tmp_path):
         assert e.sigma / true <= 1.5 * plan.sigma[q], q
         lo, hi = e.ci95
         assert lo < true < hi and (hi - lo) / 2 / true <= plan.goal_rel, q
+
+
+def test_the_plan_prints_as_a_one_page_shot_list(tmp_path, capsys):
+    """--shot-list: one A4 page (read back by PDFium) listing every planned distance with a turn of
+    the board, the promised accuracy and the checklist; not replaced without --force."""
+    pdfium = pytest.importorskip("pypdfium2")
+    out = tmp_path / "shots.pdf"
+    args = ["plan", "--focal-length", "50", "--f-number", "2.8", "--focus-distance", "2000", "--sensor",
+            "full-frame-24mp", "--shot-list", str(out)]
+    assert lensfit_main(args + ["--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    pdf = pdfium.PdfDocument(str(out))
+    assert len(pdf) == 1
+    w_pt, h_pt = pdf[0].get_size()
+    assert (w_pt / 72 * 25.4, h_pt / 72 * 25.4) == pytest.approx((210.0, 297.0), abs=0.05)
+    text = pdf[0].get_textpage().get_text_range()
+    for d in doc["distances_mm"]:
+        assert f"{d:.0f}" in text
+    for word in ("face on", "25 deg away", "autofocus off", "RAW", "Predicted 95 % half-intervals"):
+        assert word in text
+    assert lensfit_main(args) == 2 and "--force" in capsys.readouterr().err
+    assert lensfit_main(args + ["--force"]) == 0
+    assert lensfit_main(args[:-1] + [str(tmp_path / "shots.txt")]) == 2

@@ -125,6 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="and its part proportional to the blur, per cent (default 2)")
     pl.add_argument("--calibration-sigma", type=_number, default=0.1, metavar="PCT",
                     help="1-sigma of the calibrated focal length in px, per cent (default 0.1)")
+    pl.add_argument("--shot-list", metavar="FILE", help="also write the plan as a one-page shot list to print "
+                                                        "(.pdf, .svg or .png): distances, how to turn the board, "
+                                                        "boxes to tick, the checklist")
+    pl.add_argument("--force", action="store_true", help="replace a --shot-list this program wrote")
     pl.add_argument("--json", action="store_true", help="print the plan as JSON")
     pl.set_defaults(func=_plan_command, prog="lensfit plan")
 

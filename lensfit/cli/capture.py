@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 from lensfit.errors import InputError
@@ -18,6 +19,7 @@ _TARGET_OPTIONS = {"paper": "--paper", "squares": "--squares", "square_mm": "--s
 def _target_command(args: argparse.Namespace) -> int:
     from lensfit.outputs import claimed, write_all
     from lensfit.printable import PAGE_SUFFIXES, charuco_page, target_toml, write_page
+    from lensfit.shotlist import CHECKLIST
 
     out = Path(args.out)
     if out.suffix.lower() not in PAGE_SUFFIXES:
@@ -44,10 +46,8 @@ def _target_command(args: argparse.Namespace) -> int:
     print("# Print at 100 % (actual size), mount it flat and measure a square (or the scale bar) with a ruler: "
           f"where a square is not {e['square_mm']:g} mm, give what you measured to lensfit init "
           "--measured-square-mm MM (printers scale by a few per cent; the focus distance scales with it).")
-    print("# Then photograph it: RAW (or RAW + JPEG), a tripod, image stabilisation off, focus set once per "
-          "setting and autofocus off between shots, in-camera lens corrections (distortion, vignetting) off; "
-          "the board at 6 or more distances on both sides of the focus, some shots tilted 20-40 degrees "
-          "(lensfit plan gives the distances).")
+    print("# Then photograph it: " + "; ".join(CHECKLIST) + "; the board at 6 or more distances on both sides of "
+          "the focus, some shots tilted 20-40 degrees (lensfit plan gives the distances and a shot list to print).")
     print("# stack.toml entry:")
     print(target_toml(e), end="")
     return EXIT_OK
@@ -132,6 +132,8 @@ def _plan_command(args: argparse.Namespace) -> int:
                             calibration_sigma_rel=args.calibration_sigma / 100)
     except InputError as exc:
         raise _fail_input(exc, _PLAN_OPTIONS) from None
+    if args.shot_list:
+        _write_shot_list(args, plan, board, pitch, width_px, height_px)
     if args.json:
         print(json.dumps(plan.to_json_dict(), indent=1))
         return EXIT_OK
@@ -158,3 +160,26 @@ def _plan_command(args: argparse.Namespace) -> int:
         print(f"note: {note}")
     print("note: a lower bound for an unbiased fit; tilt some shots by 20-40 degrees for the calibration")
     return EXIT_OK
+
+
+def _write_shot_list(args: argparse.Namespace, plan, board, pitch: float, width_px: int, height_px: int) -> None:
+    from lensfit.outputs import claimed, write_all
+    from lensfit.plan import blur_at
+    from lensfit.shotlist import promise_text, shot_rows, write_shot_list
+
+    out = Path(args.shot_list)
+    if out.suffix.lower() not in (".pdf", ".svg", ".png"):
+        raise CliError(f"--shot-list {out}: give a .pdf, .svg or .png file name")
+    rows = shot_rows(plan.distances_mm, [blur_at(args.focal_length, args.f_number, args.focus_distance, d, pitch)
+                                         for d in plan.distances_mm])
+    lines = [f"Lens: {args.focal_length:g} mm at f/{args.f_number:g}, focused at {_fmt_mm(args.focus_distance)} "
+             "(set once, then leave it).",
+             f"Board: {board.width_mm:g} x {board.height_mm:g} mm, squares of {board.square_mm:g} mm; sensor "
+             f"{width_px} x {height_px} px of {pitch * 1000:.3g} um.",
+             f"Usable distances {plan.usable_mm[0]:.0f} to {plan.usable_mm[1]:.0f} mm from the lens; the board "
+             "in the middle of the frame."] + [f"Note: {note}" for note in plan.notes]
+    title = f"lensfit shot list: {len(rows)} shots"
+    promise = promise_text(plan.sigma, args.goal, plan.shots is not None)
+    with claimed([("--shot-list", out)], force=args.force):
+        write_all([(out, lambda tmp: write_shot_list(tmp, title, lines, rows, promise))], force=args.force)
+    print(f"wrote the shot list {out}", file=sys.stderr if args.json else sys.stdout)  # --json: stdout is JSON
