@@ -69,6 +69,26 @@ def calibration_text(cal: dict[str, Any] | None) -> str:
                  f"[{d['ci95'][0]:.2f}, {d['ci95'][1]:.2f}]")
     return text
 
+def assumptions_text(table: SampleTable, document: dict[str, Any]) -> str:
+    """"assumptions: ...": what the fit took as given rather than measured: how the lens focuses,
+    where its pupil magnification came from, which f-number is reported, how the images were
+    encoded."""
+    lens = table.lens or {}
+    p = document.get("pupil_magnification") or {}
+    parts = [f"focusing {lens.get('focusing', 'unknown')}"
+             + ("" if "focusing" in lens else " (not declared: each setting fitted by itself)"),
+             f"pupil magnification {p.get('reason') or p.get('source') or 'unknown'}"]
+    definition = document.get("f_number_definition") or {}
+    if definition.get("note"):
+        parts.append(f"f-number {definition.get('reported')}: {definition['note']}")
+    proc = document.get("processing") or {}
+    if proc.get("developer") or proc.get("halos"):
+        parts.append(f"developed images ({proc.get('developer') or 'sharpening halos'})")
+    elif proc:
+        parts.append("images read as " + ("sRGB-encoded" if proc.get("encoded") else "linear"))
+    return "assumptions: " + "; ".join(parts)
+
+
 #: Overlays wider than this (px) are drawn downscaled (the picture, not the measurement).
 OVERLAY_WIDTH_PX = 1400
 #: |residual| / sigma above which an edge is listed as suspicious.
@@ -322,6 +342,7 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
                 if result.pupil_magnification.value is not None else
                 f"P {html.escape(result.pupil_magnification.reason or 'not determined')}")
              + "; distances from the entrance pupil.</p>",
+             f"<p class='note'>{html.escape(assumptions_text(table, document))}</p>",
              f"<h2>Estimates: fit {html.escape(result.code)}</h2>", _estimates_table(result, document)]
     for label, quantities in result.settings.items():
         lines = [text for text in (budget_text(quantities),

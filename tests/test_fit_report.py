@@ -121,3 +121,5 @@ def test_report_reads_right_in_a_browser_at_800_px(calibration_stack, calibratio
             assert r["reprojection RMS (px)"] == "" and r["edges"] == "0" and r["not measured: why"]
         assert int(r["corners"]) == sum(len(pts) for _, pts in calibration_samples.corners_px[name])
     assert "Where the boards were" in probe["text"] and "command: lensfit fit stack" in probe["text"]
+    # what was assumed rather than measured, from the stack's [lens] (synth declares its thin lens)
+    assert "assumptions: focusing unit; pupil magnification" in probe["text"]
