@@ -64,8 +64,8 @@ def layer(name: str) -> str:
     if name == "lensfit.cli" or name.startswith("lensfit.cli.") or name in ("lensfit.__main__", "synth.cli",
                                                                            "synth.bench"):
         return "cli"
-    if name == "lensfit.bench" or name.startswith("lensfit.bench."):
-        return "bench"
+    if name == "lensfit.bench" or name.startswith("lensfit.bench.") or name == "synth.plan_costs":
+        return "bench"  # (synth.plan_costs: renders and times synth, writes a benchmark record)
     return "synth" if name.split(".")[0] == "synth" else "core"
 
 
