@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import sys
 import time
 from html.parser import HTMLParser
 from pathlib import Path
@@ -244,6 +245,36 @@ def test_a_case_outside_the_tolerances_makes_the_exit_status_non_zero(tmp_path, 
     assert main(["bench", "--suite", str(path), "--out", str(tmp_path / "a")]) == 4
     assert "outside the suite's tolerances" in capsys.readouterr().err
     assert main(["bench", "--suite", str(path), "--out", str(tmp_path / "a"), "--resume", "--allow-fail"]) == 0
+
+
+def test_bench_stages_makes_a_larger_stack_from_its_images_again_and_measures_memory(tmp_path):
+    """--shots beyond the stack's own: its photographs again, in turn, under new names (a valid
+    stack); a process's peak memory read from wait4 grows with what it holds."""
+    import tomllib
+
+    from lensfit.bench.stages import _subset
+    from lensfit.stack import load_stack
+
+    src = tmp_path / "src"
+    src.mkdir()
+    names = [f"im{k}.png" for k in range(3)]
+    for k, name in enumerate(names):
+        iio.imwrite(src / name, np.full((8, 12), 1000 * (k + 1), np.uint16))
+    (src / "stack.toml").write_text("[camera]\npixel_pitch_mm = 0.01\n\n[[target]]\nid = \"b\"\nkind = \"charuco\"\n"
+                                    "squares = [5, 4]\nsquare_mm = 10.0\nmarker_mm = 7.0\ndictionary = \"DICT_4X4_50\"\n\n"
+                                    + "".join(f'[[image]]\nfile = "{n}"\nsetting = "a"\n\n' for n in names))
+    out = _subset(src, tmp_path / "big", 7, 1.0)
+    files = [e["file"] for e in tomllib.loads((out / "stack.toml").read_text())["image"]]
+    assert len(files) == len(set(files)) == 7 and files[:3] == names
+    for k, name in enumerate(files):
+        assert np.array_equal(iio.imread(out / name), iio.imread(src / names[k % 3]))
+    assert len(load_stack(out).images) == 7
+    from lensfit.bench.peak import run_with_peak
+
+    small = run_with_peak([sys.executable, "-c", "x = 1"], 60)
+    large = run_with_peak([sys.executable, "-c", "import numpy as np; x = np.ones(400 * 2**20 // 8); x += 1"], 60)
+    assert small.status == large.status == 0
+    assert small.peak_bytes < 100 * 2**20 < 400 * 2**20 < large.peak_bytes - small.peak_bytes < 500 * 2**20
 
 
 def test_bench_stages_refuses_what_it_cannot_compare(tmp_path, capsys):

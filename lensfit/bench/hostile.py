@@ -14,15 +14,12 @@ cases of the same kinds run in ``make test`` (``tests/test_hostile.py``,
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import shutil
 import struct
-import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
@@ -231,42 +228,15 @@ def _input_bytes(root: Path) -> int:
     return sum(p.stat().st_blocks * 512 for p in root.rglob("*") if p.is_file())
 
 
-#: Runs a command and writes its exit status and peak resident memory (kB) to stdout: started
-#: from this small interpreter, the command's peak is its own (a process's peak counts the memory
-#: of the one it was forked from, a pytest or a notebook of a gigabyte).
-_LAUNCHER = """
-import json, os, signal, subprocess, sys, time
-proc = subprocess.Popen(sys.argv[2:], stdout=subprocess.DEVNULL, start_new_session=True)
-deadline = time.monotonic() + float(sys.argv[1])
-while True:
-    pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-    if pid:
-        break
-    if time.monotonic() > deadline:
-        os.killpg(proc.pid, signal.SIGKILL)
-        pid, status, usage = os.wait4(proc.pid, 0)
-        break
-    time.sleep(0.02)
-proc.returncode = 0
-print(json.dumps([os.waitstatus_to_exitcode(status), usage.ru_maxrss]))
-"""
-
-
 def run_case(case: Case, before_bytes: int, root: Path | None = None) -> Outcome:
-    start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", _LAUNCHER, str(KILL_SECONDS), sys.executable, "-m", "lensfit",
-                           *case.argv], capture_output=True, text=True, errors="replace")
-    seconds = time.perf_counter() - start
-    try:
-        code, peak_kb = json.loads(done.stdout.strip().splitlines()[-1])
-    except (ValueError, IndexError):
-        code, peak_kb = None, 0
-    err = done.stderr
+    from lensfit.bench.peak import run_with_peak
+
+    ran = run_with_peak([sys.executable, "-m", "lensfit", *case.argv], KILL_SECONDS)
+    code, seconds, peak, err = ran.status, ran.seconds, ran.peak_bytes, ran.stderr
     lines = [ln for ln in err.strip().splitlines() if ln.strip()]
     message = lines[0] if lines else ""
     if root is not None:  # (the scratch folder's name says nothing)
         message = message.replace(f"{root}{os.sep}", "")
-    peak = peak_kb * 1024  # (kilobytes on Linux)
     one_line = len([ln for ln in lines if "error" in ln]) <= 1 and "Traceback" not in err
     passed = (code in case.expect_status and one_line and seconds <= MAX_SECONDS and peak <= MAX_PEAK_BYTES
               and (code == 0 or case.expect_text in message))

@@ -89,22 +89,42 @@ def _run(code: str, *args: str, env: dict | None = None) -> tuple[float, str]:
     return time.perf_counter() - t, out.stdout
 
 
+def _run_measured(*argv: str) -> tuple[float, float]:
+    """Seconds and peak resident memory (MiB, the process's own) of ``python -m lensfit ARGV``."""
+    from lensfit.bench.peak import run_with_peak
+
+    ran = run_with_peak([_python(), "-m", "lensfit", *argv], timeout_s=24 * 3600)
+    if ran.status != 0:
+        raise subprocess.CalledProcessError(ran.status if ran.status is not None else -1, argv, "", ran.stderr)
+    return ran.seconds, ran.peak_bytes / 2**20
+
+
 def _subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
-    """A copy of the stack with its first ``count`` images, enlarged ``scale`` times."""
+    """A copy of the stack with its first ``count`` images (more than it has: its images again,
+    in turn, under new names), enlarged ``scale`` times."""
     import cv2
     import tomli_w
 
     spec = tomllib.loads((src / "stack.toml").read_text())
-    images = spec["image"][:count] if count else spec["image"]
+    images = spec["image"]
+    count = count or len(images)
+    chosen = []
+    for k in range(count):
+        entry = dict(images[k % len(images)])
+        if k >= len(images):  # a repeat: the same photograph under another name
+            stem, dot, suffix = entry["file"].rpartition(".")
+            entry["file"] = f"{stem}_again{k // len(images)}{dot}{suffix}"
+        chosen.append((images[k % len(images)]["file"], entry))
     dst.mkdir(parents=True)
-    for entry in images:
+    for original, entry in chosen:
         (dst / entry["file"]).parent.mkdir(parents=True, exist_ok=True)
         if scale == 1.0:
-            (dst / entry["file"]).write_bytes((src / entry["file"]).read_bytes())
+            (dst / entry["file"]).write_bytes((src / original).read_bytes())
         else:
-            im = cv2.imread(str(src / entry["file"]), cv2.IMREAD_UNCHANGED)
+            im = cv2.imread(str(src / original), cv2.IMREAD_UNCHANGED)
             big = cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
             cv2.imwrite(str(dst / entry["file"]), big)
+    images = [entry for _, entry in chosen]
     spec["image"] = images
     camera = spec.get("camera", {})
     if scale != 1.0:
@@ -120,7 +140,8 @@ def _subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
 
 
 def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[float, ...] = (1.0, 1.5, 2.0),
-        progress=None, repeat: int = 3, warm_runs: int = 3, jobs: tuple[int, ...] = (1,)) -> dict:
+        progress=None, repeat: int = 3, warm_runs: int = 3, jobs: tuple[int, ...] = (1,),
+        shots: int | None = None) -> dict:
     """Rows of seconds per stage (cold and warm) per configuration; the OpenCV ratio per scale.
 
     Returns {"rows": [...], "provenance": ...}; each row: images, megapixels, edges, cold and warm
@@ -131,11 +152,14 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
     With more than one count in ``jobs``, the whole ``lensfit fit`` runs at each ``--jobs`` too
     (``lensfit_fit_process_s_by_jobs``, the medians of ``repeat`` runs taken in turn), the speed-up
     of the most over one (``jobs_speedup``) and whether every run's results were the same
-    (``jobs_identical``, provenance aside); the ratio to OpenCV is then the most jobs' run."""
+    (``jobs_identical``, provenance aside); the ratio to OpenCV is then the most jobs' run.
+    ``shots``: the whole-stack rows take this many images (the stack's own again, in turn, where
+    it has fewer); each whole ``lensfit fit`` process's peak resident memory is in
+    ``lensfit_fit_peak_mib`` (the largest over its runs)."""
     from lensfit.outputs import provenance
 
     stack = Path(stack)
-    n_all = len(tomllib.loads((stack / "stack.toml").read_text())["image"])
+    n_all = shots or len(tomllib.loads((stack / "stack.toml").read_text())["image"])
     configs = [(c, 1.0) for c in counts if c < n_all] + [(n_all, s) for s in scales]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -152,12 +176,12 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
                             for s in (*STAGES, "total")},
                    "warm_runs": len(child["warm_runs"])}
             if count == n_all:  # whole process: lensfit fit against OpenCV's detect + calibrate
-                pairs, by_jobs, documents = [], {n: [] for n in jobs}, []
+                pairs, by_jobs, documents, peak = [], {n: [] for n in jobs}, [], 0.0
                 for j in range(max(repeat, 1)):
                     for n in jobs:
                         out_json = Path(tmp) / f"r{k}-{j}-{n}.json"
-                        t_fit, _ = _run("from lensfit.cli import run; run()", "fit", str(folder), "--out",
-                                        str(out_json), "--jobs", str(n))
+                        t_fit, mib = _run_measured("fit", str(folder), "--out", str(out_json), "--jobs", str(n))
+                        peak = max(peak, mib)
                         by_jobs[n].append(t_fit)
                         document = json.loads(out_json.read_text())
                         document.pop("provenance", None)
@@ -166,7 +190,8 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
                     pairs.append((by_jobs[jobs[-1]][-1], t_cv))
                 fits, cvs = zip(*pairs)
                 row.update(lensfit_fit_process_s=statistics.median(fits), opencv_process_s=statistics.median(cvs),
-                           ratio=statistics.median(f / c for f, c in pairs), ratios=[f / c for f, c in pairs])
+                           ratio=statistics.median(f / c for f, c in pairs), ratios=[f / c for f, c in pairs],
+                           lensfit_fit_peak_mib=peak)
                 if len(jobs) > 1:
                     medians = {n: statistics.median(v) for n, v in by_jobs.items()}
                     row.update(lensfit_fit_process_s_by_jobs=medians,
@@ -188,13 +213,13 @@ def _shape(folder: Path) -> tuple[int, int]:
 
 def table(report: dict) -> str:
     """The rows as a Markdown table (seconds; cold / warm)."""
-    head = ("| images | MP | edges | " + " | ".join(STAGES) + " | total | `lensfit fit` process | OpenCV "
-            "detect+calibrate | ratio |")
-    lines = [head, "|" + "---|" * (len(STAGES) + 7)]
+    head = ("| images | MP | edges | " + " | ".join(STAGES) + " | total | `lensfit fit` process | its peak memory "
+            "| OpenCV detect+calibrate | ratio |")
+    lines = [head, "|" + "---|" * (len(STAGES) + 8)]
     for r in report["rows"]:
         cells = [f"{r['cold'][s]:.2f} / {r['warm'][s]:.2f}" for s in (*STAGES, "total")]
-        extra = ([f"{r['lensfit_fit_process_s']:.1f} s", f"{r['opencv_process_s']:.1f} s", f"{r['ratio']:.1f}x"]
-                 if "ratio" in r else ["", "", ""])
+        extra = ([f"{r['lensfit_fit_process_s']:.1f} s", f"{r['lensfit_fit_peak_mib']:.0f} MiB",
+                  f"{r['opencv_process_s']:.1f} s", f"{r['ratio']:.1f}x"] if "ratio" in r else ["", "", "", ""])
         lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {r['edges']} | " + " | ".join(cells + extra) + " |")
     jobs = report.get("jobs") or [1]
     if len(jobs) > 1:

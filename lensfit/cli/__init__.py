@@ -293,6 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--jobs", type=_jobs, nargs="+", default=[1], metavar="N",
                     help="also run the whole `lensfit fit` at each --jobs N (e.g. 1 2) and report the speed-up and "
                          "whether the results are identical (default 1)")
+    bs.add_argument("--shots", type=int, metavar="N",
+                    help="the whole-stack rows with N images (the stack's own again, in turn, where it has fewer; "
+                         "e.g. 30 at --scale 6.85: a 30-shot 45 MP stack from the demo)")
     bs.add_argument("--json", action="store_true", help="print JSON")
     bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
 

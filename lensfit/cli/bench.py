@@ -26,12 +26,13 @@ def _bench_stages_command(args: argparse.Namespace) -> int:
     if kinds != {"charuco"}:
         raise CliError(f"STACK {folder}: targets {sorted(str(k) for k in kinds)}; bench-stages compares with OpenCV's "
                        "ChArUco detection and needs ChArUco targets only (e.g. out/demo after make demo)")
-    if any(k < 1 for k in args.images) or any(x <= 0 for x in args.scale) or args.repeat < 1 or args.warm_runs < 1:
-        raise CliError("--images, --scale, --repeat and --warm-runs must be positive")
+    if (any(k < 1 for k in args.images) or any(x <= 0 for x in args.scale) or args.repeat < 1 or args.warm_runs < 1
+            or (args.shots is not None and not 1 <= args.shots <= 5000)):
+        raise CliError("--images, --scale, --repeat, --warm-runs and --shots must be positive (--shots at most 5000)")
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
         report = run(folder, tuple(args.images), tuple(args.scale), repeat=args.repeat, warm_runs=args.warm_runs,
-                     jobs=tuple(args.jobs),
+                     jobs=tuple(args.jobs), shots=args.shots,
                      progress=lambda m, k, n: status.update(f"benchmarking: {m} ({k + 1}/{n})"))
     print(json.dumps(report, indent=1) if args.json else table(report))
     return EXIT_OK
