@@ -675,3 +675,32 @@ def test_the_target_estimators_sigma_holds_its_errors(calibration_stack, monkeyp
     rms, within = np.sqrt(np.mean(z**2)), np.mean(np.abs(z) < 2)
     assert rms < 1.4 and within > 0.85, (rms, within)
     assert np.sqrt(np.mean(z[small] ** 2)) < 1.6, np.sqrt(np.mean(z[small] ** 2))
+
+
+def test_stage_seconds_add_up_when_the_next_image_is_read_ahead(monkeypatch):
+    """A read on another thread (read-ahead) overlaps the stage: counted apart, never taken out of
+    the stage (a 45 MP stack too large to hold read its measure stage as -12 s); a read on the
+    stage's own thread is taken out. The stages add up to the wall time (a clock moved by hand)."""
+    import threading
+
+    from lensfit import clock as clock_module
+
+    now = [0.0]
+    monkeypatch.setattr(clock_module.time, "perf_counter", lambda: now[0])
+
+    def slow_read(i):
+        now[0] += 2.0  # every read takes 2 s of this clock
+        return i
+
+    clock = clock_module.StageClock()
+    read = clock.reader(slow_read)
+    with clock.stage("measure"):
+        now[0] += 1.0  # measuring
+        worker = threading.Thread(target=read, args=(1,))  # the next image, read ahead
+        worker.start()
+        worker.join()  # (the stage waits for it: its time is the stage's)
+        read(2)  # a read on the stage's own thread
+        now[0] += 1.0
+    s = clock.seconds
+    assert s["read"] == 2.0 and s["read_overlapped"] == 2.0 and s["measure"] == 4.0
+    assert s["read"] + s["measure"] == now[0]
