@@ -126,6 +126,11 @@ def validation_markdown() -> str:
     api = folder / "api_vs_cli.json"
     if api.is_file():
         parts.append(api_markdown(json.loads(api.read_text())))
+    stages = folder / "stages.json"
+    if stages.is_file():
+        from lensfit.bench.stages import markdown as stages_markdown
+
+        parts.append(stages_markdown(json.loads(stages.read_text())))
     costs = folder / "plan_costs.json"
     if costs.is_file():
         from synth.plan_costs import markdown as costs_markdown

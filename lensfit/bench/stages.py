@@ -200,7 +200,9 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
             rows.append(row)
     if progress:
         progress("done", len(configs), len(configs))
-    return {"rows": rows, "jobs": list(jobs), "provenance": provenance("lensfit bench-stages")}
+    import os
+
+    return {"rows": rows, "jobs": list(jobs), "provenance": provenance("lensfit bench-stages", cores=os.cpu_count())}
 
 
 def _shape(folder: Path) -> tuple[int, int]:
@@ -227,8 +229,21 @@ def table(report: dict) -> str:
                   "|" + "---|" * (len(jobs) + 4)]
         for r in report["rows"]:
             if "jobs_speedup" in r:
-                times = " | ".join(f"{r['lensfit_fit_process_s_by_jobs'][n]:.1f} s" for n in jobs)
+                by_jobs = {int(k): v for k, v in r["lensfit_fit_process_s_by_jobs"].items()}  # (JSON keys are text)
+                times = " | ".join(f"{by_jobs[n]:.1f} s" for n in jobs)
                 same = "identical" if r["jobs_identical"] else "DIFFER"
                 lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {times} | {r['jobs_speedup']:.2f}x | {same} |")
     return "\n".join(lines)
 
+
+
+def markdown(report: dict) -> str:
+    """The record as the validation page's section: where the time and memory of a fit go."""
+    prov = report.get("provenance") or {}
+    return "\n".join([
+        "### Where a fit's time and memory go (`lensfit bench-stages`)", "",
+        f"`{prov.get('command') or prov.get('program')}`, {str(prov.get('date', ''))[:10]}, "
+        f"{prov.get('cores')} cores. Seconds cold / warm per stage in one process; the whole `lensfit fit` "
+        "process (its peak memory its own) against OpenCV's read + ChArUco detection + calibration of the same "
+        "files. Larger stacks are the demo's photographs enlarged (bilinear) and taken again under new names.", "",
+        table(report)])

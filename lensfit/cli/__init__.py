@@ -296,6 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--shots", type=int, metavar="N",
                     help="the whole-stack rows with N images (the stack's own again, in turn, where it has fewer; "
                          "e.g. 30 at --scale 6.85: a 30-shot 45 MP stack from the demo)")
+    bs.add_argument("--record", metavar="DIR", help="also write the record DIR/stages.json the validation page "
+                                                   "shows (docs/validation/records)")
     bs.add_argument("--json", action="store_true", help="print JSON")
     bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
 

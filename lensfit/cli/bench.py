@@ -29,11 +29,17 @@ def _bench_stages_command(args: argparse.Namespace) -> int:
     if (any(k < 1 for k in args.images) or any(x <= 0 for x in args.scale) or args.repeat < 1 or args.warm_runs < 1
             or (args.shots is not None and not 1 <= args.shots <= 5000)):
         raise CliError("--images, --scale, --repeat, --warm-runs and --shots must be positive (--shots at most 5000)")
+    _check_record_folder(args.record)
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
         report = run(folder, tuple(args.images), tuple(args.scale), repeat=args.repeat, warm_runs=args.warm_runs,
                      jobs=tuple(args.jobs), shots=args.shots,
                      progress=lambda m, k, n: status.update(f"benchmarking: {m} ({k + 1}/{n})"))
+    report["provenance"]["command"] = " ".join(["lensfit", *sys.argv[1:]])
+    if args.record:
+        from lensfit.bench.records import write_json
+
+        console.print(f"wrote {write_json(args.record, 'stages', report)}")
     print(json.dumps(report, indent=1) if args.json else table(report))
     return EXIT_OK
 
