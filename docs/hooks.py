@@ -126,6 +126,11 @@ def validation_markdown() -> str:
     api = folder / "api_vs_cli.json"
     if api.is_file():
         parts.append(api_markdown(json.loads(api.read_text())))
+    developed = folder / "developed.json"
+    if developed.is_file():
+        from lensfit.bench.developed import markdown as developed_markdown
+
+        parts.append(developed_markdown(json.loads(developed.read_text())))
     stages = folder / "stages.json"
     if stages.is_file():
         from lensfit.bench.stages import markdown as stages_markdown

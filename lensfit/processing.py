@@ -115,10 +115,13 @@ def developer_of(path: Path, record: Any) -> str | None:
 
     suffix = path.suffix.lower()
     software, maker = record.software or "", record.make or ""
-    if suffix in RAW_SUFFIXES or FAITHFUL.search(software) or FAITHFUL.search(maker):
+    if suffix in RAW_SUFFIXES:
         return None
+    # a developer's name first: its output keeps the camera's Make, lensfit's own renders' too
     if DEVELOPERS.search(software):
         return software
+    if FAITHFUL.search(software) or FAITHFUL.search(maker):
+        return None
     if suffix in JPEG_SUFFIXES and maker:
         return "in-camera JPEG of the " + (record.camera or maker) + (f", {software}" if software else "")
     return None

@@ -612,3 +612,34 @@ def test_bench_hostile_records_each_case_and_fails_a_case_that_misses(tmp_path, 
     capsys.readouterr()
     assert main(["bench-hostile", "--only", "target_squares_1e5", "--json"]) == 4
     assert json.loads(capsys.readouterr().out)["cases"][0]["passed"] is False
+
+
+def test_bench_developed_judges_refusals_by_the_processing_named_and_strips_only_software(tmp_path):
+    """A developed stack passes on f and focus within 0.5 % and N within 1.5 % or refused naming
+    the processing; a refusal that names nothing fails, as does any refusal of the control. The
+    Software-less copy keeps every other EXIF tag."""
+    from PIL import Image
+
+    from lensfit.bench.developed import _passed, _without_software
+
+    good = {"refused": False, "relative_error": 0.001, "inside": True}
+    refused = {"refused": True, "reason": "developed"}
+    named = {"developer": "darktable 4.2.1", "halos": False}
+    errors = {"focal_length_mm": good, "f_number": refused, "focus_distance_mm": good}
+    assert _passed(errors, named, control=False)
+    assert not _passed(errors, {"developer": None, "halos": False}, control=False)
+    assert not _passed(errors, named, control=True)
+    assert not _passed(dict(errors, f_number={"refused": False, "relative_error": 0.06, "inside": False}), named,
+                       control=False)
+    assert not _passed(dict(errors, focal_length_mm=refused), named, control=False)
+    src = tmp_path / "src"
+    src.mkdir()
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0131] = "Canon", "darktable 4.2.1"
+    pixels = (np.arange(64 * 48, dtype=np.uint8).reshape(48, 64))
+    Image.fromarray(pixels).save(src / "a.jpg", "JPEG", quality=95, exif=exif)
+    _without_software(src, tmp_path / "dst")
+    with Image.open(tmp_path / "dst" / "a.jpg") as im:
+        tags = im.getexif()
+        assert 0x0131 not in tags and tags[0x010F] == "Canon"
+        assert np.abs(np.asarray(im, float) - np.asarray(Image.open(src / "a.jpg"), float)).max() <= 4

@@ -106,6 +106,19 @@ def test_exif_names_the_developer_and_linear_images_are_trusted(calibration_stac
     assert not result.processing.biases_f_number and result.settings["a"]["f_number"].value is not None
 
 
+@pytest.mark.parametrize("make, software, developed", [
+    ("lensfit", "darktable 4.2.1", True),  # synth's DNG developed by darktable (it keeps the Make)
+    ("lensfit", "", False), ("lensfit", "lensfit synth", False),  # synth's own JPEG
+    ("Canon", "", True), ("Canon", "RawTherapee 5.9", True)])
+def test_a_developer_is_named_whatever_camera_made_the_raw(tmp_path, make, software, developed):
+    from lensfit.exif import CameraRecord
+    from lensfit.processing import developer_of
+
+    record = CameraRecord(make=make, model=f"{make} body", software=software or None)
+    assert bool(developer_of(tmp_path / "a.jpg", record)) == developed
+    assert developer_of(tmp_path / "a.dng", record) is None  # a raw file is what the sensor gave
+
+
 @pytest.mark.parametrize("software, developer", [
     ("darktable 4.2.1", True), ("RawTherapee 5.9", True), ("Adobe Photoshop Lightroom Classic 13.1", True),
     ("Capture One 23 Windows", True), ("DxO PhotoLab 7", True), ("ART 1.21", True),

@@ -14,7 +14,8 @@ from typing import Sequence
 from lensfit import __version__
 from lensfit.errors import InputError
 from lensfit.cli.bench import (_bench_command, _bench_fit_command, _bench_lenses_command, _bench_measure_command,
-                               _bench_stages_command, _bench_api_command, _bench_hostile_command)
+                               _bench_stages_command, _bench_api_command, _bench_hostile_command,
+                               _bench_developed_command)
 from lensfit.cli.capture import _init_command, _plan_command, _target_command
 from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
                                 _diffraction, _input_options, _jobs, _number, _pupil)
@@ -325,6 +326,20 @@ def build_parser() -> argparse.ArgumentParser:
                          "(e.g. docs/validation/records)")
     bh.add_argument("--json", action="store_true", help="print JSON")
     bh.set_defaults(func=_bench_hostile_command, prog="lensfit bench-hostile")
+
+    bd = sub.add_parser("bench-developed", help="developed JPEGs from raw developers: f, N, focus against the truth",
+                        description="Benchmark: the camera-raw scene's DNGs developed by RawTherapee and darktable "
+                                    "(their default profiles; Debian packages rawtherapee and darktable, reported "
+                                    "as missing where not installed) into JPEGs, drafted by lensfit init and fitted; "
+                                    "the DNGs are the control. Exit 4 where a case fails.")
+    bd.add_argument("--developers", nargs="+", choices=["rawtherapee", "darktable"],
+                    default=["rawtherapee", "darktable"], help="which developers (default: both)")
+    bd.add_argument("--keep", metavar="DIR", help="keep the rendered and developed stacks in DIR (a new folder)")
+    bd.add_argument("--record", metavar="DIR",
+                    help="also write the table to DIR/developed.json for the documentation's validation page "
+                         "(e.g. docs/validation/records)")
+    bd.add_argument("--json", action="store_true", help="print JSON")
+    bd.set_defaults(func=_bench_developed_command, prog="lensfit bench-developed")
     return parser
 
 

@@ -351,3 +351,23 @@ def _bench_hostile_command(args: argparse.Namespace) -> int:
         write_json(args.record, "hostile", doc)
     print(json.dumps(doc, indent=1) if args.json else markdown(doc))
     return EXIT_OK if doc["passed"] == doc["total"] else EXIT_BENCH_FAILED
+
+
+def _bench_developed_command(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from lensfit.bench.developed import markdown, run
+
+    _check_record_folder(args.record)
+    if args.keep and Path(args.keep).exists():
+        raise CliError(f"--keep {args.keep} exists; give a new folder (nothing of yours is replaced)")
+    console = Console(stderr=True)
+    with console.status("benchmarking") as status:
+        doc = run(progress=lambda m: status.update(f"benchmarking: {m}"), developers=tuple(args.developers),
+                  keep=Path(args.keep) if args.keep else None)
+    if args.record:
+        from lensfit.bench.records import write_json
+
+        write_json(args.record, "developed", doc)
+    print(json.dumps(doc, indent=1) if args.json else markdown(doc))
+    return EXIT_OK if doc["passed"] == doc["total"] else EXIT_BENCH_FAILED

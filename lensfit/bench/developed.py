@@ -1,0 +1,204 @@
+"""Photographs developed by raw developers the project does not contain (``lensfit
+bench-developed``): what a user who hands lensfit JPEGs gets.
+
+synth renders the camera-raw scene (data_specs/scenes/camera_raw.toml: Bayer DNGs with black and
+white levels, shot and read noise, diffraction, the camera's EXIF). Each developer found on the
+machine develops the DNGs with its default profile into JPEGs, as a photographer exporting
+"as shot" would: RawTherapee (``rawtherapee-cli -d``: its default processing profile) and
+darktable (``darktable-cli``: its defaults for a new image). The JPEGs alone are copied into a
+folder; ``lensfit init`` drafts its stack.toml from their EXIF (the board's entry from the
+rendered stack) and ``lensfit fit`` fits it, each a fresh process as a user runs them. The DNGs
+fitted as they are are the control.
+
+A developer that is not installed is reported as missing with the package that provides it
+(Debian: ``apt install rawtherapee darktable``). A case passes where f and the focus distance
+are within 0.5 % and inside their 95 % intervals, and the f-number is within 1.5 % and inside
+its interval, or refused naming the processing; the control, where all three are within 0.5 %.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Callable
+
+from lensfit.specs import specs_dir
+
+QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
+#: Developers: (program, Debian package, how it is run on the DNGs into a folder of JPEGs).
+DEVELOPERS = {
+    "rawtherapee": ("rawtherapee-cli", "rawtherapee"),
+    "darktable": ("darktable-cli", "darktable"),
+}
+#: Relative error allowed per quantity (f, N, focus distance) for a developed stack.
+TOLERANCE = {"focal_length_mm": 0.005, "f_number": 0.015, "focus_distance_mm": 0.005}
+CONTROL_TOLERANCE = 0.005
+
+
+def _develop(name: str, program: str, dngs: list[Path], out: Path, scratch: Path) -> None:
+    """JPEGs of ``dngs`` in ``out`` by developer ``name`` with its default processing."""
+    out.mkdir(parents=True)
+    if name == "rawtherapee":
+        subprocess.run([program, "-o", str(out), "-d", "-j90", "-Y", "-c", *map(str, dngs)], check=True,
+                       capture_output=True, timeout=1800)
+    else:  # darktable: one call per image, a configuration and library of its own (never the user's)
+        for dng in dngs:
+            subprocess.run([program, str(dng), str(out / f"{dng.stem}.jpg"), "--core", "--configdir",
+                            str(scratch / "darktable-config"), "--library", ":memory:"], check=True,
+                           capture_output=True, timeout=600)
+    for sidecar in list(out.glob("*.pp3")) + list(out.glob("*.xmp")):
+        sidecar.unlink()
+
+
+def _without_software(src: Path, dst: Path) -> None:
+    """The JPEGs of ``src`` with the EXIF Software tag removed (saved again with their own
+    quantisation tables: the pixels change by the re-encoding only)."""
+    from PIL import Image
+
+    dst.mkdir(parents=True)
+    for jpeg in sorted(src.glob("*.jpg")):
+        with Image.open(jpeg) as im:
+            exif = im.getexif()
+            exif.pop(0x0131, None)
+            im.save(dst / jpeg.name, "JPEG", quality="keep", exif=exif)
+
+
+def _lensfit(*argv: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lensfit", *argv], capture_output=True, text=True, timeout=3600)
+
+
+def _compare(results: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
+    """Per quantity of the (one) setting: the relative error, whether the 95 % interval holds the
+    truth, or the refusal's reason."""
+    label, setting = next(iter(results["settings"].items()))
+    true = {"focal_length_mm": truth["focal_length_mm"], **{q: truth["settings"][label][q]
+                                                             for q in ("f_number", "focus_distance_mm")}}
+    out = {}
+    for q in QUANTITIES:
+        est = results["focal_length_mm"] if q == "focal_length_mm" and results.get("focal_length_mm") else setting[q]
+        if est.get("value") is None:
+            out[q] = {"refused": True, "reason": est.get("reason")}
+            continue
+        lo, hi = est["ci95"]
+        lo, hi = (-float("inf") if lo is None else lo), (float("inf") if hi is None else hi)
+        out[q] = {"refused": False, "relative_error": est["value"] / true[q] - 1, "inside": lo <= true[q] <= hi}
+    return out
+
+
+def _passed(errors: dict[str, Any], processing: dict[str, Any] | None, control: bool) -> bool:
+    for q in QUANTITIES:
+        e = errors[q]
+        if e["refused"]:
+            named = bool(processing and (processing.get("developer") or processing.get("halos")))
+            if control or q != "f_number" or not named:
+                return False
+        elif abs(e["relative_error"]) > (CONTROL_TOLERANCE if control else TOLERANCE[q]) or not e["inside"]:
+            return False
+    return True
+
+
+def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str, ...] = tuple(DEVELOPERS),
+        keep: Path | None = None) -> dict[str, Any]:
+    """Render, develop, fit and compare (see the module notes); ``keep``: a new folder to keep the
+    stacks in (default: a scratch folder removed afterwards)."""
+    from synth import render, write_stack
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="lensfit-developed-") as tmp:
+        root = Path(keep) if keep is not None else Path(tmp) / "work"
+        progress("rendering the camera-raw scene (DNG)")
+        write_stack(render(specs_dir() / "scenes" / "camera_raw.toml"), root / "dng")
+        truth = json.loads((root / "dng" / "truth.json").read_text())
+        dngs = sorted((root / "dng").glob("*.dng"))
+        cases = [("DNG (control)", None)] + [(name, DEVELOPERS[name]) for name in developers]
+        if "darktable" in developers:  # its JPEGs again without the Software tag: what the pixels alone tell
+            cases.append(("darktable, Software tag removed", DEVELOPERS["darktable"]))
+        for name, tool in cases:
+            row: dict[str, Any] = {"stack": name}
+            folder = root / "dng"
+            if tool is not None:
+                program = shutil.which(tool[0])
+                if program is None:
+                    row["missing"] = f"{tool[0]} not found: install it (Debian: apt install {tool[1]})"
+                    rows.append(row)
+                    continue
+                progress(f"developing with {name}")
+                t = time.perf_counter()
+                folder = root / name.split(",")[0] / ("photos" if "," not in name else "photos-no-software")
+                if "," in name:
+                    _without_software(root / "darktable" / "photos", folder)
+                else:
+                    _develop(name, program, dngs, folder, Path(tmp))
+                row["seconds_develop"] = time.perf_counter() - t
+                row["photos"] = len(list(folder.glob("*.jpg")))
+                made = _lensfit("init", str(folder), "--target", str(root / "dng" / "stack.toml"))
+                if made.returncode != 0 and "--pixel-pitch" in made.stderr:
+                    # the developer dropped the EXIF's focal-plane resolution: a user gives the pitch
+                    row["pixel_pitch_given"] = True
+                    made = _lensfit("init", str(folder), "--target", str(root / "dng" / "stack.toml"),
+                                    "--pixel-pitch", str(truth["pixel_pitch_mm"]))
+                if made.returncode != 0:
+                    row["error"] = (made.stderr.strip().splitlines() or ["lensfit init failed"])[-1]
+                    rows.append(row)
+                    continue
+            progress(f"fitting {name}")
+            out = root / f"{len(rows)}-results.json"
+            t = time.perf_counter()
+            fitted = _lensfit("fit", str(folder), "--out", str(out), "--force")
+            row["seconds_fit"] = time.perf_counter() - t
+            row["exit"] = fitted.returncode
+            if not out.is_file():
+                row["error"] = (fitted.stderr.strip().splitlines() or ["lensfit fit failed"])[-1]
+                rows.append(row)
+                continue
+            results = json.loads(out.read_text())
+            row["errors"] = _compare(results, truth)
+            row["processing"] = results.get("processing")
+            row["chi2_reduced"] = results.get("diagnostics", {}).get("chi2_reduced")
+            row["passed"] = _passed(row["errors"], row["processing"], control=tool is None)
+            rows.append(row)
+    ran = [r for r in rows if "missing" not in r]
+    return {"benchmark": "developed", "date": datetime.now(UTC).strftime("%Y-%m-%d"),
+            "command": "lensfit bench-developed", "system": f"{platform.system()} {platform.machine()}",
+            "cores": os.cpu_count(), "truth": {"focal_length_mm": truth["focal_length_mm"],
+                                               **next(iter(truth["settings"].values()))} if ran else None,
+            "rows": rows, "passed": sum(bool(r.get("passed")) for r in ran), "total": len(ran)}
+
+
+def _cell(e: dict[str, Any] | None) -> str:
+    if e is None:
+        return ""
+    if e["refused"]:
+        return "refused"
+    return f"{100 * e['relative_error']:+.2f} %" + ("" if e["inside"] else " (outside)")
+
+
+def markdown(doc: dict[str, Any]) -> str:
+    """The record as the documentation's table."""
+    out = [f"### Developed photographs ({doc['passed']} of {doc['total']} pass)", "",
+           f"`{doc['command']}`, {doc['date']}, {doc['system']}. The camera-raw scene's DNGs developed with each "
+           "program's default profile into JPEGs, drafted by `lensfit init` and fitted; the DNGs themselves are the "
+           "control. A developed stack passes with f and the focus distance within 0.5 % and inside their 95 % "
+           "intervals and the f-number within 1.5 % or refused naming the processing.", "",
+           "| stack | f | N | focus distance | processing named | reduced chi-square | pass |",
+           "|---|---|---|---|---|---|---|"]
+    for r in doc["rows"]:
+        if r.get("pixel_pitch_given"):
+            r = dict(r, stack=f"{r['stack']} (pixel pitch given: the EXIF lost it)")
+        if "missing" in r or "error" in r:
+            out.append(f"| {r['stack']} | {r.get('missing') or r.get('error')} | | | | | {'no' if 'error' in r else '-'} |")
+            continue
+        e, proc = r["errors"], r.get("processing") or {}
+        named = proc.get("developer") or ("sharpening halos" if proc.get("halos") else "")
+        chi2 = "" if r.get("chi2_reduced") is None else f"{r['chi2_reduced']:.2f}"
+        out.append(f"| {r['stack']} | {_cell(e['focal_length_mm'])} | {_cell(e['f_number'])} | "
+                   f"{_cell(e['focus_distance_mm'])} | {named} | {chi2} | {'yes' if r['passed'] else '**no**'} |")
+    return "\n".join(out)
