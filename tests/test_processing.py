@@ -144,3 +144,31 @@ def test_init_notes_developed_photos(calibration_stack, tmp_path):
     faithful = _jpeg_copy(calibration_stack, tmp_path / "faithful", software="lensfit synth")
     (faithful / "stack.toml").unlink()
     assert "developed" not in " ".join(draft_manifest(faithful, pixel_pitch_mm=0.006).notes)
+
+
+@pytest.mark.parametrize("name, developer, keeps_pitch", [
+    ("rawtherapee-5.9_shot_000.jpg", "RawTherapee 5.9", False), ("darktable-4.2.1_shot_000.jpg", "darktable 4.2.1", True)])
+def test_files_written_by_the_developers_name_them(tmp_path, capsys, name, developer, keeps_pitch):
+    """JPEGs written by RawTherapee and darktable themselves (tests/fixtures/developed/README.md)
+    from synth's DNG, whose Make reads lensfit: the developer is named; where the developer
+    dropped the focal-plane resolution, lensfit init asks for the pixel pitch."""
+    import shutil
+    from pathlib import Path
+
+    from lensfit.cli import main
+    from lensfit.exif import read_camera_record
+    from lensfit.processing import developer_of
+
+    path = Path(__file__).parent / "fixtures" / "developed" / name
+    record = read_camera_record(path)
+    assert record.make == "lensfit" and developer_of(path, record) == developer
+    assert (record.focal_plane_pitch_mm is not None) == keeps_pitch
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    shutil.copy(path, photos / "shot_000.jpg")
+    code = main(["init", str(photos)])
+    said = capsys.readouterr()
+    if keeps_pitch:
+        assert code == 0 and "developed" in said.out and developer in said.out
+    else:
+        assert code == 2 and "--pixel-pitch" in said.err
