@@ -560,13 +560,13 @@ def test_a_floor_left_at_zero_by_an_earlier_solve_is_tried_again(loss, monkeypat
     whatever the data: a solve that starts there stays there. Where an earlier solve (a
     reweighting round) leaves it at 0, simulated here by zeroing the first solve's floor, the fit
     must still find the floor the samples were simulated with (lensfit.fit.constants.FLOOR_START_PX)."""
-    import lensfit.fit.core as core
+    import lensfit.fit.stages as stages
     from lensfit.fit.model import Layout
 
     f, N, D, floor = 50.0, 4.0, 1500.0, 1.5
     rng = np.random.default_rng(9)
     rows, fpx, fpx_sigma = simulate(f, N, D, spread(1000, 2500, 80), rng, floor_px=floor, noise_px=0.03)
-    real = core._solver
+    real = stages._solver
     zeroed = []
 
     class FirstSolveZeroesTheFloor:
@@ -590,7 +590,7 @@ def test_a_floor_left_at_zero_by_an_earlier_solve_is_tried_again(loss, monkeypat
                 return sol, ok
             return solve
 
-    monkeypatch.setattr(core, "_solver", FirstSolveZeroesTheFloor)
+    monkeypatch.setattr(stages, "_solver", FirstSolveZeroesTheFloor)
     r = run_fit(rows, fpx, fpx_sigma, loss=loss)
     assert zeroed and r.ok, r.reasons
     check_close(r.settings["a"]["blur_floor_px"], floor, 0.05)

@@ -186,3 +186,23 @@ def test_code_speaks_the_house_words():
     for word in ("f_number", "focal_length_mm", "pixel_pitch_mm", "coc_diameter_px", "shutter_s",
                  "focus_distance_mm", "aperture_diameter_mm"):
         assert f"`{word}`" in conventions, f"CONVENTIONS.md does not define {word}"
+
+
+#: Lines a function of the fit may take, its docstring aside: the fit's stages are functions
+#: with names (lensfit.fit.stages), not one body of closures.
+FIT_FUNCTION_LINES = 100
+
+
+def test_the_fits_functions_are_short():
+    long = []
+    for path in sorted((ROOT / "lensfit" / "fit").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                first = node.body[0]
+                if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(
+                        first.value.value, str):
+                    lines -= first.end_lineno - first.lineno + 1
+                if lines > FIT_FUNCTION_LINES:
+                    long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
+    assert not long, long

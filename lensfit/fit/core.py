@@ -11,22 +11,18 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError
-from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MODES, FLOOR_PRIOR_SIGMA_PX, FLOOR_START_PX,
-                                   LOSSES, MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
+from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MODES, FLOOR_PRIOR_SIGMA_PX, LOSSES,
+                                   MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
 from lensfit.fit.data import FitData, prepare
-from lensfit.fit import nominal
-from lensfit.fit.curvature import curvature_estimate, field_spread, significant_curvature
+from lensfit.fit import nominal, stages
+from lensfit.fit.curvature import curvature_estimate, field_spread
 from lensfit.fit.floor_choice import floor_sensitive, widen
 from lensfit.fit.focusing import merge, one_setting, subset, with_lens
-from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _capture_problems, _p_identifiable, _p_start, _pupil_mode,
-                                         _one_sided, _second_vertex, PHOTOGRAPHIC_P_NOTE,
-                                         photographic_prior)
+from lensfit.fit.identifiability import _capture_problems, _one_sided, _pupil_mode, _second_vertex
 from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
-from lensfit.fit.solve import (_floor_escape, _image_scatter, _padded_size, _predict_all, _robust_scale,
-                               _robust_weights, _shared_sigma, _solver, _solver_args, _solver_residual_fn)
+from lensfit.fit.solve import _image_scatter, _padded_size, _predict_all
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
-from lensfit.fit.start import _vertex_search
 from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _images_part,
                                      _image_spread, _null_direction, _positive, _shares, student_z)
 
@@ -186,212 +182,33 @@ def _refused(data: FitData, loss: str, reason: str) -> FitResult:
                      math.nan, loss, [], data, np.zeros(n), np.ones(n), np.zeros(_size(m)))
 
 
-def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigma_px: float,
-         max_irls: int, pupil: tuple, field_curvature: str = "off") -> FitResult:
-    """The body of :func:`fit` on validated data (it may raise on data of absurd magnitude;
-    :func:`fit` turns that into a refusal)."""
-    import jax
+@dataclasses.dataclass(frozen=True)
+class _Uncertainty:
+    """What the uncertainty stage makes: the free parameters' covariance (``cov``) and its full
+    size (``full_cov``), condition number and correlations, the variance parts per source, each
+    setting's jackknifed calibration term with its degrees of freedom, the strata's degrees of
+    freedom (``dof``) and their Student z, the images' shared scatter (``scatter``, ``shared``),
+    the blur rows' degrees of freedom and the parameters a near-null direction cannot tell apart."""
 
-    labels, m, p = data.labels, len(data.labels), data.pixel_pitch_mm
-    n = len(data.coc_px)
-    t_start = time.perf_counter()
-    warnings: list[str] = []
-    if data.dropped:
-        why = (f" ({data.dropped_truncated} of them: the blur outgrew the clean room around the edge, flag "
-               "window_truncated; stop down, or use a target with larger squares, to measure them)"
-               if data.dropped_truncated else "")
-        warnings.append(f"{data.dropped} sample(s) without a measured blur were left out{why}")
+    cov: np.ndarray
+    cond: float
+    corr: np.ndarray
+    full_cov: np.ndarray
+    parts: dict
+    calibration_terms: list
+    dof: Any
+    z: float
+    scatter: Any
+    shared: bool
+    blur_dof: float
+    weak: set
 
-    # ---- what cannot be determined before fitting (per setting)
-    blocked = _capture_problems(data)
-    has_fpx = ~np.isnan(data.focal_length_px)
-    no_fpx_reason = ("no focal length in px for this setting (calibration or stack.toml [[intrinsics]]): blur fixes "
-                     "only the slope A*s and the focus distance; calibrate on tilted target views to separate f and N")
 
-    # ---- closed-form start
-    fixed_floor = blur_floor_px is not None
-    theta = np.zeros(_size(m))
-    at = Layout(m)
-    i_p = at.log_p
-    verts, slopes = np.zeros(m), np.ones(m)
-    for k in range(m):
-        sel = data.setting == k
-        x, slope, b = _vertex_search(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], np.ones(sel.sum()),
-                                     not fixed_floor, blur_floor_px or 0.0)
-        verts[k], slopes[k] = x, max(slope, 1e-6)
-        theta[at.floor(k)] = blur_floor_px if fixed_floor else max(b, FLOOR_START_PX)
-
-    # ---- the pupil magnification: fitted, given a prior, or assumed (never silently)
-    fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
-    usable = [k for k in range(m) if has_fpx[k] and k not in blocked]
-    p_prior, p_note = (0.0, 0.0), None
-    if pupil[0] == "fixed":
-        P0, p_source = pupil[1], "assumed"
-    elif pupil[0] == "prior":
-        P0, p_source, p_prior = math.exp(pupil[1]), "prior", (pupil[1], 1.0 / pupil[2])
-    else:
-        fit_p, why_not = _p_identifiable(data, verts, usable, fpx_sig)
-        if fit_p:
-            P0, p_source, p_prior = _p_start(data, verts, usable), "fitted", (0.0, 1.0 / _P_PRIOR_SIGMA_LOG)
-        elif has_fpx.any():
-            P0, p_prior, why = photographic_prior(why_not)
-            p_source, p_note = "prior", PHOTOGRAPHIC_P_NOTE
-            warnings.append(why)
-        else:
-            P0, p_source = 1.0, "assumed"
-    theta[i_p] = math.log(P0)
-
-    f_guess = [1 / (1 / (data.focal_length_px[k] * p) + verts[k] / P0) for k in range(m)
-               if has_fpx[k] and k not in blocked]
-    f_guess = f_guess or [1 / (1 / (data.focal_length_px[k] * p) + verts[k] / P0) for k in range(m) if has_fpx[k]]
-    f0 = float(np.median(f_guess)) if f_guess else 50.0
-    theta[at.LOG_F] = math.log(f0)
-    for k in range(m):
-        x = min(verts[k], 0.9 * P0 / f0)
-        s = 1 / (1 / f0 - x / P0)
-        theta[at.inv_focus_per_m(k)] = 1000 * x
-        theta[at.log_n(k)] = math.log(f0 * s / (slopes[k] * p))
-
-    # ---- free parameters
-    free = np.ones(_size(m), bool)
-    free[i_p] = p_source != "assumed"
-    if not any(has_fpx[k] and k not in blocked for k in range(m)):
-        # Without a calibrated setting whose V is determined, f only scales N: held at a
-        # nominal value and reported as unknown.
-        free[0] = False
-    for k in blocked:
-        free[[at.inv_focus_per_m(k), at.log_n(k), at.floor(k)]] = False
-    if fixed_floor:
-        free[at.floor()] = False
-    free[at.curvature()] = False
-    free_plain = free.copy()  # (without field curvature)
-
-    def free_with(curved: list[int]) -> np.ndarray:
-        """The free parameters with field curvature fitted in the settings ``curved``."""
-        out = free_plain.copy()
-        out[[at.curvature(k) for k in curved]] = True
-        return out
-
-    curved = [] if field_curvature == "off" else [k for k in range(m) if k not in blocked and field_spread(data, k)]
-    free = free_with(curved)
-    free_idx = np.flatnonzero(free)
-
-    fpx = np.where(has_fpx, data.focal_length_px, 0.0)
-    fpx_sig = np.where(has_fpx, fpx_sig, 0.0)
-    fpx_w = np.where(has_fpx, 1.0 / np.maximum(fpx_sig, 1e-300), 0.0)
-    floor_w = np.where(fixed_floor, 0.0, 1.0 / floor_prior_sigma_px) * np.ones(m)
-    for k in blocked:
-        fpx_w[k] = 0.0
-        floor_w[k] = 0.0
-    # Blocked settings leave the blur rows out (their parameters are held).
-    row_on = np.array([data.setting[i] not in blocked for i in range(n)], float)
-
-    npad = _padded_size(n)
-    fn = _solver_residual_fn(m)
-    rounds = 0 if not free_idx.size else 1 if loss == "linear" else max(1, max_irls)
-
-    def floor_retried(theta, rows, weights, converged):
-        """A free floor that ends at 0 tried again from ``FLOOR_START_PX`` with the same weights:
-        the model takes it squared, so 0 is a minimum of its own whatever the data, and the
-        robust solves may settle there beside a fit with a floor. Where the floor fits better, they
-        go on from there (:func:`irls`)."""
-        args = _solver_args(theta, free_idx, data, np.sqrt(weights) * rows / data.sigma_px, fpx, fpx_w, floor_w,
-                            p_prior)
-        better = _floor_escape(theta[free_idx], free_idx, args, m)
-        if better is None:
-            return theta, weights, converged
-        alt = theta.copy()
-        alt[free_idx] = better
-        return irls(alt, rows, weights)
-
-    def irls(theta, rows, weights):
-        """The robust fit over the blur rows ``rows`` (0/1 per sample), started with ``weights``;
-        returns (theta, weights, converged). The first solve weights the residuals by
-        ``weights``; each one after it minimises the robust loss itself (:func:`_robust_rows` of
-        lensfit.fit.solve), with each residual's scale (its sigma with its image's shared error,
-        times the residuals' robust scale) taken from the solve before, until the estimates and
-        the weights those scales give settle. That is the fixed point of iteratively reweighted
-        least squares, reached in a few solves instead of a dozen: reweighting alone converges
-        by a factor of about 7 a round and ran out its 12 rounds on the standard suite's stacks."""
-        theta, converged, q = theta.copy(), True, None
-        base = rows / data.sigma_px
-        for it in range(rounds):
-            if q is None:
-                args = _solver_args(theta, free_idx, data, np.sqrt(weights) * base, fpx, fpx_w, floor_w, p_prior)
-                sol, ok = _solver(m)[0](theta[free_idx], args)
-            else:
-                args = _solver_args(theta, free_idx, data, base, fpx, fpx_w, floor_w, p_prior)
-                sol, ok = _solver(m).solve_robust(theta[free_idx], args, np.concatenate([q, np.ones(npad - n)]), loss)
-            sol = np.asarray(sol)
-            if not np.all(np.isfinite(sol)):
-                return theta, weights, False
-            change = np.max(np.abs(sol - theta[free_idx])) if it else np.inf
-            theta[free_idx] = sol
-            converged = bool(ok)
-            if loss == "linear":
-                break
-            # The robust weights judge each residual against its sigma with its image's shared
-            # distance error added: an image's pose error moves all its edges' blur together, most
-            # where the blur is smallest relative to its slope (near the focus plane), and judged
-            # against the readings' sigma alone those images, the focus distance's best, were
-            # down-weighted as outliers while the image jackknife (then the images' spread), holding
-            # the weights, missed the cost
-            # (1 % pose errors: 95 % intervals held the focus distance in 77 % of captures).
-            shared = _shared_sigma(theta, m, data, rows)
-            u = (data.coc_px - _predict_all(theta, m, data)) / shared
-            scale = _robust_scale(u[rows > 0])
-            new = _robust_weights(u / scale, loss)
-            if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
-                break
-            weights, q = new, shared * scale / data.sigma_px
-            q = np.where(np.isfinite(q) & (q > 0.0), q, 1.0)
-        return theta, weights, converged
-
-    def evaluate(theta, weights):
-        """Residuals and Jacobian with ``weights``, and the reduced chi-square of the blur rows."""
-        args = _solver_args(theta, free_idx, data, np.sqrt(weights) * row_on / data.sigma_px, fpx, fpx_w, floor_w,
-                            p_prior)
-        if free_idx.size:
-            res, jac = (np.asarray(a) for a in _solver(m)[1](theta[free_idx], args))
-        else:
-            res = np.asarray(fn(theta[free_idx], args))
-            jac = np.zeros((len(res), 0))
-        dof = max(float(np.sum(weights[row_on > 0])) - len(free_idx), 1.0)
-        return res, jac, float(np.sum(res[:npad] ** 2) / dof) if row_on.any() else 1.0
-
-    with jax.enable_x64(True):
-        theta0 = theta
-        theta, weights, converged = irls(theta0, row_on, np.ones(n))
-        res, jac, chi2_red = evaluate(theta, weights)
-        if curved and field_curvature == "auto":
-            # Field curvature is kept where the data show it (|kappa| / sigma >= FIELD_CURVATURE_Z);
-            # without any, the fit is the one "off" gives, from the same start.
-            kept = significant_curvature(theta, free_idx, _covariance(jac, max(1.0, chi2_red))[0], m, curved)
-            if kept != curved:
-                curved = kept
-                free = free_with(curved)
-                free_idx = np.flatnonzero(free)
-                theta, weights, converged = irls(theta0, row_on, np.ones(n))
-                res, jac, chi2_red = evaluate(theta, weights)
-        retried = floor_retried(theta, row_on, weights, converged)
-        if retried[0] is not theta:  # a floor fitted better than the one at 0
-            theta, weights, converged = retried
-            res, jac, chi2_red = evaluate(theta, weights)
-    if not converged:
-        warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
-
-    pred = _predict_all(theta, m, data)
-    resid = data.coc_px - pred
-    used = row_on > 0
-    u = resid / data.sigma_px
-    n_used = int(used.sum())
-    scale2 = max(1.0, chi2_red)
-    n_out = int(np.sum(np.abs(u[used]) > 5 * math.sqrt(scale2)))
-
-    # ---- covariance, condition, correlations
-    t_solved = time.perf_counter()
-    names = _parameter_names(labels)
-    fnames = [names[i] for i in free_idx]
+def _uncertainty(solved: stages.Solution, resid: np.ndarray, used: np.ndarray, fnames: list[str]) -> _Uncertainty:
+    """The covariance of a solution and its error budget (see the notes inside)."""
+    pb, theta, weights, jac, res = solved.problem, solved.theta, solved.weights, solved.jacobian, solved.residuals
+    data, m, free_idx, row_on, fpx_w = pb.data, pb.m, pb.free_idx, pb.row_on, pb.fpx_w
+    chi2_red, npad = solved.chi2_reduced, _padded_size(len(data.coc_px))
     # The blur rows' variance is scaled by their own reduced chi-square, up where they scatter more
     # than their sigmas say and down where less (a Type A evaluation from some hundred degrees of
     # freedom: their stated sigmas carry the estimator's model floor, which on clean stacks is
@@ -438,18 +255,72 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         js = _null_direction(jac)
         weak = {fnames[i] for i in range(len(fnames)) if abs(js[i]) > 0.3}
 
+    return _Uncertainty(cov, cond, corr, full_cov, parts, calibration_terms, dof, z, scatter, shared, blur_dof, weak)
+
+
+def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigma_px: float,
+         max_irls: int, pupil: tuple, field_curvature: str = "off") -> FitResult:
+    """The body of :func:`fit` on validated data (it may raise on data of absurd magnitude;
+    :func:`fit` turns that into a refusal)."""
+    labels, m, p = data.labels, len(data.labels), data.pixel_pitch_mm
+    t_start = time.perf_counter()
+    warnings: list[str] = []
+    if data.dropped:
+        why = (f" ({data.dropped_truncated} of them: the blur outgrew the clean room around the edge, flag "
+               "window_truncated; stop down, or use a target with larger squares, to measure them)"
+               if data.dropped_truncated else "")
+        warnings.append(f"{data.dropped} sample(s) without a measured blur were left out{why}")
+
+    # ---- what cannot be determined before fitting (per setting)
+    blocked = _capture_problems(data)
+    has_fpx = ~np.isnan(data.focal_length_px)
+    no_fpx_reason = ("no focal length in px for this setting (calibration or stack.toml [[intrinsics]]): blur fixes "
+                     "only the slope A*s and the focus distance; calibrate on tilted target views to separate f and N")
+
+    # ---- start, free parameters, solve
+    fixed_floor = blur_floor_px is not None
+    first = stages.start(data, blocked, has_fpx, blur_floor_px, pupil)
+    warnings.extend(first.warnings)
+    P0, p_source, p_prior, p_note = first.P0, first.p_source, first.p_prior, first.p_note
+    at = Layout(m)
+    i_p = at.log_p
+    pb = stages.problem(data, stages.free_parameters(m, p_source, has_fpx, blocked, fixed_floor),
+                        stages.curved_settings(data, blocked, field_curvature), has_fpx, blocked, fixed_floor,
+                        floor_prior_sigma_px, p_prior, loss, max_irls)
+    solved = stages.solve(pb, first.theta, field_curvature)
+    pb, theta, weights, converged = solved.problem, solved.theta, solved.weights, solved.converged
+    chi2_red = solved.chi2_reduced
+    free, free_idx, curved = pb.free, pb.free_idx, list(pb.curved)
+    fpx, fpx_w, floor_w, row_on = pb.fpx, pb.fpx_w, pb.floor_w, pb.row_on
+    if not converged:
+        warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
+
+    pred = _predict_all(theta, m, data)
+    resid = data.coc_px - pred
+    used = row_on > 0
+    u = resid / data.sigma_px
+    n_used = int(used.sum())
+    scale2 = max(1.0, chi2_red)
+    n_out = int(np.sum(np.abs(u[used]) > 5 * math.sqrt(scale2)))
+
+    # ---- covariance, condition, correlations
+    t_solved = time.perf_counter()
+    names = _parameter_names(labels)
+    fnames = [names[i] for i in free_idx]
+    unc = _uncertainty(solved, resid, used, fnames)
+    cov, cond, corr, full_cov, parts, dof, z = unc.cov, unc.cond, unc.corr, unc.full_cov, unc.parts, unc.dof, unc.z
+    scatter, shared, blur_dof, weak = unc.scatter, unc.shared, unc.blur_dof, unc.weak
+    calibration_terms = unc.calibration_terms
+
     # ---- a second, distinct V that fits about as well (discrete ambiguity the covariance misses)
     _second_vertex(data, theta, full_cov, weights, blocked, fixed_floor, blur_floor_px, scale2)
 
     # ---- derived quantities
-    settings: dict[str, dict[str, Estimate]] = {}
-    reasons: list[str] = []
     thin = p_source == "assumed" and theta[i_p] == 0.0
     scale_sigma = data.blur_scale_sigma(weights * row_on)
-    f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
-                    dof, thin, parts, scale_sigma**2, blur_dof,
-                    max(scatter.images - 1, 1) if shared else math.inf,
-                    calibration_terms)
+    settings, reasons, f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
+                                       dof, thin, parts, scale_sigma**2, blur_dof,
+                                       max(scatter.images - 1, 1) if shared else math.inf, calibration_terms)
     for k, label in enumerate(labels):
         settings[label]["field_curvature_per_m"] = curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
                                                                        field_curvature, field_spread(data, k), z)

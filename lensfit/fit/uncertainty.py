@@ -264,13 +264,14 @@ class _Variance:
         return _shares(v, self.var(name, k))
 
 
-def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak, settings, reasons,
+def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
             dof: float | StrataDof = math.inf, thin: bool = True, parts=None, scale_var: float = 0.0,
-            blur_dof: float = math.inf, images_dof: float = math.inf, calibration_terms=()) -> Estimate:
-    """Fill ``settings`` with every reported quantity; returns the shared focal length. ``dof``:
-    the images' spread's degrees of freedom where it took over (:func:`_image_spread`; per quantity
-    from its strata, :class:`StrataDof`), from which
-    each quantity's multiples of sigma for its 68 % and 95 % intervals (:func:`effective_z`).
+            blur_dof: float = math.inf, images_dof: float = math.inf, calibration_terms=()
+            ) -> tuple[dict[str, dict[str, Estimate]], list[str], Estimate]:
+    """Every reported quantity: (per setting its estimates, the reasons of what is refused, the
+    shared focal length). ``dof``: the images' spread's degrees of freedom where it took over
+    (:func:`_image_spread`; per quantity from its strata, :class:`StrataDof`), from which each
+    quantity's multiples of sigma for its 68 % and 95 % intervals (:func:`effective_z`).
     ``thin``: the lens is taken as thin (P = 1 assumed), so the entrance pupil is the lens plane
     and the focus distance from the sensor plane is known; otherwise that distance is not
     determined. ``parts``: the model covariance split by source (:func:`_budget_parts`, full
@@ -284,7 +285,6 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
         q = {k: np.asarray(v) for k, v in values.items()}
         jacs = {k: np.asarray(v) for k, v in grads.items()}
     variance = _Variance(q, jacs, cov, parts or {}, scale_var)
-    sd = variance.sd
 
     def zs(name, k=None):
         g, total = variance._grad(name, k), variance.var(name, k)
@@ -293,7 +293,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                if total > 0 else 0.0)
         return effective_z(variance.shares(name, k), nu, blur_dof, images_dof, cal)
 
-    f_val = float(q["f"])
+    sd = variance.sd
     f_reason = None
     if not has_fpx.any():
         f_reason = "no focal length in px for any setting: " + no_fpx_reason.split(": ", 1)[1]
@@ -304,84 +304,94 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     "the focus distance of the calibrated setting(s) is not located by the blur")
     elif all(k in blocked for k in range(m) if has_fpx[k]):
         f_reason = "the focal length needs the focus distance of a calibrated setting, which is not determined"
-    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(f_val, sd("log_f"), zs("log_f"))
+    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(float(q["f"]), sd("log_f"), zs("log_f"))
     f_est = _with_shares(f_est, variance.shares("log_f"))
-    if f_reason:
-        reasons.append(f"focal_length_mm: {f_reason}")
-
+    settings: dict[str, dict[str, Estimate]] = {}
+    reasons = [f"focal_length_mm: {f_reason}"] if f_reason else []
     for k, label in enumerate(data.labels):
-        out: dict[str, Estimate] = {}
-        sel = data.setting == k
-        why = blocked.get(k)
-        inv_focus_per_m, s_inv = float(q["inv_focus_per_m"][k]), sd("inv_focus_per_m", k)
-        w = data.w_mean[sel] * 1000.0
-        w_span = float(w.max() - w.min()) if sel.any() else 0.0
-        if why is None:
-            name = f"inv_focus_per_m[{label}]"
-            if name in weak:
-                why = f"the focus distance of setting {label!r} is degenerate with other parameters"
-            elif s_inv > 0.25 * max(w_span, 1e-12) and s_inv > MAX_RELATIVE_SIGMA * abs(inv_focus_per_m):
-                why = (f"the focus distance of setting {label!r} is poorly located (inverse distance 1 sigma "
-                       f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m)"
-                       f"{_side_hint(w, inv_focus_per_m)}: add targets "
-                       "on the other side of the focus distance, or spread them over a wider range of distances")
-        # Focus distance (lens plane) and the inverse distance.
-        if why:
-            for qn in QUANTITIES:
-                if qn != "focal_length_mm":
-                    out[qn] = Estimate(None, reason=why)
-            reasons.append(f"settings.{label}: {why}")
-        else:
-            z = zs("inv_focus_per_m", k)
-            lo95, hi95 = inv_focus_per_m - z[1] * s_inv, inv_focus_per_m + z[1] * s_inv
-            lo68, hi68 = inv_focus_per_m - z[0] * s_inv, inv_focus_per_m + z[0] * s_inv
-            out["inverse_focus_distance_per_m"] = Estimate(inv_focus_per_m, s_inv, (lo68, hi68), (lo95, hi95))
-
-            s_val = float(q["s"][k])
-            if inv_focus_per_m > 0:
-                dval = 1000.0 / inv_focus_per_m
-                out["focus_distance_mm"] = Estimate(dval, dval * s_inv / inv_focus_per_m, focus_interval(lo68, hi68),
-                                                    focus_interval(lo95, hi95))
-                ds = out["focus_distance_mm"]
-                out["focus_distance_from_sensor_mm"] = Estimate(
-                    dval + s_val, ds.sigma, tuple(None if v is None else v + s_val for v in ds.ci68),
-                    tuple(None if v is None else v + s_val for v in ds.ci95)) if thin else Estimate(
-                    None, reason=_FROM_SENSOR_UNKNOWN)
-            else:
-                note = (f"focus at infinity within the uncertainty (inverse focus distance {inv_focus_per_m:.3g} +- "
-                        f"{s_inv:.2g} /m)")
-                out["focus_distance_mm"] = Estimate(None, None, focus_interval(lo68, hi68), focus_interval(lo95, hi95),
-                                                    note, True)
-                out["focus_distance_from_sensor_mm"] = (Estimate(None, None, None, None, note, True) if thin
-                                                        else Estimate(None, reason=_FROM_SENSOR_UNKNOWN))
-            fl = float(q["floor"][k])
-            s_fl = sd("floor", k)
-            z = zs("floor", k)
-            out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - z[0] * s_fl, 0.0), abs(fl) + z[0] * s_fl),
-                                            (max(abs(fl) - z[1] * s_fl, 0.0), abs(fl) + z[1] * s_fl))
-            out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k), zs("log_K", k))
-            lens_reason = None
-            if f_reason:
-                lens_reason = f_reason
-            elif not has_fpx[k] and not has_fpx.any():
-                lens_reason = no_fpx_reason
-            elif sd("log_N", k) > MAX_RELATIVE_SIGMA:
-                lens_reason = f"the f-number of setting {label!r} is poorly constrained ({100 * sd('log_N', k):.0f}%)"
-            if lens_reason:
-                for qn in ("f_number", "aperture_diameter_mm", "sensor_distance_mm"):
-                    out[qn] = Estimate(None, reason=lens_reason)
-                if thin and not out["focus_distance_from_sensor_mm"].infinite:
-                    out["focus_distance_from_sensor_mm"] = Estimate(None, reason=lens_reason)
-                reasons.append(f"settings.{label}.f_number: {lens_reason}")
-            else:
-                out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k), zs("log_N", k))
-                out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), zs("log_A", k))
-                out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k),
-                                                      zs("log_sx", k))
+        out, why = _setting_estimates(k, label, q, sd, zs, data, blocked, weak, thin,
+                                      f_reason or _lens_reason(k, label, sd, has_fpx, no_fpx_reason))
+        reasons += why
         out["focal_length_mm"] = f_est
         settings[label] = {qn: out[qn] if qn == "focal_length_mm" else _with_shares(out[qn], variance.shares(
             _CARRIER[qn], k)) for qn in QUANTITIES}
-    return f_est
+    return settings, reasons, f_est
+
+
+def _lens_reason(k: int, label: str, sd, has_fpx: np.ndarray, no_fpx_reason: str) -> str | None:
+    """Why setting ``k``'s f-number (and aperture, sensor distance) cannot be reported, or None."""
+    if not has_fpx[k] and not has_fpx.any():
+        return no_fpx_reason
+    if sd("log_N", k) > MAX_RELATIVE_SIGMA:
+        return f"the f-number of setting {label!r} is poorly constrained ({100 * sd('log_N', k):.0f}%)"
+    return None
+
+
+def _setting_estimates(k: int, label: str, q: dict, sd, zs, data, blocked: dict, weak: set, thin: bool,
+                       lens_reason: str | None) -> tuple[dict[str, Estimate], list[str]]:
+    """One setting's estimates (its focus distance from the lens and the sensor, blur floor and
+    slope, f-number, aperture and sensor distance) and the reasons of those refused."""
+    out: dict[str, Estimate] = {}
+    reasons: list[str] = []
+    sel = data.setting == k
+    why = blocked.get(k)
+    inv_focus_per_m, s_inv = float(q["inv_focus_per_m"][k]), sd("inv_focus_per_m", k)
+    w = data.w_mean[sel] * 1000.0
+    w_span = float(w.max() - w.min()) if sel.any() else 0.0
+    if why is None:
+        name = f"inv_focus_per_m[{label}]"
+        if name in weak:
+            why = f"the focus distance of setting {label!r} is degenerate with other parameters"
+        elif s_inv > 0.25 * max(w_span, 1e-12) and s_inv > MAX_RELATIVE_SIGMA * abs(inv_focus_per_m):
+            why = (f"the focus distance of setting {label!r} is poorly located (inverse distance 1 sigma "
+                   f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m)"
+                   f"{_side_hint(w, inv_focus_per_m)}: add targets "
+                   "on the other side of the focus distance, or spread them over a wider range of distances")
+    # Focus distance (lens plane) and the inverse distance.
+    if why:
+        for qn in QUANTITIES:
+            if qn != "focal_length_mm":
+                out[qn] = Estimate(None, reason=why)
+        return out, [f"settings.{label}: {why}"]
+    z = zs("inv_focus_per_m", k)
+    lo95, hi95 = inv_focus_per_m - z[1] * s_inv, inv_focus_per_m + z[1] * s_inv
+    lo68, hi68 = inv_focus_per_m - z[0] * s_inv, inv_focus_per_m + z[0] * s_inv
+    out["inverse_focus_distance_per_m"] = Estimate(inv_focus_per_m, s_inv, (lo68, hi68), (lo95, hi95))
+
+    s_val = float(q["s"][k])
+    if inv_focus_per_m > 0:
+        dval = 1000.0 / inv_focus_per_m
+        out["focus_distance_mm"] = Estimate(dval, dval * s_inv / inv_focus_per_m, focus_interval(lo68, hi68),
+                                            focus_interval(lo95, hi95))
+        ds = out["focus_distance_mm"]
+        out["focus_distance_from_sensor_mm"] = Estimate(
+            dval + s_val, ds.sigma, tuple(None if v is None else v + s_val for v in ds.ci68),
+            tuple(None if v is None else v + s_val for v in ds.ci95)) if thin else Estimate(
+            None, reason=_FROM_SENSOR_UNKNOWN)
+    else:
+        note = (f"focus at infinity within the uncertainty (inverse focus distance {inv_focus_per_m:.3g} +- "
+                f"{s_inv:.2g} /m)")
+        out["focus_distance_mm"] = Estimate(None, None, focus_interval(lo68, hi68), focus_interval(lo95, hi95),
+                                            note, True)
+        out["focus_distance_from_sensor_mm"] = (Estimate(None, None, None, None, note, True) if thin
+                                                else Estimate(None, reason=_FROM_SENSOR_UNKNOWN))
+    fl = float(q["floor"][k])
+    s_fl = sd("floor", k)
+    z = zs("floor", k)
+    out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - z[0] * s_fl, 0.0), abs(fl) + z[0] * s_fl),
+                                    (max(abs(fl) - z[1] * s_fl, 0.0), abs(fl) + z[1] * s_fl))
+    out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k), zs("log_K", k))
+    if lens_reason:
+        for qn in ("f_number", "aperture_diameter_mm", "sensor_distance_mm"):
+            out[qn] = Estimate(None, reason=lens_reason)
+        if thin and not out["focus_distance_from_sensor_mm"].infinite:
+            out["focus_distance_from_sensor_mm"] = Estimate(None, reason=lens_reason)
+        reasons.append(f"settings.{label}.f_number: {lens_reason}")
+    else:
+        out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k), zs("log_N", k))
+        out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), zs("log_A", k))
+        out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k), zs("log_sx", k))
+    return out, reasons
 
 
 def _with_shares(est: Estimate, shares: dict[str, float] | None) -> Estimate:
