@@ -35,7 +35,8 @@ TEXTS = {p: p.read_text() for p in PAGES}
 PLACEHOLDERS = {"MM": "0.005", "N": "2", "PX": "1.5", "MP": "50", "NAME": "full-frame", "FILE": "x.json",
                 "PCT": "1", "HOST:PORT": "localhost:8786", "NM": "550", "DIR": "records"}
 #: Commands that take minutes: parsed, not run here.
-SLOW = ("bench", "bench-fit", "bench-lenses", "bench-measure", "bench-api", "bench-stages", "bench-hostile")
+SLOW = ("bench", "bench-fit", "bench-lenses", "bench-measure", "bench-api", "bench-stages", "bench-hostile",
+        "bench-developed")
 EXAMPLES = sorted((DOCS / "examples").glob("*.py"))
 
 
