@@ -392,7 +392,8 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
     if stack is not None:
         fig = pose_figure(table, result, stack.targets, dict(images))
         if fig is not None:
-            parts.append(f"<h2>Where the boards were</h2><img alt='board poses' src='data:image/png;base64,{_png(fig)}'>")
+            parts.append("<h2>Where the boards were</h2>"
+                         f"<img alt='board poses' src='data:image/png;base64,{_png(fig)}'>")
             plt.close(fig)
     groups = samples_by_image(table)
     if stack is not None:

@@ -222,9 +222,10 @@ def as_measured(targets: list[dict[str, Any]], measured_square_mm: float | None)
     if measured_square_mm is None:
         if not boards:
             return targets, ""
-        return targets, (f"measure a printed square with a ruler: where it is not {boards[0].get('square_mm')} mm, run "
-                         "lensfit init again with --measured-square-mm MM (distances, and so the focus distance, "
-                         "scale with the board)")
+        drawn = float(boards[0]["square_mm"])
+        return targets, (f"measure a printed square with a ruler: where it is not {drawn:g} mm, run lensfit init "
+                         "again with --measured-square-mm MM (distances, and so the focus distance, scale with the "
+                         "board)")
     if len(boards) != 1:
         raise InputError("measured_square_mm", measured_square_mm, "given for exactly one printed ChArUco board",
                          f"the target file has {len(boards)}; set square_mm and marker_mm of each in stack.toml")

@@ -260,8 +260,9 @@ def test_bench_stages_makes_a_larger_stack_from_its_images_again_and_measures_me
     names = [f"im{k}.png" for k in range(3)]
     for k, name in enumerate(names):
         iio.imwrite(src / name, np.full((8, 12), 1000 * (k + 1), np.uint16))
-    (src / "stack.toml").write_text("[camera]\npixel_pitch_mm = 0.01\n\n[[target]]\nid = \"b\"\nkind = \"charuco\"\n"
-                                    "squares = [5, 4]\nsquare_mm = 10.0\nmarker_mm = 7.0\ndictionary = \"DICT_4X4_50\"\n\n"
+    board = ('id = "b"\nkind = "charuco"\nsquares = [5, 4]\nsquare_mm = 10.0\nmarker_mm = 7.0\n'
+             'dictionary = "DICT_4X4_50"')
+    (src / "stack.toml").write_text(f"[camera]\npixel_pitch_mm = 0.01\n\n[[target]]\n{board}\n\n"
                                     + "".join(f'[[image]]\nfile = "{n}"\nsetting = "a"\n\n' for n in names))
     out = _subset(src, tmp_path / "big", 7, 1.0)
     files = [e["file"] for e in tomllib.loads((out / "stack.toml").read_text())["image"]]

@@ -194,7 +194,8 @@ def markdown(doc: dict[str, Any]) -> str:
         if r.get("pixel_pitch_given"):
             r = dict(r, stack=f"{r['stack']} (pixel pitch given: the EXIF lost it)")
         if "missing" in r or "error" in r:
-            out.append(f"| {r['stack']} | {r.get('missing') or r.get('error')} | | | | | {'no' if 'error' in r else '-'} |")
+            passed = "no" if "error" in r else "-"
+            out.append(f"| {r['stack']} | {r.get('missing') or r.get('error')} | | | | | {passed} |")
             continue
         e, proc = r["errors"], r.get("processing") or {}
         named = proc.get("developer") or ("sharpening halos" if proc.get("halos") else "")
