@@ -17,6 +17,7 @@ in the next build.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import re
 import sys
@@ -117,35 +118,17 @@ def changelog_markdown() -> str:
 def validation_markdown() -> str:
     from lensfit.bench.records import load_records, suite_table
 
-    from lensfit.bench.api import markdown as api_markdown
-
     folder = DOCS / "validation" / "records"
     records = load_records(folder)
     parts = [suite_table(r) for r in records] or [
         "No benchmark record yet: run `lensfit bench --suite NAME --out DIR --record docs/validation/records`."]
-    api = folder / "api_vs_cli.json"
-    if api.is_file():
-        parts.append(api_markdown(json.loads(api.read_text())))
-    developed = folder / "developed.json"
-    if developed.is_file():
-        from lensfit.bench.developed import markdown as developed_markdown
-
-        parts.append(developed_markdown(json.loads(developed.read_text())))
-    stages = folder / "stages.json"
-    if stages.is_file():
-        from lensfit.bench.stages import markdown as stages_markdown
-
-        parts.append(stages_markdown(json.loads(stages.read_text())))
-    costs = folder / "plan_costs.json"
-    if costs.is_file():
-        from synth.plan_costs import markdown as costs_markdown
-
-        parts.append(costs_markdown(json.loads(costs.read_text())))
-    hostile = folder / "hostile.json"
-    if hostile.is_file():
-        from lensfit.bench.hostile import markdown as hostile_markdown
-
-        parts.append(hostile_markdown(json.loads(hostile.read_text())))
+    # the other benchmarks' records, each shown by its own module's markdown()
+    for name, module in (("api_vs_cli", "lensfit.bench.api"), ("developed", "lensfit.bench.developed"),
+                         ("stages", "lensfit.bench.stages"), ("plan_costs", "synth.plan_costs"),
+                         ("hostile", "lensfit.bench.hostile")):
+        record = folder / f"{name}.json"
+        if record.is_file():
+            parts.append(importlib.import_module(module).markdown(json.loads(record.read_text())))
     return "\n\n".join(parts)
 
 
