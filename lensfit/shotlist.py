@@ -6,6 +6,7 @@ vector PDF or SVG (or PNG) by suffix, drawn by matplotlib."""
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 #: What a photographer must do for every shot of a setting (printed by ``lensfit target`` and on
@@ -22,6 +23,8 @@ TURNS = ("face on", "top edge 25 deg away", "left edge 25 deg away", "top 20 deg
          "right edge 25 deg away", "top 20 deg away, left 20 deg towards")
 
 PAGE_MM = (210.0, 297.0)
+#: Characters a line of 9 pt text holds between the page's 15 mm margins.
+LINE_CHARS = 95
 
 
 def shot_rows(distances_mm: list[float], blur_px: list[float]) -> list[tuple[int, float, float, str]]:
@@ -43,7 +46,7 @@ def shot_list_figure(title: str, lines: list[str], rows: list[tuple[int, float, 
     y = 20.0
     ax.text(15.0, y, title, fontsize=14, weight="bold", va="baseline")
     y += 8.0
-    for line in lines:
+    for line in (part for text in lines for part in textwrap.wrap(text, LINE_CHARS)):
         ax.text(15.0, y, line, fontsize=9, va="baseline")
         y += 5.0
     y += 4.0
@@ -60,14 +63,17 @@ def shot_list_figure(title: str, lines: list[str], rows: list[tuple[int, float, 
             ax.text(x, y, text, fontsize=size, va="baseline")
         box = min(4.0, 0.8 * step)
         ax.add_patch(Rectangle((cols[-1] + 2.0, y - box + 0.5), box, box, fill=False, lw=0.6))
-    y += 10.0
-    ax.text(15.0, y, promise, fontsize=9, va="baseline", wrap=True)
+    y += 5.0
+    for line in textwrap.wrap(promise, LINE_CHARS):
+        y += 5.0
+        ax.text(15.0, y, line, fontsize=9, va="baseline")
     y += 10.0
     ax.text(15.0, y, "For every shot of a setting:", fontsize=10, weight="bold", va="baseline")
     for item in CHECKLIST + ("the board flat, inside the frame, at the distance listed from the lens (within a few "
                              "per cent: the fit measures each one)",):
-        y += 5.5
-        ax.text(18.0, y, "- " + item, fontsize=9, va="baseline")
+        for k, line in enumerate(textwrap.wrap(item, LINE_CHARS - 4)):
+            y += 5.5 if k == 0 else 4.5
+            ax.text(18.0 if k == 0 else 21.0, y, ("- " if k == 0 else "") + line, fontsize=9, va="baseline")
     return fig
 
 
@@ -85,6 +91,8 @@ def write_shot_list(path: str | Path, title: str, lines: list[str], rows, promis
         meta["CreationDate"] = None
     elif kind == ".svg":
         meta["Date"] = None
+    else:  # (a PNG names its writer in Software, which is what lensfit looks for before replacing it)
+        meta = {"Title": title, "Software": software_tag("lensfit")}
     with matplotlib.rc_context({"pdf.fonttype": 42, "svg.hashsalt": "lensfit", "svg.fonttype": "path"}):
         fig.savefig(path, format=kind[1:], metadata=meta, **({"dpi": 150} if kind == ".png" else {}))
 

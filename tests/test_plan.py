@@ -185,7 +185,10 @@ def test_the_plan_prints_as_a_one_page_shot_list(tmp_path, capsys):
     assert len(pdf) == 1
     w_pt, h_pt = pdf[0].get_size()
     assert (w_pt / 72 * 25.4, h_pt / 72 * 25.4) == pytest.approx((210.0, 297.0), abs=0.05)
-    text = pdf[0].get_textpage().get_text_range()
+    page = pdf[0].get_textpage()
+    text = page.get_text_range()
+    right = max(page.get_charbox(i)[2] for i in range(page.count_chars()))
+    assert right <= w_pt - 20  # every line inside the page, a margin to spare
     for d in doc["distances_mm"]:
         assert f"{d:.0f}" in text
     for word in ("face on", "25 deg away", "autofocus off", "RAW", "Predicted 95 % half-intervals"):
@@ -193,3 +196,5 @@ def test_the_plan_prints_as_a_one_page_shot_list(tmp_path, capsys):
     assert lensfit_main(args) == 2 and "--force" in capsys.readouterr().err
     assert lensfit_main(args + ["--force"]) == 0
     assert lensfit_main(args[:-1] + [str(tmp_path / "shots.txt")]) == 2
+    png = args[:-1] + [str(tmp_path / "shots.png")]
+    assert lensfit_main(png) == 0 and lensfit_main(png + ["--force"]) == 0  # its own PNG is replaced
