@@ -8,7 +8,9 @@ machine develops the DNGs with its default profile into JPEGs, as a photographer
 darktable (``darktable-cli``: its defaults for a new image). The JPEGs alone are copied into a
 folder; ``lensfit init`` drafts its stack.toml from their EXIF (the board's entry from the
 rendered stack) and ``lensfit fit`` fits it, each a fresh process as a user runs them. The DNGs
-fitted as they are are the control.
+fitted as they are are the control. Two more cases show what the pixels alone tell: darktable's
+JPEGs without their Software tag, and a camera-like pipeline written here (an S curve and an
+unsharp mask over sRGB, 4:2:0 JPEG, no EXIF).
 
 A developer that is not installed is reported as missing with the package that provides it
 (Debian: ``apt install rawtherapee darktable``). A case passes where f and the focus distance
@@ -56,6 +58,30 @@ def _develop(name: str, program: str, dngs: list[Path], out: Path, scratch: Path
                            capture_output=True, timeout=600)
     for sidecar in list(out.glob("*.pp3")) + list(out.glob("*.xmp")):
         sidecar.unlink()
+
+
+#: The camera pipeline of ``in-camera``: LibRaw's demosaic and sRGB encoding (rawpy), an S curve
+#: (half a smoothstep), an unsharp mask (Gaussian sigma 1 px, amount 0.8) on the encoded values,
+#: 4:2:0 JPEG at quality 90, no EXIF: what a camera's JPEG engine does, with nothing saying so.
+S_CURVE, USM_SIGMA_PX, USM_AMOUNT = 0.5, 1.0, 0.8
+
+
+def _in_camera(dngs: list[Path], out: Path) -> None:
+    """JPEGs of ``dngs`` through the pipeline of ``S_CURVE``, ``USM_SIGMA_PX``, ``USM_AMOUNT``."""
+    import cv2
+    import numpy as np
+    import rawpy
+    from PIL import Image
+
+    out.mkdir(parents=True)
+    for dng in dngs:
+        with rawpy.imread(str(dng)) as raw:
+            rgb = raw.postprocess(use_camera_wb=True, no_auto_bright=True, output_bps=16, user_flip=0)
+        x = rgb.astype(np.float64) / 65535.0
+        x = (1 - S_CURVE) * x + S_CURVE * (3 * x**2 - 2 * x**3)
+        x = x + USM_AMOUNT * (x - cv2.GaussianBlur(x, (0, 0), USM_SIGMA_PX))
+        Image.fromarray(np.clip(np.rint(255 * x), 0, 255).astype(np.uint8)).save(
+            out / f"{dng.stem}.jpg", "JPEG", quality=90, subsampling=2)
 
 
 def _without_software(src: Path, dst: Path) -> None:
@@ -121,19 +147,22 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
         cases = [("DNG (control)", None)] + [(name, DEVELOPERS[name]) for name in developers]
         if "darktable" in developers:  # its JPEGs again without the Software tag: what the pixels alone tell
             cases.append(("darktable, Software tag removed", DEVELOPERS["darktable"]))
+        cases.append(("in-camera pipeline, no EXIF", ("", "")))  # (written here: nothing to install)
         for name, tool in cases:
             row: dict[str, Any] = {"stack": name}
             folder = root / "dng"
             if tool is not None:
-                program = shutil.which(tool[0])
-                if program is None:
+                program = shutil.which(tool[0]) if tool[0] else ""
+                if program is None or ("," in name and not (root / "darktable" / "photos").is_dir()):
                     row["missing"] = f"{tool[0]} not found: install it (Debian: apt install {tool[1]})"
                     rows.append(row)
                     continue
                 progress(f"developing with {name}")
                 t = time.perf_counter()
-                folder = root / name.split(",")[0] / ("photos" if "," not in name else "photos-no-software")
-                if "," in name:
+                folder = root / name.split(",")[0] / ("photos" if "," not in name else "photos-variant")
+                if name.startswith("in-camera"):
+                    _in_camera(dngs, folder)
+                elif "," in name:
                     _without_software(root / "darktable" / "photos", folder)
                 else:
                     _develop(name, program, dngs, folder, Path(tmp))
