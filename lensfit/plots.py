@@ -90,6 +90,27 @@ def _creator(path: str | Path) -> dict[str, str]:
     return {key: software_tag("lensfit")} if key else {}
 
 
+def save_page(fig, path: str | Path, *, title: str, description: str | None = None, program: str = "lensfit",
+              dpi: float | None = None) -> None:
+    """Save a printable page by ``path``'s suffix (PDF, SVG or PNG): ``program`` named as its
+    writer where ``lensfit.outputs.written_by`` looks, ``title`` and ``description`` in its
+    metadata, fonts embedded (PDF) or drawn as paths (SVG), and no date: the same page, the
+    same file."""
+    import matplotlib
+
+    from lensfit.outputs import software_tag
+
+    kind = Path(path).suffix.lower()
+    tag = software_tag(program)
+    meta = {".pdf": {"Title": title, "Creator": tag, "CreationDate": None},
+            ".svg": {"Title": title, "Creator": tag, "Date": None},
+            ".png": {"Title": title, "Software": tag}}[kind]
+    if description is not None:
+        meta[{".pdf": "Subject", ".svg": "Description", ".png": "Description"}[kind]] = description
+    with matplotlib.rc_context({"pdf.fonttype": 42, "svg.hashsalt": "lensfit", "svg.fonttype": "path"}):
+        fig.savefig(path, format=kind[1:], metadata=meta, **({"dpi": dpi} if dpi else {}))
+
+
 def _describe(result: FitResult, label: str) -> str:
     est = result.settings[label]
     return (f"fit: f {est['focal_length_mm'].text(' mm')}, N {est['f_number'].text()}, "

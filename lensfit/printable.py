@@ -270,15 +270,9 @@ def write_page(board: PrintableBoard, path: str | Path, program: str = "lensfit"
              f"{board.entry['square_mm']:g} mm squares")
     record = target_toml(board.entry)
     if kind in (".pdf", ".svg"):
-        import matplotlib
+        from lensfit.plots import save_page
 
-        fig = page_figure(board)
-        meta = ({"Title": title, "Creator": software_tag(program), "Subject": record} if kind == ".pdf"
-                else {"Title": title, "Creator": software_tag(program), "Description": record, "Date": None})
-        if kind == ".pdf":
-            meta["CreationDate"] = None  # the same board, the same file
-        with matplotlib.rc_context({"pdf.fonttype": 42, "svg.hashsalt": "lensfit", "svg.fonttype": "path"}):
-            fig.savefig(path, format=kind[1:], metadata=meta)
+        save_page(page_figure(board), path, title=title, description=record, program=program)
     else:
         from PIL import Image, PngImagePlugin
 

@@ -79,22 +79,10 @@ def shot_list_figure(title: str, lines: list[str], rows: list[tuple[int, float, 
 
 def write_shot_list(path: str | Path, title: str, lines: list[str], rows, promise: str) -> None:
     """Write the page by suffix (.pdf, .svg, .png)."""
-    import matplotlib
+    from lensfit.plots import save_page
 
-    from lensfit.outputs import software_tag
-
-    path = Path(path)
-    fig = shot_list_figure(title, lines, rows, promise)
-    kind = path.suffix.lower()
-    meta = {"Title": title, "Creator": software_tag("lensfit")}
-    if kind == ".pdf":
-        meta["CreationDate"] = None
-    elif kind == ".svg":
-        meta["Date"] = None
-    else:  # (a PNG names its writer in Software, which is what lensfit looks for before replacing it)
-        meta = {"Title": title, "Software": software_tag("lensfit")}
-    with matplotlib.rc_context({"pdf.fonttype": 42, "svg.hashsalt": "lensfit", "svg.fonttype": "path"}):
-        fig.savefig(path, format=kind[1:], metadata=meta, **({"dpi": 150} if kind == ".png" else {}))
+    save_page(shot_list_figure(title, lines, rows, promise), path, title=title,
+              dpi=150 if Path(path).suffix.lower() == ".png" else None)
 
 
 def promise_text(sigma: dict[str, float], goal_pct: float, reached: bool) -> str:

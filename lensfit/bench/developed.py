@@ -35,7 +35,7 @@ from typing import Any, Callable
 from lensfit.specs import specs_dir
 
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
-#: Developers: (program, Debian package, how it is run on the DNGs into a folder of JPEGs).
+#: Developers: (program, Debian package); how each is run: :func:`_develop`.
 DEVELOPERS = {
     "rawtherapee": ("rawtherapee-cli", "rawtherapee"),
     "darktable": ("darktable-cli", "darktable"),
@@ -101,22 +101,15 @@ def _lensfit(*argv: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "lensfit", *argv], capture_output=True, text=True, timeout=3600)
 
 
-def _compare(results: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
-    """Per quantity of the (one) setting: the relative error, whether the 95 % interval holds the
+def _compare(results: dict[str, Any]) -> dict[str, Any]:
+    """Per quantity of the (one) setting, from the fit's own comparison with the folder's
+    truth.json (``truth_comparison``): the relative error and whether the 95 % interval holds the
     truth, or the refusal's reason."""
-    label, setting = next(iter(results["settings"].items()))
-    true = {"focal_length_mm": truth["focal_length_mm"], **{q: truth["settings"][label][q]
-                                                             for q in ("f_number", "focus_distance_mm")}}
-    out = {}
-    for q in QUANTITIES:
-        est = results["focal_length_mm"] if q == "focal_length_mm" and results.get("focal_length_mm") else setting[q]
-        if est.get("value") is None:
-            out[q] = {"refused": True, "reason": est.get("reason")}
-            continue
-        lo, hi = est["ci95"]
-        lo, hi = (-float("inf") if lo is None else lo), (float("inf") if hi is None else hi)
-        out[q] = {"refused": False, "relative_error": est["value"] / true[q] - 1, "inside": lo <= true[q] <= hi}
-    return out
+    rows = {r["quantity"]: r for r in results["truth_comparison"]}
+    setting = next(iter(results["settings"].values()))
+    return {q: ({"refused": True, "reason": setting[q].get("reason")} if rows[q]["estimate"] is None else
+                {"refused": False, "relative_error": rows[q]["relative_error"], "inside": bool(rows[q]["within_ci95"])})
+            for q in QUANTITIES}
 
 
 def _passed(errors: dict[str, Any], processing: dict[str, Any] | None, control: bool) -> bool:
@@ -178,6 +171,9 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
                     row["error"] = (made.stderr.strip().splitlines() or ["lensfit init failed"])[-1]
                     rows.append(row)
                     continue
+                # (the truth beside the photos: lensfit fit compares with it in results.json, never reads it
+                # otherwise)
+                shutil.copy(root / "dng" / "truth.json", folder / "truth.json")
             progress(f"fitting {name}")
             out = root / f"{len(rows)}-results.json"
             t = time.perf_counter()
@@ -189,7 +185,7 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
                 rows.append(row)
                 continue
             results = json.loads(out.read_text())
-            row["errors"] = _compare(results, truth)
+            row["errors"] = _compare(results)
             row["processing"] = results.get("processing")
             row["chi2_reduced"] = results.get("diagnostics", {}).get("chi2_reduced")
             row["passed"] = _passed(row["errors"], row["processing"], control=tool is None)

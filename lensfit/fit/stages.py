@@ -46,6 +46,11 @@ class Start:
     warnings: tuple[str, ...]
 
 
+def _focal_length_sigma_px(data: FitData) -> np.ndarray:
+    """Each setting's calibrated focal length's sigma, a known one (0) held at 1e-7 of it."""
+    return np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
+
+
 def start(data: FitData, blocked: dict, has_fpx: np.ndarray, blur_floor_px: float | None, pupil: tuple) -> Start:
     """Each setting's V by a vertex search, then f from the calibration, N from the slope and the
     pupil magnification fitted, given a prior, or assumed (never silently)."""
@@ -62,7 +67,7 @@ def start(data: FitData, blocked: dict, has_fpx: np.ndarray, blur_floor_px: floa
         theta[at.floor(k)] = blur_floor_px if fixed_floor else max(b, FLOOR_START_PX)
 
     warnings = []
-    fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
+    fpx_sig = _focal_length_sigma_px(data)
     usable = [k for k in range(m) if has_fpx[k] and k not in blocked]
     p_prior, p_note = (0.0, 0.0), None
     if pupil[0] == "fixed":
@@ -158,9 +163,8 @@ def problem(data: FitData, free_plain: np.ndarray, curved: list[int], has_fpx: n
             max_irls: int) -> Problem:
     """The solves' shared setting (see :class:`Problem`); blocked settings' rows are off."""
     m, n = len(data.labels), len(data.coc_px)
-    fpx_sig = np.where(data.focal_length_sigma_px > 0, data.focal_length_sigma_px, 1e-7 * data.focal_length_px)
     fpx = np.where(has_fpx, data.focal_length_px, 0.0)
-    fpx_sig = np.where(has_fpx, fpx_sig, 0.0)
+    fpx_sig = np.where(has_fpx, _focal_length_sigma_px(data), 0.0)
     fpx_w = np.where(has_fpx, 1.0 / np.maximum(fpx_sig, 1e-300), 0.0)
     floor_w = np.where(fixed_floor, 0.0, 1.0 / floor_prior_sigma_px) * np.ones(m)
     for k in blocked:
