@@ -291,7 +291,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                         images[owner[i]] = next(loader)
                     half, margin, truncated = windows(task, radius[i] if attempt else None)
                     if attempt:  # the clean room, not the spot, set the window
-                        cramped[i] = half < window_wanted(radius[i]) - 1e-9
+                        cramped[i] = min(half) < window_wanted(radius[i]) - 1e-9
                     sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
                     if sel is None or len(sel[0]) < 8:
                         results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)

@@ -21,9 +21,10 @@ NBINS_ACROSS = 128
 STRIPS = 2
 
 
-def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: float,
+def select(image: np.ndarray, task: EdgeTask, half_width: float | tuple[float, float], end_margin: float,
            expected: tuple[float, float] | None = None):
-    """Pixels within ``half_width`` of the edge line and at least ``end_margin`` from its ends,
+    """Pixels within ``half_width`` of the edge line (a pair: right and left of it, the sides of
+    negative and positive normal distance) and at least ``end_margin`` from its ends,
     with the line re-fitted to the image and the profile binned.
 
     Returns (d, s, v, se, normal, length, shortened, pixels, line, se_banded, footprint) or None: ``d`` the
@@ -42,8 +43,13 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: flo
     t = (p1 - p0) / L
     n = np.array([-t[1], t[0]])
     h, w = image.shape
-    lo = np.floor(np.minimum(p0, p1) - half_width - 1).astype(int)
-    hi = np.ceil(np.maximum(p0, p1) + half_width + 1).astype(int)
+    if isinstance(half_width, tuple):
+        half_neg, half_pos = half_width
+    else:
+        half_neg = half_pos = half_width
+    reach = max(half_neg, half_pos)
+    lo = np.floor(np.minimum(p0, p1) - reach - 1).astype(int)
+    hi = np.ceil(np.maximum(p0, p1) + reach + 1).astype(int)
     x0, y0 = max(lo[0], 0), max(lo[1], 0)
     x1, y1 = min(hi[0], w - 1), min(hi[1], h - 1)
     if x1 < x0 or y1 < y0:
@@ -53,7 +59,7 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float, end_margin: flo
     s = rel_x * t[0] + rel_y * t[1]
     d = rel_x * n[0] + rel_y * n[1]
     margin = min(end_margin, 0.45 * L)
-    keep = (np.abs(d) <= half_width) & (s >= margin) & (s <= L - margin)
+    keep = (d <= half_pos) & (d >= -half_neg) & (s >= margin) & (s <= L - margin)
     if keep.sum() < MIN_PIXELS:
         return None
     s, d, v = s[keep], d[keep], image[y0:y1 + 1, x0:x1 + 1][keep].astype(np.float64, copy=False)
@@ -224,19 +230,24 @@ def window_wanted(radius: float) -> float:
     return radius + max(4.0, radius)
 
 
-def windows(task: EdgeTask, radius: float | None) -> tuple[float, float, bool]:
+def windows(task: EdgeTask, radius: float | None) -> tuple[float | tuple[float, float], float, bool]:
     """The profile's half-width across the edge, the length skipped at each end, and whether the
     clean room is too narrow for the spot's reach (``radius`` of the last reading; None: the first
-    pass, which takes all the clean room). The half-width is :func:`window_wanted` where the
-    clean room allows, less where it does not."""
+    pass, which takes all the clean room on each side as far as the narrower one's). After the
+    first pass the half-widths are two, (right, left) of the edge: each :func:`window_wanted`
+    where that side's clean room allows, less where it does not."""
     clear = max(0.0, min(task.clear_left_px, task.clear_right_px) - 0.5)
     if radius is None:  # first pass: all the clean room, ends skipped by as much
         return clear, clear, False
     want = window_wanted(radius)
-    room = clear - radius
-    half = max(2.0, min(want, room))
-    truncated = room < radius + 1.5
-    return half, half + radius + 1.0, truncated
+    truncated = clear - radius < radius + 1.5
+    # Each side as wide as its own clean room allows: a marker beside one side of a board's edge
+    # does not narrow the other, where the spot's halo and the level beyond it are seen whole
+    # (the narrower side alone set both: a retrofocus's far-side cores in a halo, their reach
+    # cut on both sides by the marker on one, read 3-9 % small).
+    pos = max(2.0, min(want, task.clear_left_px - 0.5 - radius))
+    neg = max(2.0, min(want, task.clear_right_px - 0.5 - radius))
+    return (neg, pos), max(neg, pos) + radius + 1.0, truncated
 
 
 def line_end_covariance(cov: np.ndarray, half_len: float, given_radius: bool = False) -> tuple[float, float, float]:

@@ -12,7 +12,7 @@ import numpy as np
 
 from lensfit.errors import InputError
 from lensfit.fit.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MODES, FLOOR_PRIOR_SIGMA_PX, LOSSES,
-                                   MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES)
+                                   MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES, UNREAD_SHAPE_WARN)
 from lensfit.fit.data import FitData, prepare
 from lensfit.fit import nominal, stages
 from lensfit.fit.curvature import curvature_estimate, field_spread
@@ -23,7 +23,7 @@ from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
 from lensfit.fit.solve import _image_scatter, _padded_size, _predict_all
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
-from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _derive, _images_part,
+from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _arms_part, _derive, _images_part,
                                      _image_spread, _null_direction, _positive, _shares, student_z)
 
 
@@ -238,6 +238,10 @@ def _uncertainty(solved: stages.Solution, resid: np.ndarray, used: np.ndarray, f
     if np.any(images):
         parts_free["images"] = images
         cov = cov + images
+    arms = _arms_part(jac, cov_fit, data, weights * row_on, theta, m)
+    if np.any(arms):
+        parts_free["spot_shape"] = arms
+        cov = cov + arms
     parts = {src: _full_size(c, free_idx, m) for src, c in parts_free.items()}
     strata = None
     if not np.any(np.diag(images) > 0):  # else the images' shared errors are a term of their own
@@ -270,6 +274,12 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                "window_truncated; stop down, or use a target with larger squares, to measure them)"
                if data.dropped_truncated else "")
         warnings.append(f"{data.dropped} sample(s) without a measured blur were left out{why}")
+    for label, (share, count) in data.unread_shape.items():
+        if share >= UNREAD_SHAPE_WARN:
+            warnings.append(f"setting '{label}': its resolved spots are no uniform disks (the disk reads them "
+                            f"{100 * share:.0f} % off, a real lens's cores in a halo or bright rims); {count} reading(s) "
+                            "whose shape could not be read (spots under 2 px, or edges across depth) carry that share "
+                            "of their blur as a model error")
 
     # ---- what cannot be determined before fitting (per setting)
     blocked = _capture_problems(data)

@@ -11,7 +11,9 @@ import numpy as np
 
 from lensfit.errors import InputError
 from lensfit.fit.constants import (BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX,
-                                   MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, SHAPE_SCALE_SHARE, _NODES_T, disk_scale_sigma)
+                                   MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, SHAPE_ERROR_SHARE, SHAPE_ERROR_SHARE_RADIAL,
+                                   SHAPE_SCALE_SHARE, UNREAD_SHAPE_MIN, _NODES_T,
+                                   disk_scale_sigma)
 
 
 @dataclass
@@ -54,10 +56,18 @@ class FitData:
     #: (flags ``diffraction_modelled``, ``AIRY_NOT_SEEN``; lensfit.fit.spots)
     shaped: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     airy_checked: bool = False
+    #: each kept shaped reading's relative model error (1 sigma), NaN where the reading is not
+    #: shaped: a share of its relative difference from the uniform disk's reading of the same edge
+    #: (:func:`_shape_error`; lensfit.fit.uncertainty._arms_part)
+    shape_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: per setting, the degrees of freedom of ``focal_length_sigma_px``: the views less one where a
     #: leave-one-view-out jackknife estimated it from few views; inf where its form is known (the
     #: corners' covariance from some hundred residuals, a stated sigma)
     focal_length_dof: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: per setting (label: share, readings), where its resolved spots are visibly no uniform
+    #: disks: the model error carried by its readings whose shape was not read
+    #: (:func:`_unread_shape_sigma`)
+    unread_shape: dict[str, tuple[float, int]] = field(default_factory=dict)
 
     def blur_scale_sigma(self, weights: np.ndarray | None = None) -> float:
         """The estimator's shared relative scale error for this fit: each sample's weighted by
@@ -142,16 +152,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     for i in swap:
         rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
                    "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot", "radial_profile"}))}
-    stated = ctx.get("pixel_pitch_mm")
-    stated = None if isinstance(stated, float) and math.isnan(stated) else stated  # (a table without one)
-    pitch = pixel_pitch_mm if pixel_pitch_mm is not None else stated
-    # (named as the samples' own field where the value came from them, not the argument)
-    field = "pixel_pitch_mm" if pixel_pitch_mm is not None or stated is None else "samples.pixel_pitch_mm"
-    if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
-        raise InputError(field, pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
-    if not PIXEL_PITCH_RANGE_MM[0] <= pitch <= PIXEL_PITCH_RANGE_MM[1]:
-        raise InputError(field, pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
-                         "mm (0.1 micrometre to 1 mm)", "pixel pitches are given in mm, e.g. 0.0059 for 5.9 um")
+    pitch = _pixel_pitch(pixel_pitch_mm, ctx.get("pixel_pitch_mm"))
     used, used_rows, dropped, truncated = [], [], 0, 0
     for i, r in enumerate(rows):
         c, sg = r.get("coc_diameter_px"), r.get("sigma_px")
@@ -217,18 +218,21 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     bad = ~np.isfinite(fsg) | (fsg < 0) | (fsg > MAX_FOCAL_LENGTH_PX)
     if bad.any():
         raise InputError("focal_length_sigma_px", float(fsg[bad][0]), f"between 0 and {MAX_FOCAL_LENGTH_PX:g} px")
+    sigma, unread_share = _unread_shape_sigma(used, labels)
     images = [str(r.get("image") or "") for r in used]  # "" = not known: no jackknife over images
     image_index = {name: (i if name else -1) for i, name in enumerate(dict.fromkeys(images))}
     return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
                    np.array([float(r["coc_diameter_px"]) for r in used]),
-                   np.array([float(r["sigma_px"]) for r in used]), float(pitch), fpx, fsg, dropped,
+                   sigma, float(pitch), fpx, fsg, dropped,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
                    np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
                    np.array([_scale_sigma(r, ctx.get("undistorted", frozenset()), ctx.get("distorted", frozenset()))
                              for r in used]), truncated,
                    _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
                    np.array([i in kept for i in used_rows], bool),
-                   any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows), fdof)
+                   any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows),
+                   np.array([_shape_error(r) if i in kept else math.nan for i, r in zip(used_rows, used)]),
+                   fdof, unread_share)
 
 
 #: The optional numbers of a sample and the ranges they must lie in (closed; the lower bound of
@@ -305,6 +309,72 @@ def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), disto
     if disk is None or not math.isfinite(float(disk)) or c <= 0:
         return BLUR_SCALE_SIGMA_SHAPED
     return math.hypot(disk_scale_sigma(c, plain), SHAPE_SCALE_SHARE * abs(c - float(disk)) / c)
+
+
+def _pixel_pitch(given: float | None, stated: Any) -> float:
+    """The pixel pitch (mm): the argument, else the samples' own; checked."""
+    stated = None if isinstance(stated, float) and math.isnan(stated) else stated  # (a table without one)
+    pitch = given if given is not None else stated
+    # (named as the samples' own field where the value came from them, not the argument)
+    field = "pixel_pitch_mm" if given is not None or stated is None else "samples.pixel_pitch_mm"
+    if pitch is None or not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
+        raise InputError(field, pitch, "> 0 mm", "give the sensor's pixel pitch (stack.toml [camera])")
+    if not PIXEL_PITCH_RANGE_MM[0] <= pitch <= PIXEL_PITCH_RANGE_MM[1]:
+        raise InputError(field, pitch, f"between {PIXEL_PITCH_RANGE_MM[0]:g} and {PIXEL_PITCH_RANGE_MM[1]:g} "
+                         "mm (0.1 micrometre to 1 mm)", "pixel pitches are given in mm, e.g. 0.0059 for 5.9 um")
+    return pitch
+
+
+def _shape_error(row: dict[str, Any]) -> float:
+    """A shaped reading's relative model error (1 sigma): ``SHAPE_ERROR_SHARE`` (two disks) or
+    ``SHAPE_ERROR_SHARE_RADIAL`` (flag ``radial_profile``: the data rejected two disks) of its
+    relative difference from the uniform disk's reading of the same edge."""
+    c, disk = float(row["coc_diameter_px"]), float(row["disk_diameter_px"])
+    share = SHAPE_ERROR_SHARE_RADIAL if "radial_profile" in _flags(row) else SHAPE_ERROR_SHARE
+    return share * abs(c - disk) / c if c > 0 else math.nan
+
+
+def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[np.ndarray, dict]:
+    """Each reading's sigma, and per setting the model error its readings of unread shape carry.
+
+    The uniform disk reads a real lens's spot (a core in a halo, a bright rim) small: by up to a
+    fifth on a 2 px core-and-halo spot along a pixel axis, where the profile is sampled once per
+    pixel and the two-disk model cannot tell the shape (``lensfit.estimators.edge.SHAPE_MIN_PX``).
+    Where a setting's resolved spots show how far from uniform disks they are (at least
+    ``UNREAD_SHAPE_MIN`` shaped readings; ``m`` the median relative difference from the disk's
+    reading of the same edge over the ``UNREAD_SHAPE_MIN`` nearest in inverse distance on either
+    side, the larger), the readings whose shape was not read (no flag
+    ``shaped_spot``; not through the Airy pattern, whose shape is the pattern's; not sub-pixel,
+    stated with 0.2 px already) carry ``m c`` in quadrature with their sigma. On a uniform disk
+    ``m`` is the noise's few tenths of a percent and changes nothing; on a retrofocus at f/4 (m
+    about 10 %) the readings near the focus, 2 px cores in a halo along the pixel axes read 15-25 %
+    small, took the focus distance 1.1 % long at 2.4 of its sigmas."""
+    sigma = np.array([float(r["sigma_px"]) for r in used])
+    out: dict[str, tuple[float, int]] = {}
+    for label in labels:
+        mine = [r for r in used if str(r["setting"]) == label]
+        resolved = [(1.0 / float(r["distance_mm"]),
+                     abs(float(r["coc_diameter_px"]) - float(r["disk_diameter_px"])) / float(r["coc_diameter_px"]))
+                    for r in mine if "shaped_spot" in _flags(r) and r.get("disk_diameter_px") is not None
+                    and float(r["coc_diameter_px"]) > 0]
+        if len(resolved) < UNREAD_SHAPE_MIN:
+            continue
+        w_resolved, rel = (np.array(v) for v in zip(*resolved))
+        shares = []
+        for i, r in enumerate(used):
+            if str(r["setting"]) != label or _flags(r) & {"shaped_spot", "diffraction_modelled", "sub_pixel_blur"}:
+                continue
+            w = 1.0 / float(r["distance_mm"])
+            # the nearest resolved spots in inverse distance on either side (the reading may lie
+            # on either side of the focus, whose spots differ): the larger of their medians
+            sides = [rel[w_resolved >= w][np.argsort(w_resolved[w_resolved >= w])[:UNREAD_SHAPE_MIN]],
+                     rel[w_resolved < w][np.argsort(-w_resolved[w_resolved < w])[:UNREAD_SHAPE_MIN]]]
+            share = max(float(np.median(v)) for v in sides if v.size) if any(v.size for v in sides) else 0.0
+            sigma[i] = math.hypot(sigma[i], share * float(r["coc_diameter_px"]))
+            shares.append(share)
+        if shares:
+            out[label] = (float(np.median(shares)), len(shares))
+    return sigma, out
 
 
 #: The flag the pipeline gives samples of images its diffraction test found without an Airy

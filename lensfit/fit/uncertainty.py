@@ -40,10 +40,11 @@ def _correlation(cov: np.ndarray) -> np.ndarray:
 #: of every pose distance ("calibration"); what the edges of one image share beyond that (its
 #: pose, its noise: :func:`_images_part`, and the excess of the images' spread, :func:`_image_spread`;
 #: "images"); the blur
-#: estimator's shared scale error ("estimator_scale", ``BLUR_SCALE_SIGMA``); the priors on the
+#: estimator's shared scale error ("estimator_scale", ``BLUR_SCALE_SIGMA``); the spot-shape
+#: model's error on each side of the focus (:func:`_arms_part`, "spot_shape"); the priors on the
 #: blur floor and the pupil magnification ("priors"). (A one-sided setting's "floor_choice" is
 #: added after the fit: lensfit.fit.floor_choice.)
-BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "priors")
+BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "spot_shape", "priors")
 
 
 def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int) -> dict[str, np.ndarray]:
@@ -74,6 +75,46 @@ def _images_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, sca
         sel = (data.group == g) & (rows > 0)
         b = cov_u @ (jac[:n][sel].T @ pose[sel])
         out += np.outer(b, b)
+    return out
+
+
+def _arms_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, theta: np.ndarray,
+               m: int) -> np.ndarray:
+    """The free parameters' covariance from the spot-shape model's error on each side of each
+    setting's focus: ``sum b b'``, ``b = H^-1 J_arm' (c sqrt(w) / sigma) kappa`` over the samples
+    of one arm (``jac``, ``cov_u``, ``rows`` as in :func:`_images_part`).
+
+    A real lens's spots differ in kind on the two sides of its focus (a bright rim on one, a core
+    in a halo on the other, coma off the axis), and a symmetric spot model misreads one kind more
+    than the other: every reading of that arm by the same share, which tilts the V, moving its
+    vertex (the focus distance) as well as its slope (N). The share is not known, but its size
+    is shown by the arm's own edges: ``kappa`` is ``SPOT_SHAPE_SHARE`` times the median relative
+    difference between the shaped reading and the uniform disk's of the same edge over the arm
+    (``FitData.disk_px``); 0 on an arm without shaped readings, a few tenths of a percent on
+    uniform disks. Measured on exact edges of real-ray spots: the shaped reading's error ran from
+    a tenth of that difference (a retrofocus's cores in a halo) to twice it (an f/1.4 Petzval's
+    comatic spots 200 px off the axis), so a 1 sigma of once the difference."""
+    p = jac.shape[1]
+    out = np.zeros((p, p))
+    if p == 0:
+        return out
+    n = len(data.coc_px)
+    at_x = theta[1:1 + m] / 1000.0  # each setting's inverse focus distance, 1/mm
+    curv = theta[2 + 3 * m:2 + 4 * m] / 1000.0
+    vertex = at_x[data.setting] + curv[data.setting] * np.nan_to_num(np.asarray(data.field2, float))
+    near = data.w_mean > vertex
+    on = rows > 0
+    lever = data.coc_px * np.sqrt(rows) / data.sigma_px
+    error = np.asarray(data.shape_error, float)
+    for k in range(m):
+        for arm in (near, ~near):
+            sel = on & arm & (data.setting == k)
+            shaped = sel & np.isfinite(error)
+            if not shaped.any():
+                continue
+            kappa = float(np.mean(error[shaped]))
+            b = cov_u @ (jac[:n][sel].T @ (lever[sel] * kappa))
+            out += np.outer(b, b)
     return out
 
 
