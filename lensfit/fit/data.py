@@ -351,29 +351,30 @@ def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[
     small, took the focus distance 1.1 % long at 2.4 of its sigmas."""
     sigma = np.array([float(r["sigma_px"]) for r in used])
     out: dict[str, tuple[float, int]] = {}
+    setting = np.array([str(r["setting"]) for r in used])
+    w = np.array([1.0 / float(r["distance_mm"]) for r in used])
+    flags = [_flags(r) for r in used]
+    is_shaped = np.array(["shaped_spot" in f and r.get("disk_diameter_px") is not None
+                          and float(r["coc_diameter_px"]) > 0 for f, r in zip(flags, used)])
+    unread = np.array([not f & {"shaped_spot", "diffraction_modelled", "sub_pixel_blur"} for f in flags])
+    c = np.array([float(r["coc_diameter_px"]) for r in used])
     for label in labels:
-        mine = [r for r in used if str(r["setting"]) == label]
-        resolved = [(1.0 / float(r["distance_mm"]),
-                     abs(float(r["coc_diameter_px"]) - float(r["disk_diameter_px"])) / float(r["coc_diameter_px"]))
-                    for r in mine if "shaped_spot" in _flags(r) and r.get("disk_diameter_px") is not None
-                    and float(r["coc_diameter_px"]) > 0]
-        if len(resolved) < UNREAD_SHAPE_MIN:
+        mine = setting == label
+        resolved = np.flatnonzero(mine & is_shaped)
+        which = np.flatnonzero(mine & unread)
+        if len(resolved) < UNREAD_SHAPE_MIN or not len(which):
             continue
-        w_resolved, rel = (np.array(v) for v in zip(*resolved))
-        shares = []
-        for i, r in enumerate(used):
-            if str(r["setting"]) != label or _flags(r) & {"shaped_spot", "diffraction_modelled", "sub_pixel_blur"}:
-                continue
-            w = 1.0 / float(r["distance_mm"])
-            # the nearest resolved spots in inverse distance on either side (the reading may lie
-            # on either side of the focus, whose spots differ): the larger of their medians
-            sides = [rel[w_resolved >= w][np.argsort(w_resolved[w_resolved >= w])[:UNREAD_SHAPE_MIN]],
-                     rel[w_resolved < w][np.argsort(-w_resolved[w_resolved < w])[:UNREAD_SHAPE_MIN]]]
-            share = max(float(np.median(v)) for v in sides if v.size) if any(v.size for v in sides) else 0.0
-            sigma[i] = math.hypot(sigma[i], share * float(r["coc_diameter_px"]))
-            shares.append(share)
-        if shares:
-            out[label] = (float(np.median(shares)), len(shares))
+        order = resolved[np.argsort(w[resolved])]
+        w_sorted = w[order]
+        rel = np.array([abs(c[i] - float(used[i]["disk_diameter_px"])) / c[i] for i in order])
+        # the nearest resolved spots in inverse distance on either side (the reading may lie on
+        # either side of the focus, whose spots differ): the larger of their medians
+        at = np.searchsorted(w_sorted, w[which])
+        shares = np.array([max(float(np.median(rel[max(k - UNREAD_SHAPE_MIN, 0):k])) if k > 0 else 0.0,
+                               float(np.median(rel[k:k + UNREAD_SHAPE_MIN])) if k < len(rel) else 0.0)
+                           for k in at])
+        sigma[which] = np.hypot(sigma[which], shares * c[which])
+        out[label] = (float(np.median(shares)), len(which))
     return sigma, out
 
 
