@@ -644,3 +644,44 @@ def test_bench_developed_judges_refusals_by_the_processing_named_and_strips_only
         tags = im.getexif()
         assert 0x0131 not in tags and tags[0x010F] == "Canon"
         assert np.abs(np.asarray(im, float) - np.asarray(Image.open(src / "a.jpg"), float)).max() <= 4
+
+
+def test_bench_lenses_coverage_counts_both_settings_and_takes_wilsons_interval():
+    """Wilson's score interval against its published values (0/10: 0-0.278, 10/10: 0.722-1;
+    Newcombe 1998, table I), and a refusal counted apart from the intervals."""
+    from lensfit.bench.lenses import _wilson, coverage
+
+    assert _wilson(0, 10) == pytest.approx([0.0, 0.2775], abs=5e-4)
+    assert _wilson(10, 10) == pytest.approx([0.7225, 1.0], abs=5e-4)
+    held = {"relative_error": 0.01, "within_ci95": True}
+    missed = {"relative_error": 0.2, "within_ci95": False}
+    refused = {"relative_error": None, "within_ci95": None}
+    rows = [{"fits": {"bracket": {"errors": {"focal_length_mm": held, "f_number": refused},
+                                  "errors_far": {"focal_length_mm": missed, "f_number": held}}}}]
+    got = coverage(rows)["bracket"]
+    assert (got["focal_length_mm"]["held"], got["focal_length_mm"]["reported"]) == (1, 2)
+    assert (got["f_number"]["held"], got["f_number"]["reported"], got["f_number"]["refused"]) == (1, 1, 1)
+    assert got["focus_distance_mm"]["rate"] is None
+
+
+def test_optiland_designs_written_as_lens_files_keep_optilands_paraxial_data(tmp_path):
+    """The lens files bench-lenses --designs optiland renders through: read back by synth, each
+    design's EFL and pupil magnification are optiland's own (its paraxial solver, not ours)."""
+    pytest.importorskip("optiland")
+    import warnings
+
+    from lensfit.bench.designs import lens_file_text, sample_objectives
+    from synth.lens.files import load_prescription
+    from synth.lens.prescription import paraxial
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import optiland.samples.objectives as objectives
+
+        for name, rx, fno in list(sample_objectives())[:4]:
+            path = tmp_path / f"{name}.toml"
+            path.write_text(lens_file_text(rx, name, "optiland", fno))
+            back = paraxial(load_prescription(path))
+            lens = getattr(objectives, name)()
+            assert back.efl_mm == pytest.approx(float(lens.paraxial.f2()), rel=1e-6), name
+            assert back.f_number == pytest.approx(fno, rel=1e-6), name

@@ -163,6 +163,18 @@ def to_toml(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+def lens_file_text(rx, name: str, source: str, f_number: float) -> str:
+    """A lens ``.toml`` (the format of ``data_specs/lenses``) holding ``rx``, monochromatic."""
+    lines = [f"# {name}: written by lensfit.bench.designs.lens_file_text from {source}", f'name = "{name}"',
+             f'source = "{source}"', f"design_f_number = {f_number:.6g}", "", "surface = ["]
+    for s in rx.surfaces:
+        radius = '"inf"' if math.isinf(s.radius_mm) else repr(float(s.radius_mm))
+        stop = ", stop = true" if s.stop else ""
+        lines.append(f"  {{ radius_mm = {radius}, thickness_mm = {float(s.thickness_mm)!r}, n = {float(s.n)!r}, "
+                     f"semi_aperture_mm = {float(s.semi_aperture_mm)!r}{stop} }},")
+    return "\n".join(lines + ["]", ""])
+
+
 def survey_file() -> Path:
     """``data_specs/f_number_survey.toml`` (where the package's data_specs are)."""
     from lensfit.specs import specs_dir

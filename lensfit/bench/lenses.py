@@ -104,9 +104,11 @@ def _errors(result, truth: dict[str, Any], label: str) -> dict[str, Any]:
     pairs = [("focal_length_mm", "focal_length_mm", truth["focal_length_mm"]), ("f_number", "f_number", t["f_number"]),
              ("focus_distance_mm", "focus_distance_mm", t["focus_distance_mm"])]
     if "real_ray_f_number" in t:  # what blur follows: the real entrance pupil (pupil aberration)
-        pairs.append(("f_number_real_ray", "f_number", t["real_ray_f_number"]))
+        pairs.append(("f_number_real_ray", "f_number_effective", t["real_ray_f_number"]))
     for key, q, tv in pairs:
-        e = result.settings[label][q]
+        # the blur's own f-number where the fit reports the nominal one beside it (a lens not
+        # declared ideal), else the one it reports
+        e = result.settings[label].get(q) or result.settings[label]["f_number"]
         out[key] = {"estimate": e.value, "truth": tv, "relative_error": None if e.value is None else e.value / tv - 1,
                   "within_ci95": None if e.ci95 is None else bool(
                       (e.ci95[0] is None or e.ci95[0] <= tv) and (e.ci95[1] is None or tv <= e.ci95[1]))}
@@ -120,15 +122,19 @@ def spectral_designs() -> list[str]:
     return [n for n in list_prescriptions() if not load_prescription(n).undispersed_surfaces()]
 
 
-def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
+def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 11.0,
         progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = (),
-        scale: float = 1.0, keep: Path | None = None, reuse: Path | None = None) -> dict[str, Any]:
+        scale: float = 1.0, keep: Path | None = None, reuse: Path | None = None,
+        designs: str = "shipped") -> dict[str, Any]:
     """Render, measure and fit every lens (with ``wavelengths_nm``: every lens with dispersion,
     rendered grey through those wavelengths); returns rows of errors and seconds. With ``keep``
     each stack is written to ``keep / NAME`` and left there (an existing stack is an error, never
     replaced); otherwise to a temporary folder that is removed. With ``reuse`` nothing is rendered:
     the stacks a run with ``keep`` wrote there are measured and fitted again (the rendering
-    arguments are then theirs, not these)."""
+    arguments are then theirs, not these). ``designs``: "shipped" (``data_specs/lenses``) or
+    "optiland" (optiland's all-spherical sample objectives, which lensfit does not ship, written
+    as lens files beside the stacks); ``f_number`` None: each design wide open (its own f-number,
+    the near setting two stops down)."""
     import json
 
     from synth.lens import list_prescriptions
@@ -136,7 +142,14 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
     from synth.scene import scene_from_dict
     from synth.stack import write_stack
 
-    names = names or (spectral_designs() if wavelengths_nm else list_prescriptions())
+    lens_files: dict[str, tuple[Path | None, float]] = {}  # name: (its lens file, or None if shipped; f-number)
+    if designs == "optiland":
+        from lensfit.bench.designs import sample_objectives
+
+        lens_files = {f"optiland-{n}": (None, fno) for n, _, fno in sample_objectives()}
+        names = [n for n in (names or list(lens_files)) if n in lens_files]
+    else:
+        names = names or (spectral_designs() if wavelengths_nm else list_prescriptions())
     if keep is not None:
         taken = [n for n in names if (Path(keep) / n).exists()]
         if taken:
@@ -151,14 +164,18 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
     rows = []
     with tempfile.TemporaryDirectory(prefix="lensfit-bench-lenses-") as tmp:
         root = Path(tmp) if keep is None else Path(keep)
+        if lens_files and reuse is None:
+            lens_files = _write_lens_files(root / "lenses", names)
         for name in names:
             if reuse is not None:
                 folder, t_render = Path(reuse) / name, None
             else:
                 say(f"{name}: rendering 24 shots")
                 t0 = time.perf_counter()
-                scene = scene_from_dict(lens_scene(name, f_number=f_number, spp=spp, wavelengths_nm=wavelengths_nm,
-                                                   scale=scale),
+                ref, design_n = lens_files.get(name, (None, None))
+                n_far = f_number if f_number is not None else design_n or _design_f_number(name)
+                scene = scene_from_dict(lens_scene(str(ref) if ref else name, f_number=n_far, spp=spp,
+                                                   wavelengths_nm=wavelengths_nm, scale=scale),
                                         f"<{name} bracket>")
                 folder = write_stack(render(scene), root / name)
                 t_render = time.perf_counter() - t0
@@ -174,14 +191,17 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
             one.samples = near
             one.intrinsics = {"near": table.intrinsics["near"]}
             P = truth["settings"]["near"]["pupil_magnification"]
-            fits = {"thin (one setting)": fit(one, pupil_magnification=1.0),
+            fits = {"default (one setting)": fit(one),
+                    "thin (one setting)": fit(one, pupil_magnification=1.0),
                     "thick, P given (one setting)": fit(one, pupil_magnification=P),
                     "thick (bracket, P fitted)": bracket}
             calibration = {label: {"focal_length_px": k.focal_length_px, "sigma": k.focal_length_sigma_px,
                                    "sigma_method": k.focal_length_sigma_method, "views": k.views,
                                    "relative_error": k.focal_length_px / truth["settings"][label]["focal_length_px"] - 1}
                            for label, k in table.intrinsics.items()}
-            row = {"lens": name, "pupil_magnification": P, "seconds_render": t_render, "seconds_measure": t_measure,
+            row = {"lens": name, "pupil_magnification": P, "f_number_far": truth["settings"]["far"]["f_number"],
+                   "f_number_near": truth["settings"]["near"]["f_number"],
+                   "seconds_render": t_render, "seconds_measure": t_measure,
                    "calibration": calibration, "fits": {}}
             for how, res in fits.items():
                 row["fits"][how] = {"errors": _errors(res, truth, "near"), "result": res.code,
@@ -193,5 +213,68 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float = 11.0,
                                         for label, qs in res.settings.items()
                                         if (e := qs.get("field_curvature_per_m")) is not None}}
             rows.append(row)
-    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "near_f_number": NEAR_STOP_FACTOR * f_number,
-            "scale": scale, "wavelengths_nm": list(wavelengths_nm), "reused": None if reuse is None else str(reuse)}
+    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number,
+            "near_f_number": None if f_number is None else NEAR_STOP_FACTOR * f_number, "designs": designs,
+            "scale": scale, "wavelengths_nm": list(wavelengths_nm), "reused": None if reuse is None else str(reuse),
+            "coverage": coverage(rows)}
+
+
+def _write_lens_files(folder: Path, names: list[str]) -> dict[str, tuple[Path, float]]:
+    """optiland's sample objectives named in ``names`` as lens files in ``folder``."""
+    from lensfit.bench.designs import lens_file_text, sample_objectives
+
+    folder.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for design, rx, fno in sample_objectives():
+        name = f"optiland-{design}"
+        if name in names:
+            path = folder / f"{name}.toml"
+            path.write_text(lens_file_text(rx, name, f"optiland.samples.objectives.{design}", fno))
+            out[name] = (path, fno)
+    return out
+
+
+def _design_f_number(name: str) -> float:
+    from synth.lens import load_prescription, paraxial
+
+    rx = load_prescription(name)
+    return float(rx.design_f_number or paraxial(rx).f_number)
+
+
+#: The quantities whose 95 % intervals the coverage counts, each against its truth.
+COVERED = ("focal_length_mm", "f_number", "f_number_real_ray", "focus_distance_mm")
+
+
+def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per fit and quantity over the lenses (both settings where the fit has both): how many
+    95 % intervals held the truth of how many reported, the refusals, and the Wilson 95 %
+    interval of the rate."""
+    out: dict[str, dict[str, Any]] = {}
+    for row in rows:
+        for how, fr in row["fits"].items():
+            per = out.setdefault(how, {q: {"held": 0, "reported": 0, "refused": 0} for q in COVERED})
+            for errors in (fr["errors"], fr.get("errors_far")):
+                for q in COVERED:
+                    e = (errors or {}).get(q)
+                    if e is None:
+                        continue
+                    if e["relative_error"] is None:
+                        per[q]["refused"] += 1
+                    else:
+                        per[q]["reported"] += 1
+                        per[q]["held"] += bool(e["within_ci95"])
+    for per in out.values():
+        for c in per.values():
+            c["rate"] = c["held"] / c["reported"] if c["reported"] else None
+            c["wilson95"] = _wilson(c["held"], c["reported"])
+    return out
+
+
+def _wilson(k: int, n: int, z: float = 1.959964) -> list[float] | None:
+    """The Wilson score interval of a binomial rate k / n."""
+    if n == 0:
+        return None
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5
+    return [centre - half, centre + half]

@@ -262,6 +262,12 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--scale", type=_number, default=1.0, metavar="K",
                     help="image size as a fraction of the demo's 1200 x 800 px (default 1; 0.5 renders 4x faster, "
                          "with calibrations and so P about half as precise)")
+    bl.add_argument("--designs", choices=("shipped", "optiland"), default="shipped",
+                    help="shipped: the designs in data_specs/lenses (default); optiland: optiland's all-spherical "
+                         "sample objectives, which lensfit does not ship (needs optiland: the test extra)")
+    bl.add_argument("--wide-open", action="store_true",
+                    help="each design at its own f-number (the far setting; the near one two stops down) instead of "
+                         "--f-number")
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--json", action="store_true", help="print JSON")

@@ -173,9 +173,10 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     try:
         with console.status("benchmarking") as status:
-            result = run(args.lens or None, spp=args.spp, f_number=args.f_number,
+            result = run(args.lens or None, spp=args.spp, f_number=None if args.wide_open else args.f_number,
                          progress=lambda m: status.update(f"benchmarking: {m}"),
-                         wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep, reuse=args.reuse)
+                         wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep, reuse=args.reuse,
+                         designs=args.designs)
     except InputError as exc:
         raise _fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
     if args.json:
@@ -183,8 +184,9 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
         return EXIT_OK
     colour = f", grey from {'/'.join(f'{w:g}' for w in args.wavelengths)} nm" if args.wavelengths else ""
     size = f"{round(1200 * args.scale)} x {round(800 * args.scale)} px"
-    made = (f"stacks from {args.reuse}" if args.reuse else f"{size}, far f/{args.f_number:g}, near "
-            f"f/{result['near_f_number']:g}, {args.spp} spp{colour}")
+    stops = ("each wide open (far), two stops down (near)" if args.wide_open else
+             f"far f/{args.f_number:g}, near f/{result['near_f_number']:g}")
+    made = f"stacks from {args.reuse}" if args.reuse else f"{size}, {stops}, {args.spp} spp{colour}"
     table = Table(title=f"real lenses (demo stack scaled to each, {made}): errors of the near setting (and the far "
                         "one in the bracket)")
     for col in ("lens", "P", "fit", "f", "N", "N (real pupil)", "focus distance", "in 95 %", "P fitted"):
@@ -215,6 +217,14 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
                         for label, c in row["calibration"].items())
         rendered = "reused" if row["seconds_render"] is None else f"render {row['seconds_render']:.0f} s"
         print(f"{row['lens']}: calibrated f_px error {cal}; {rendered}, measure {row['seconds_measure']:.0f} s")
+    for how, per in result["coverage"].items():
+        cells = []
+        for q, c in per.items():
+            if c["reported"]:
+                lo, hi = c["wilson95"]
+                cells.append(f"{q} {c['held']}/{c['reported']} ({100 * lo:.0f}-{100 * hi:.0f} %)"
+                             + (f", {c['refused']} refused" if c["refused"] else ""))
+        print(f"95 % intervals holding the truth, {how}: " + "; ".join(cells))
     return EXIT_OK
 
 
