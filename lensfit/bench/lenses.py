@@ -184,7 +184,11 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
             t0 = time.perf_counter()
             # As `lensfit fit`: the images tested for the Airy pattern, which decides the readings
             # (the spots' shapes, or the pattern modelled; lensfit.fit.spots); its fit is the bracket's.
-            table, bracket, _ = measure_and_fit(folder, auto_diffraction=True)
+            try:
+                table, bracket, _ = measure_and_fit(folder, auto_diffraction=True)
+            except InputError as exc:  # the stack refused as a user's would be: a row saying why
+                rows.append({"lens": name, "refused": str(exc), "fits": {}})
+                continue
             t_measure = time.perf_counter() - t0
             near = [s for s in table.samples if s.setting == "near"]
             one = copy.copy(table)

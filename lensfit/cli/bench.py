@@ -201,6 +201,8 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
         return f"{sum(bool(e[q]['within_ci95']) for q in ('focal_length_mm', 'f_number', 'focus_distance_mm'))}/3"
 
     for row in result["rows"]:
+        if row.get("refused"):
+            table.add_row(row["lens"], "", f"refused: {row['refused']}", "", "", "", "", "", "")
         for how, fr in row["fits"].items():
             e = fr["errors"]
             p_fit = p_fitted_text(how, fr)
@@ -213,6 +215,8 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
                               pct(e.get("f_number_real_ray")), pct(e["focus_distance_mm"]), inside(e), "")
     Console(width=None if sys.stdout.isatty() else 160).print(table)
     for row in result["rows"]:
+        if row.get("refused"):
+            continue
         cal = ", ".join(f"{label} {100 * c['relative_error']:+.3f}% (sigma {100 * c['sigma'] / c['focal_length_px']:.3f}%)"
                         for label, c in row["calibration"].items())
         rendered = "reused" if row["seconds_render"] is None else f"render {row['seconds_render']:.0f} s"
