@@ -173,7 +173,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                 say(f"{name}: rendering 24 shots")
                 t0 = time.perf_counter()
                 ref, design_n = lens_files.get(name, (None, None))
-                n_far = f_number if f_number is not None else design_n or _design_f_number(name)
+                n_far = f_number if f_number is not None else _wide_open(str(ref) if ref else name, design_n)
                 scene = scene_from_dict(lens_scene(str(ref) if ref else name, f_number=n_far, spp=spp,
                                                    wavelengths_nm=wavelengths_nm, scale=scale),
                                         f"<{name} bracket>")
@@ -238,11 +238,20 @@ def _write_lens_files(folder: Path, names: list[str]) -> dict[str, tuple[Path, f
     return out
 
 
-def _design_f_number(name: str) -> float:
-    from synth.lens import load_prescription, paraxial
+def _wide_open(lens: str, design_n: float | None) -> float:
+    """The design's own f-number, or where its clear apertures cut the axial beam at the far
+    setting's focus (40 focal lengths; synth refuses such a scene) the fastest it opens to there,
+    rounded up to a tenth of a stop."""
+    import math
 
-    rx = load_prescription(name)
-    return float(rx.design_f_number or paraxial(rx).f_number)
+    from synth.lens import load_prescription, paraxial
+    from synth.lens.focus import fastest_f_number
+
+    rx = load_prescription(lens)
+    para = paraxial(rx)
+    n = float(design_n or rx.design_f_number or para.f_number)
+    fastest = fastest_f_number(rx, para.entrance_pupil_z_mm - 40.0 * para.efl_mm)
+    return n if fastest <= n else round(fastest * 2 ** 0.05, 2)
 
 
 #: The quantities whose 95 % intervals the coverage counts, each against its truth.
