@@ -1,11 +1,16 @@
 """Where a target's edges and corners lie in an image: the edge tasks of a posed target for the
-blur estimators, and corners refined from the edge lines they measured (``lensfit.measure``)."""
+blur estimators, corners refined from the edge lines they measured (``lensfit.measure``), and a
+reading taken into the undistorted image's pixels."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from typing import Any
+
 import numpy as np
 
-from lensfit.calibration import Intrinsics, TargetPose, project
+from lensfit.calibration import Intrinsics, TargetPose, estimate_pose, project
 from lensfit.estimators.base import EdgeTask
 from lensfit.targets import Detection, Target
 
@@ -210,3 +215,46 @@ def _psd(cov: tuple[float, float, float]) -> np.ndarray | None:
         return None
     w, v = np.linalg.eigh(m)
     return (v * np.maximum(w, 0.0)) @ v.T
+
+
+#: The distortion scales (lensfit.edge_geometry.distortion_scale) a blur reading is taken through:
+#: beyond them the calibrated model is folding or far outside what it was fitted on.
+DISTORTION_SCALE_RANGE = (0.2, 5.0)
+
+
+def refined_detections(detections: list[Detection], first: tuple[list, list, list], intr, by_id: dict[str, Target],
+             fresh_poses: bool = False) -> list[Detection]:
+    """An image's detections with their corners refined from the edge lines of the first pass
+    (``first``: its tasks, their (target, segment, depths, pose) and the readings), each line
+    moved through its edge's true ends where ``intr``'s distortion bows the edge
+    (:func:`lensfit.edge_geometry.unbowed`), through the pose the edge was measured with or, with
+    ``fresh_poses``, the detection's pose under ``intr``."""
+    tasks, meta, estimates = first
+    out = []
+    for det in detections:
+        pose_now = estimate_pose(det, intr) if fresh_poses else None
+        lines = {seg.id: (unbowed(est.line_px, seg, pose if pose_now is None else pose_now, intr, bow_margin(task, est)),
+                          est.coc_diameter_px, est.line_cov_px2)
+                 for task, (tid, seg, _, pose), est in zip(tasks, meta, estimates)
+                 if tid == det.target_id and est.line_px is not None}
+        out.append(refine_corners(det, by_id[det.target_id], lines))
+    return out
+
+
+def undistorted_blur(est: Any, scale: float, flags: list[str]) -> Any:
+    """An edge's blur reading in the undistorted image's pixels, where the CoC model lives: the
+    image's reading over the distortion's ``scale`` across the edge (its sigma and the uniform
+    disk's reading with it; flag ``distortion_scaled``); none where the scale is out of
+    ``DISTORTION_SCALE_RANGE`` (flag ``distortion_extreme``). ``flags`` is extended in place."""
+    if scale == 1.0 or est.coc_diameter_px is None:
+        return est
+    if not (math.isfinite(scale) and DISTORTION_SCALE_RANGE[0] <= scale <= DISTORTION_SCALE_RANGE[1]):
+        flags.append("distortion_extreme")
+        return dataclasses.replace(est, coc_diameter_px=None, sigma_px=None)
+    flags.append("distortion_scaled")
+
+    def over(v):
+        return None if v is None else v / scale
+
+    return dataclasses.replace(est, coc_diameter_px=over(est.coc_diameter_px), sigma_px=over(est.sigma_px),
+                               disk_diameter_px=over(est.disk_diameter_px), disk_sigma_px=over(est.disk_sigma_px))

@@ -10,8 +10,6 @@ middle from the lens plane -> a blur estimator on each edge.
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import threading
 import time
 from functools import partial
@@ -27,7 +25,7 @@ from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.parallel import check_jobs, in_threads
 from lensfit.sample_table import Sample, SampleTable
 from lensfit.stack import Stack, load_stack
-from lensfit.edge_geometry import bow_margin, edge_tasks, refine_corners, unbowed
+from lensfit.edge_geometry import edge_tasks, refined_detections, undistorted_blur
 from lensfit.targets import Detection, Target, detection_copies
 
 #: What of an edge task's context the edge estimator reads (the rest, the target's board and
@@ -222,67 +220,98 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
     in the background meanwhile, :func:`_prewarm`); ``detected``: the targets of each image as an
     earlier measure of the stack detected them; ``on_edges``: see :func:`measure`; ``profiles``:
     an empty dict to keep the first pass's edge profiles in, or those an earlier measure kept
-    (``SampleTable.profiles``), carried on to this table."""
-    def airy(i):
-        return None if airy_px is None else float(airy_px[stack.images[i].setting])
-    targets = [Target(spec) for spec in stack.targets]
-    by_id = {t.id: t for t in targets}
-    n = len(stack.images)
-    clock = StageClock()
-    # Images are held between the stages while the stack fits in HOLD_BYTES, else read again where
-    # needed (a stack of RAW files may not fit in memory).
-    stack = stack.holding(HOLD_BYTES)
-    read = clock.reader(stack.read)
-    total = 3 * n if refine else 2 * n
-    step = [0]
+    (``SampleTable.profiles``), carried on to this table. The stages are :class:`_Run`'s."""
+    run = _Run(stack, estimator, fn, airy_px, progress, 3 * len(stack.images) if refine else 2 * len(stack.images))
+    run.detect(detected, jobs)
+    work = run.calibrate(profiles, refine)
+    first = run.first_pass(work, profiles, on_edges) if refine or estimator == "edge" else {}
+    if refine:
+        run.refine(first)
+    run.table.warnings.extend(few_informative_views(run.table.intrinsics))
+    for i in range(len(stack.images)):
+        run.samples_of(i, first.get(i))
+        run.tick("measure")
+    run.table.stage_seconds = dict(run.clock.seconds)
+    return run.table
 
-    def tick(stage):
-        step[0] += 1
-        if progress:
-            progress(stage, step[0], total)
 
-    detections: dict[int, list[Detection]] = {i: list(found) for i, found in (detected or {}).items()}
-    candidates: dict[int, list[Target]] = {}
-    for i in range(n if detected is None else 0):
-        entry = stack.images[i]
-        candidates[i] = [t for t in targets if entry.targets is None or t.id in entry.targets]
-        squares = [t.id for t in candidates[i] if t.kind == "slanted-edge"]
-        if len(squares) > 1:
-            # Each would claim the same dark square with its own printed size: wrong distances.
-            raise SpecError(stack.manifest_path, f"image[{i}].targets",
-                            f"{entry.file.name} may show slanted-edge targets {', '.join(squares)}, which look alike; "
-                            "list the one it shows (targets = [\"ID\"]); one slanted-edge square per image")
+class _Run:
+    """One measure of a stack, stage by stage: :meth:`detect`, :meth:`calibrate`,
+    :meth:`first_pass` (every edge in one batched solve), :meth:`refine` (the corners through the
+    measured edge lines, calibrated again) and :meth:`samples_of` each image. ``table`` is what it
+    makes; ``detections`` each image's targets as found (misdetections the calibration rejects
+    taken out)."""
 
-    def detect(i: int) -> tuple[list[Detection], float, float]:
-        # Reading (decoding) and OpenCV's detection release the GIL: images run in threads.
-        t0 = time.perf_counter()
-        img = stack.read(i)
-        t1 = time.perf_counter()
-        copies = detection_copies(img) if candidates[i] else []
-        found = [d for d in (t.detect(img, copies) for t in candidates[i]) if d is not None]
-        for d in found:
-            _check_saturation(stack, i, img, d)
-        return found, t1 - t0, time.perf_counter() - t1
+    def __init__(self, stack: Stack, estimator: str, fn: Callable, airy_px: dict[str, float] | None,
+                 progress: Callable[[str, int, int], None] | None, total: int):
+        targets = [Target(spec) for spec in stack.targets]
+        self.targets, self.by_id = targets, {t.id: t for t in targets}
+        self.estimator, self.fn, self.airy_px, self.progress, self.total, self.step = (estimator, fn, airy_px,
+                                                                                      progress, total, 0)
+        self.clock = StageClock()
+        # Images are held between the stages while the stack fits in HOLD_BYTES, else read again
+        # where needed (a stack of RAW files may not fit in memory).
+        self.stack = stack.holding(HOLD_BYTES)
+        self.read = self.clock.reader(self.stack.read)
+        self.n = len(stack.images)
+        self.detections: dict[int, list[Detection]] = {}
+        self.table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape, lens=dict(stack.lens))
 
-    if detected is None:
-        jobs = max(1, min(jobs, IN_FLIGHT_BYTES // max(DETECT_BYTES_PER_PX * stack.shape[0] * stack.shape[1], 1)))
-        with clock.parallel(("read", "detect")) as spent:
-            for i, (found, *seconds) in enumerate(in_threads(detect, range(n), jobs)):
-                detections[i] = found
-                spent(*seconds)
-                tick("detect")
-    else:
-        for i in range(n):
-            tick("detect")
-    table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape,
-                        detections={i: list(found) for i, found in detections.items()}, lens=dict(stack.lens))
-    missing = [stack.images[i].file.name for i in range(n) if not detections[i]]
-    if missing:
-        table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
+    def tick(self, stage: str) -> None:
+        self.step += 1
+        if self.progress:
+            self.progress(stage, self.step, self.total)
 
-    def calibrate_all(final: bool = True):
+    def airy(self, i: int) -> float | None:
+        return None if self.airy_px is None else float(self.airy_px[self.stack.images[i].setting])
+
+    def detect(self, detected: dict[int, list[Detection]] | None, jobs: int) -> None:
+        """Every image's targets (or those an earlier measure found: ``detected``)."""
+        stack, n = self.stack, self.n
+        self.detections = {i: list(found) for i, found in (detected or {}).items()}
+        candidates: dict[int, list[Target]] = {}
+        for i in range(n if detected is None else 0):
+            entry = stack.images[i]
+            candidates[i] = [t for t in self.targets if entry.targets is None or t.id in entry.targets]
+            squares = [t.id for t in candidates[i] if t.kind == "slanted-edge"]
+            if len(squares) > 1:
+                # Each would claim the same dark square with its own printed size: wrong distances.
+                raise SpecError(stack.manifest_path, f"image[{i}].targets",
+                                f"{entry.file.name} may show slanted-edge targets {', '.join(squares)}, which look "
+                                "alike; list the one it shows (targets = [\"ID\"]); one slanted-edge square per image")
+
+        def detect(i: int) -> tuple[list[Detection], float, float]:
+            # Reading (decoding) and OpenCV's detection release the GIL: images run in threads.
+            t0 = time.perf_counter()
+            img = stack.read(i)
+            t1 = time.perf_counter()
+            copies = detection_copies(img) if candidates[i] else []
+            found = [d for d in (t.detect(img, copies) for t in candidates[i]) if d is not None]
+            for d in found:
+                _check_saturation(stack, i, img, d)
+            return found, t1 - t0, time.perf_counter() - t1
+
+        if detected is None:
+            jobs = max(1, min(jobs, IN_FLIGHT_BYTES // max(DETECT_BYTES_PER_PX * stack.shape[0] * stack.shape[1], 1)))
+            with self.clock.parallel(("read", "detect")) as spent:
+                for i, (found, *seconds) in enumerate(in_threads(detect, range(n), jobs)):
+                    self.detections[i] = found
+                    spent(*seconds)
+                    self.tick("detect")
+        else:
+            for i in range(n):
+                self.tick("detect")
+        self.table.detections = {i: list(found) for i, found in self.detections.items()}
+        missing = [stack.images[i].file.name for i in range(n) if not self.detections[i]]
+        if missing:
+            self.table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
+
+    def calibrate_views(self, final: bool = True) -> dict[str, Any]:
+        """Each setting's intrinsics from its views (given ones as given); views whose corners
+        reproject far off their setting's calibration are misdetections: left out, with a warning."""
+        stack, detections = self.stack, self.detections
         views: dict[str, list[tuple[int, Detection]]] = {}
-        for i in range(n):
+        for i in range(self.n):
             views.setdefault(stack.images[i].setting, []).extend((i, d) for d in detections[i])
         known = {k: known_intrinsics(v, stack.shape) for k, v in stack.intrinsics.items()}
         todo = {k: v for k, v in views.items() if k not in known}
@@ -290,133 +319,151 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             for j, rms, median in bad:  # misdetections: left out of the calibration and the samples
                 i, det = todo[label][j]
                 detections[i] = [d for d in detections[i] if d is not det]
-                table.warnings.append(f"{stack.images[i].file.name}: target {det.target_id!r} left out, its corners "
-                                      f"reproject {rms:.2g} px off the calibration of setting {label!r} (median view "
-                                      f"{median:.2g} px): a misdetection, or markers misread under heavy blur")
+                self.table.warnings.append(
+                    f"{stack.images[i].file.name}: target {det.target_id!r} left out, its corners reproject "
+                    f"{rms:.2g} px off the calibration of setting {label!r} (median view {median:.2g} px): a "
+                    "misdetection, or markers misread under heavy blur")
             dropped = {j for j, _, _ in bad}
             todo[label] = [view for j, view in enumerate(todo[label]) if j not in dropped]
         todo = {k: [d for _, d in v] for k, v in todo.items()}
         return {**(calibrate(todo, stack.shape, jackknife=final) if todo else {}), **known}
 
-    def tasks_for(i, intrinsics):
-        intr = intrinsics[stack.images[i].setting]
+    def tasks_for(self, i: int, intrinsics: dict[str, Any]) -> tuple[list, list]:
+        """Image ``i``'s edge tasks and, for each, (target id, segment, end depths, pose)."""
+        intr = intrinsics[self.stack.images[i].setting]
         tasks, meta = [], []
-        for det in detections[i]:
+        for det in self.detections[i]:
             pose = estimate_pose(det, intr)
             if pose is None:
                 continue
-            for seg, task, z in edge_tasks(by_id[det.target_id], det, pose, intr):
+            for seg, task, z in edge_tasks(self.by_id[det.target_id], det, pose, intr):
                 tasks.append(task)
                 meta.append((det.target_id, seg, z, pose))
         return tasks, meta
 
-    # The calibration from the corners as detected, the views it left out and the edges it gives
-    # are those of an earlier measure of the same detections (the diffraction rounds: the same
-    # objects), kept beside the profiles: each round had calibrated them again (0.1 s a round).
-    keeping = profiles == {}
-    inputs = [list(detections[i]) for i in range(n)]  # held in the entry: compared by identity
-    entry = profiles.get("unrefined") if profiles and refine else None
-    if entry is not None and _same_objects(entry[0], inputs):
-        _, kept, notes, intrinsics, work = entry
-        detections.update({i: list(v) for i, v in kept.items()})
-        table.warnings.extend(notes)
-        table.intrinsics = dict(intrinsics)
-    else:
-        before, entry, work = len(table.warnings), None, None
-        with clock.stage("calibrate"):
+    def calibrate(self, profiles: dict[str, Any] | None, refine: bool) -> dict[int, tuple[list, list]] | None:
+        """The calibration from the corners as detected; returns the edges it gives where an
+        earlier measure of the same detections (the diffraction rounds: the same objects) kept
+        them beside its profiles with the calibration and the views it left out (each round had
+        calibrated them again: 0.1 s a round)."""
+        table = self.table
+        self.keeping = profiles == {}
+        inputs = [list(self.detections[i]) for i in range(self.n)]  # held in the entry: compared by identity
+        entry = profiles.get("unrefined") if profiles and refine else None
+        if entry is not None and _same_objects(entry[0], inputs):
+            _, kept, notes, intrinsics, work = entry
+            self.detections.update({i: list(v) for i, v in kept.items()})
+            table.warnings.extend(notes)
+            table.intrinsics = dict(intrinsics)
+            self.entry = None
+            return work
+        before, self.entry = len(table.warnings), None
+        with self.clock.stage("calibrate"):
             # (the uncertainty of a calibration that the refined corners replace is not needed)
-            table.intrinsics = calibrate_all(final=not refine)
+            table.intrinsics = self.calibrate_views(final=not refine)
         if profiles is not None and refine:
-            entry = profiles["unrefined"] = [inputs, {i: list(v) for i, v in detections.items()},
-                                             table.warnings[before:], dict(table.intrinsics), None]
-    # The fits loading in the background (:func:`_prewarm`) are not waited for here: each compiled fit
-    # waits for its own loading (lensfit.aot's lock per function), so that the first pass starts
-    # once its two fits are in and the shaped fits load while it runs (on the demo the process
-    # waited 0.8 s for all four before the first pass).
-    from lensfit.estimators import edge as edge_estimator
+            self.entry = profiles["unrefined"] = [inputs, {i: list(v) for i, v in self.detections.items()},
+                                                  table.warnings[before:], dict(table.intrinsics), None]
+        return None
 
-    first: dict[int, tuple[list, list, list]] = {}
-    if refine or estimator == "edge":
-        # Every edge of the stack in one batched solve per pass; images read when needed.
+    def first_pass(self, work: dict[int, tuple[list, list]] | None, profiles: dict[str, Any] | None,
+                   on_edges: Callable[[int, int], None] | None) -> dict[int, tuple[list, list, list]]:
+        """Every edge of the stack in one batched solve per pass, images read when needed: per
+        image (tasks, their meta, estimates)."""
+        # The fits loading in the background (:func:`_prewarm`) are not waited for here: each
+        # compiled fit waits for its own loading (lensfit.aot's lock per function), so that the
+        # first pass starts once its two fits are in and the shaped fits load while it runs (on
+        # the demo the process waited 0.8 s for all four before the first pass).
+        from lensfit.estimators import edge as edge_estimator
+
+        n, table = self.n, self.table
         if work is None:
-            with clock.stage("calibrate"):
-                work = {i: tasks_for(i, table.intrinsics) for i in range(n)}
-            if entry is not None:  # kept with the calibration it comes from
-                entry[4] = work
+            with self.clock.stage("calibrate"):
+                work = {i: self.tasks_for(i, table.intrinsics) for i in range(n)}
+            if self.entry is not None:  # kept with the calibration it comes from
+                self.entry[4] = work
         if on_edges is not None:
-            on_edges(len({e.setting for e in stack.images}), sum(len(w[0]) for w in work.values()))
-        with clock.stage("measure"):
-            per_image = edge_estimator.measure_images([(partial(read, i), work[i][0]) for i in range(n)],
-                                                      progress=lambda k: tick("edges"),
-                                                      airy_px=None if airy_px is None else [airy(i) for i in range(n)],
-                                                      keep_profiles=profiles if keeping else None,
-                                                      profiles=None if keeping else profiles)
+            on_edges(len({e.setting for e in self.stack.images}), sum(len(w[0]) for w in work.values()))
+        with self.clock.stage("measure"):
+            per_image = edge_estimator.measure_images(
+                [(partial(self.read, i), work[i][0]) for i in range(n)], progress=lambda k: self.tick("edges"),
+                airy_px=None if self.airy_px is None else [self.airy(i) for i in range(n)],
+                keep_profiles=profiles if self.keeping else None, profiles=None if self.keeping else profiles)
         table.profiles = profiles if profiles else None
-        for i in range(n):
-            first[i] = (work[i][0], work[i][1], per_image[i])
-    if refine:
+        return {i: (work[i][0], work[i][1], per_image[i]) for i in range(n)}
+
+    def refine(self, first: dict[int, tuple[list, list, list]]) -> None:
+        """The corners moved through the measured edge lines, and the settings calibrated again."""
+        stack, table = self.stack, self.table
         before = dict(table.intrinsics)
-        for i in range(n):
-            detections[i] = _refined(detections[i], first[i], table.intrinsics[stack.images[i].setting], by_id)
-        with clock.stage("calibrate"):
-            table.intrinsics = calibrate_all()
-        # A distortion the corners as detected did not show (OpenCV's carry ~0.1 px) but the refined
-        # ones do: the lines are moved through their edges' ends again, through that distortion.
+        for i in range(self.n):
+            self.detections[i] = refined_detections(self.detections[i], first[i], table.intrinsics[stack.images[i].setting],
+                                          self.by_id)
+        with self.clock.stage("calibrate"):
+            table.intrinsics = self.calibrate_views()
+        # A distortion the corners as detected did not show (OpenCV's carry ~0.1 px) but the
+        # refined ones do: the lines are moved through their edges' ends again, through it.
         found = {k for k, v in table.intrinsics.items()
                  if np.any(v.distortion) and k in before and not np.any(before[k].distortion)}
         if found:
-            for i in range(n):
+            for i in range(self.n):
                 if stack.images[i].setting in found:
-                    detections[i] = _refined(detections[i], first[i], table.intrinsics[stack.images[i].setting],
-                                             by_id, fresh_poses=True)
-            with clock.stage("calibrate"):
-                table.intrinsics = calibrate_all()
-    table.warnings.extend(few_informative_views(table.intrinsics))
-    for i in range(n):
-        entry = stack.images[i]
-        table.corners_px[entry.file.name] = [(d.target_id, np.asarray(d.image_points_px, np.float64))
-                                             for d in detections[i]]
-        with clock.stage("calibrate"):
-            tasks, meta = tasks_for(i, table.intrinsics)
-        if estimator == "edge" and i in first:
+                    self.detections[i] = refined_detections(self.detections[i], first[i],
+                                                  table.intrinsics[stack.images[i].setting], self.by_id,
+                                                  fresh_poses=True)
+            with self.clock.stage("calibrate"):
+                table.intrinsics = self.calibrate_views()
+
+    def estimates_of(self, i: int, tasks: list, meta: list, first: tuple[list, list, list] | None) -> tuple[list, list]:
+        """Image ``i``'s blur readings for ``tasks`` (and the tasks they were read with)."""
+        from lensfit.estimators import edge as edge_estimator
+
+        if self.estimator == "edge" and first is not None:
             # Blur from the first pass (the edge lines are located in the image itself, so the
             # refined poses move nothing); distances from the refined poses.
-            by_key = {(m[0], m[1].id): e for m, e in zip(first[i][1], first[i][2])}
-            read_with = {(m[0], m[1].id): t for m, t in zip(first[i][1], first[i][0])}
+            by_key = {(m[0], m[1].id): e for m, e in zip(first[1], first[2])}
+            read_with = {(m[0], m[1].id): t for m, t in zip(first[1], first[0])}
             estimates = [by_key.get((m[0], m[1].id)) for m in meta]
             used = [read_with[(m[0], m[1].id)] if e is not None else t for m, t, e in zip(meta, tasks, estimates)]
             if any(e is None for e in estimates):
-                with clock.stage("measure"):
-                    again = edge_estimator.measure(read(i), tasks, airy_px=airy(i))
+                with self.clock.stage("measure"):
+                    again = edge_estimator.measure(self.read(i), tasks, airy_px=self.airy(i))
                 estimates = [e if e is not None else a for e, a in zip(estimates, again)]
-        else:
-            used = tasks
-            with clock.stage("measure"):
-                if not tasks:
-                    estimates = []
-                elif airy_px is not None:
-                    estimates = edge_estimator.measure(read(i), tasks, second_moment=estimator == "edge",
-                                                       airy_px=airy(i))
-                else:
-                    estimates = fn(read(i), tasks)
+            return estimates, used
+        with self.clock.stage("measure"):
+            if not tasks:
+                return [], tasks
+            if self.airy_px is not None:
+                return edge_estimator.measure(self.read(i), tasks, second_moment=self.estimator == "edge",
+                                              airy_px=self.airy(i)), tasks
+            return self.fn(self.read(i), tasks), tasks
+
+    def samples_of(self, i: int, first: tuple[list, list, list] | None) -> None:
+        """Image ``i``'s samples (and its corners, poses and edge tasks) into the table."""
+        entry, table = self.stack.images[i], self.table
+        table.corners_px[entry.file.name] = [(d.target_id, np.asarray(d.image_points_px, np.float64))
+                                             for d in self.detections[i]]
+        with self.clock.stage("calibrate"):
+            tasks, meta = self.tasks_for(i, table.intrinsics)
+        estimates, used = self.estimates_of(i, tasks, meta, first)
         for (tid, seg, z, pose), task, est, read_task in zip(meta, tasks, estimates, used):
             table.poses[(entry.file.name, tid)] = pose
             flags = list(est.flags)
             if pose.ambiguous:
                 flags.append("pose_ambiguous")
-            if airy_px is not None:
+            if self.airy_px is not None:
                 flags.append("diffraction_modelled")
             source = "pose"
             if entry.distance_mm is not None:
                 z = np.full(3, float(entry.distance_mm))
                 source = "manifest"
             middle = 0.5 * (np.asarray(task.start_px, float) + task.end_px)
-            est = _undistorted_blur(est, task.context.get("distortion_scale", 1.0) if estimator != "target" else 1.0,
-                                    flags)
+            est = undistorted_blur(est, task.context.get("distortion_scale", 1.0) if self.estimator != "target"
+                                    else 1.0, flags)
             table.samples.append(Sample(
                 image=entry.file.name, setting=entry.setting, target=tid, edge=seg.id,
                 distance_mm=float(z[1]), distance_start_mm=float(z[0]), distance_end_mm=float(z[2]),
-                coc_diameter_px=est.coc_diameter_px, sigma_px=est.sigma_px, estimator=estimator,
+                coc_diameter_px=est.coc_diameter_px, sigma_px=est.sigma_px, estimator=self.estimator,
                 flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source,
                 field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px))),
@@ -425,49 +472,3 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
             table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
                                              read_task.clear_right_px, {k: v for k, v in read_task.context.items()
                                                                         if k in EDGE_CONTEXT}))
-        tick("measure")
-    table.stage_seconds = dict(clock.seconds)
-    return table
-
-
-#: The distortion scales (lensfit.edge_geometry.distortion_scale) a blur reading is taken through:
-#: beyond them the calibrated model is folding or far outside what it was fitted on.
-DISTORTION_SCALE_RANGE = (0.2, 5.0)
-
-
-def _refined(detections: list[Detection], first: tuple[list, list, list], intr, by_id: dict[str, Target],
-             fresh_poses: bool = False) -> list[Detection]:
-    """An image's detections with their corners refined from the edge lines of the first pass
-    (``first``: its tasks, their (target, segment, depths, pose) and the readings), each line
-    moved through its edge's true ends where ``intr``'s distortion bows the edge
-    (:func:`lensfit.edge_geometry.unbowed`), through the pose the edge was measured with or, with
-    ``fresh_poses``, the detection's pose under ``intr``."""
-    tasks, meta, estimates = first
-    out = []
-    for det in detections:
-        pose_now = estimate_pose(det, intr) if fresh_poses else None
-        lines = {seg.id: (unbowed(est.line_px, seg, pose if pose_now is None else pose_now, intr, bow_margin(task, est)),
-                          est.coc_diameter_px, est.line_cov_px2)
-                 for task, (tid, seg, _, pose), est in zip(tasks, meta, estimates)
-                 if tid == det.target_id and est.line_px is not None}
-        out.append(refine_corners(det, by_id[det.target_id], lines))
-    return out
-
-
-def _undistorted_blur(est: Any, scale: float, flags: list[str]) -> Any:
-    """An edge's blur reading in the undistorted image's pixels, where the CoC model lives: the
-    image's reading over the distortion's ``scale`` across the edge (its sigma and the uniform
-    disk's reading with it; flag ``distortion_scaled``); none where the scale is out of
-    ``DISTORTION_SCALE_RANGE`` (flag ``distortion_extreme``). ``flags`` is extended in place."""
-    if scale == 1.0 or est.coc_diameter_px is None:
-        return est
-    if not (math.isfinite(scale) and DISTORTION_SCALE_RANGE[0] <= scale <= DISTORTION_SCALE_RANGE[1]):
-        flags.append("distortion_extreme")
-        return dataclasses.replace(est, coc_diameter_px=None, sigma_px=None)
-    flags.append("distortion_scaled")
-
-    def over(v):
-        return None if v is None else v / scale
-
-    return dataclasses.replace(est, coc_diameter_px=over(est.coc_diameter_px), sigma_px=over(est.sigma_px),
-                               disk_diameter_px=over(est.disk_diameter_px), disk_sigma_px=over(est.disk_sigma_px))

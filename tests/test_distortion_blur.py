@@ -219,19 +219,19 @@ def test_where_the_model_folds_the_image_there_is_no_scale():
 
 def test_readings_are_divided_by_the_scale_or_dropped_beyond_its_range():
     from lensfit.estimators.base import BlurEstimate
-    from lensfit.measure import _undistorted_blur
+    from lensfit.edge_geometry import undistorted_blur
 
     est = BlurEstimate(4.0, 0.2, ("shaped_spot",), disk_diameter_px=3.8, disk_sigma_px=0.1)
     flags: list[str] = []
-    got = _undistorted_blur(est, 0.8, flags)
+    got = undistorted_blur(est, 0.8, flags)
     assert (got.coc_diameter_px, got.sigma_px, got.disk_diameter_px, got.disk_sigma_px) == pytest.approx(
         (5.0, 0.25, 4.75, 0.125)) and flags == ["distortion_scaled"]
     for bad in (float("nan"), 0.1, 6.0):
         flags = []
-        got = _undistorted_blur(est, bad, flags)
+        got = undistorted_blur(est, bad, flags)
         assert got.coc_diameter_px is None and got.sigma_px is None and flags == ["distortion_extreme"]
     flags = []
-    assert _undistorted_blur(est, 1.0, flags) is est and flags == []
+    assert undistorted_blur(est, 1.0, flags) is est and flags == []
 
 
 def test_lensfit_fit_says_when_the_readings_went_through_a_distortion(calibration_samples, capsys):
@@ -313,7 +313,7 @@ def test_a_distortion_only_the_refined_corners_show_moves_the_lines_again(calibr
 
     import lensfit.measure as m
 
-    real_calibrate, real_refined = m.calibrate, m._refined
+    real_calibrate, real_refined = m.calibrate, m.refined_detections
     for inject in (False, True):
         calls, fresh = [], []
 
@@ -329,7 +329,7 @@ def test_a_distortion_only_the_refined_corners_show_moves_the_lines_again(calibr
             return real_refined(*args, fresh_poses=fresh_poses, **kw)
 
         monkeypatch.setattr(m, "calibrate", calibrate)
-        monkeypatch.setattr(m, "_refined", refined)
+        monkeypatch.setattr(m, "refined_detections", refined)
         table = m.measure(calibration_stack)
         assert not any(np.any(v.distortion) for v in calls[0].values())
         images = len(table.corners_px)

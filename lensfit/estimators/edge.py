@@ -234,22 +234,18 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             raise ValueError(f"airy_px: one scale per image, each between 0 and {MAX_AIRY_PX} px")
     owner = [k for k, (_, ts) in enumerate(items) for _ in ts]
     tasks = [t for _, ts in items for t in ts]
-    results: list[BlurEstimate | None] = [None] * len(tasks)
-    radius: list[float | None] = [None] * len(tasks)
-    flags: list[list[str]] = [[] for _ in tasks]
-    npixels = [0] * len(tasks)
-    lines: list = [None] * len(tasks)
-    expected: list = [None] * len(tasks)  # the first pass's (offset, radius), for the second's weights
-    banded: list = [None] * len(tasks)  # the profile with the two-disk fit's weights
-    cramped = [False] * len(tasks)  # the second pass's window narrower than the spot asks for
+    # per edge: its reading, the last pass's radius, its line, the first pass's (offset, radius)
+    # for the second's weights, the profile with the two-disk fit's weights; flags, pixels, and
+    # whether the second pass's window is narrower than the spot asks for
+    results, radius, lines, expected, banded = ([None] * len(tasks) for _ in range(5))
+    flags, npixels, cramped = [[] for _ in tasks], [0] * len(tasks), [False] * len(tasks)
     key = [(k, tuple(float(x) for x in t.start_px), tuple(float(x) for x in t.end_px), float(t.clear_left_px),
             float(t.clear_right_px)) for k, t in zip(owner, tasks)]
     reuse = profiles if profiles is not None and profiles.get("key") == key else None
     for attempt in range(2):
         if reuse is not None and attempt == 0:
             continue  # the first pass's findings are in the kept profiles
-        batch, index = [], []
-        images: dict[int, np.ndarray] = {}
+        batch, index, images = [], [], {}  # profiles solved this pass, their edges, the image in hand
         # The first pass only sizes the window: a uniform disk (which takes the Airy pattern for
         # blur, so the window comes out wider, never narrower) at a tenth of the cost or less;
         # its radius bounds the start of the fit with the pattern. Each full chunk is solved
@@ -265,13 +261,11 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 earlier = None
         queue = FitQueue(False, with_airy, warm=earlier is not None)
 
-        def enqueue(i, profile):
-            if earlier is not None:
-                queue.add(profile, earlier[i], float(airy_px[owner[i]]))
-            elif with_airy:  # started from the first pass's radius
-                queue.add(profile, np.array([0.0, radius[i] ** 2, 0.0, 1.0, 0.0]), float(airy_px[owner[i]]))
-            else:
-                queue.add(profile)
+        def enqueue(i, profile):  # with the Airy pattern: from an earlier call's solution or the first pass's radius
+            if not with_airy:
+                return queue.add(profile)
+            start = earlier[i] if earlier is not None else np.array([0.0, radius[i] ** 2, 0.0, 1.0, 0.0])
+            queue.add(profile, start, float(airy_px[owner[i]]))
         if reuse is not None:
             for i, profile in zip(index, batch):
                 enqueue(i, profile)
@@ -289,26 +283,18 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                     if owner[i] not in images:
                         images.clear()  # one image in memory at a time (and the next one being read)
                         images[owner[i]] = next(loader)
-                    half, margin, truncated = windows(task, radius[i] if attempt else None)
-                    if attempt:  # the clean room, not the spot, set the window
-                        cramped[i] = min(half) < window_wanted(radius[i]) - 1e-9
-                    sel = _select(images[owner[i]], task, half, margin, expected[i] if attempt else None)
-                    if sel is None or len(sel[0]) < 8:
+                    got = _profile_of(images[owner[i]], task, radius[i] if attempt else None,
+                                      expected[i] if attempt else None)
+                    if got is None:
                         results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
                         radius[i] = None
                         continue
-                    d, s_along, v, se, n, L, short, pixels, line, se_banded, boxes = sel
-                    banded[i] = (d, s_along, v, se_banded, boxes)
-                    lines[i] = (line, n)
-                    if attempt == 1:
-                        flags[i] = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
-                        angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
-                        if min(angle, 90.0 - angle) < AXIS_ALIGNED_DEG:
-                            flags[i].append("axis_aligned")
-                    batch.append((d, s_along, v, se, boxes))
-                    npixels[i] = pixels
+                    profile, banded[i], lines[i], f, npixels[i], narrowed = got
+                    if attempt:
+                        flags[i], cramped[i] = f, narrowed
+                    batch.append(profile)
                     index.append(i)
-                    enqueue(i, batch[-1])
+                    enqueue(i, profile)
             finally:
                 loader.close()
         if attempt == 1 and keep_profiles is not None:
@@ -322,102 +308,141 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         fits = queue.results()
         if with_airy and reuse is not None:  # for the next round's start
             reuse["airy_theta"] = {i: np.asarray(fits[j][0][:5], np.float64) for j, i in enumerate(index) if fits[j][3]}
-        shaped: list[int] = []
-        disk: dict[int, tuple[float, float, float]] = {}  # the disk's (diameter, RMS, sigma) where shaped
-        radial: dict[int, tuple[float, float]] = {}  # the radial profile's (diameter, sigma) where read
-        halo_cut: set[int] = set()  # spots whose halo goes on past a window the clean room narrowed
+        shapes = None
         if second_moment and attempt == 1 and airy is None:
-            # The spot's shape is read wherever it can be (see the module docstring); the
-            # uniform disk's reading is kept beside it: their difference sizes the shape's
-            # model error.
-            diameter = [2.0 * math.sqrt(squared_radius(np, float(theta[1]))) for theta, *_ in fits]
-            readable = [j for j, (_, _, _, ok, _) in enumerate(fits) if ok and diameter[j] >= SHAPE_MIN_PX]
-            across = [j for j in readable if not _at_one_depth(tasks[index[j]])]
-            wide = [j for j in across if diameter[j] >= SHAPE_ACROSS_MIN_PX]
-            uneven = set(across) - {j for j, ok in zip(wide, _even_along([batch[j] for j in wide])) if ok}
-            shaped = [j for j in readable if j not in uneven]
-            refits = fit_profiles([banded[index[j]] for j in shaped], True, [fits[j][0] for j in shaped],
-                                  None if airy is None else [airy[j] for j in shaped])
-            for j, refit in zip(shaped, refits):
-                disk[j] = (diameter[j], fits[j][2], 2.0 * _radius_terms(*fits[j][:2])[3])
-                fits[j] = refit
-                if refit[3] and "window_truncated" not in flags[index[j]]:  # where two disks cannot hold it
-                    got = radial_reading(banded[index[j]], np.asarray(refit[0], np.float64), refit[2])
-                    if got is not None and got[2] and cramped[index[j]]:  # a halo the clean room cut
-                        halo_cut.add(j)
-                    elif got is not None:
-                        radial[j] = got[:2]
-        is_shaped = set(shaped)
-        for j, (i, (theta, cov, rms, ok, probe)) in enumerate(zip(index, fits)):
-            rho, slope, var_rho, sigma_r = _radius_terms(theta, cov)
-            r = math.sqrt(rho)
-            a = float(theta[5]) if j in is_shaped else 0.0
-            t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
-            m = 1.0 - a * (1.0 - t * t)  # variance of two disks over that of the outer one
-            if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > MIN_VARIANCE_SHARE):
-                results[i] = BlurEstimate(None, None, tuple(flags[i]) + ("fit_failed",), npixels[i])
-                radius[i] = None
-                continue
-            radius[i] = r  # the outer disk: the spot's reach, for the window
-            expected[i] = (float(theta[0]), r)  # where the second pass's noise model puts the edge
-            # The second-moment diameter c = 2 R sqrt(1 - a (1 - t^2)): 16 x the spot's variance
-            # across the edge; the uniform disk's diameter where a = 0.
-            k = math.sqrt(m)
-            c = 2.0 * r * k
-            f = list(flags[i]) + (["shaped_spot"] if j in is_shaped else []) + (["window_truncated"] if j in halo_cut
-                                                                                else [])
-            # 1 sigma of c from that of R (_radius_terms); the shape's share by the gradient of c
-            # in (a, logit t), with its covariance with R^2.
-            var_c = (2.0 * k * sigma_r) ** 2
-            if j in is_shaped:
-                g = np.array([-r * (1.0 - t * t) / k, 2.0 * r * a * t * t * (1.0 - t) / k])
-                C = np.asarray(cov[5:7, 5:7], np.float64)
-                var_c += float(g @ C @ g) + 2.0 * (k / max(r, 1e-6)) * slope * float(g @ np.asarray(cov[1, 5:7]))
-            sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
-            if j in radial:  # two disks could not hold it: the radial profile's reading
-                c, noise = radial[j]
-                f.append("radial_profile")
-                sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[j][0]))
-            elif j in is_shaped:
-                # Chi-square inflation measures the profile family's misfit, which the model error
-                # states instead (a share of how far the spot reads from a uniform disk). Where a is
-                # within SHAPE_SIGNIFICANT_Z sigmas of 0 the noise is the disk fit's: at a = 0 the
-                # two disks' covariance overstates it (a pure disk's scatter: +0-15 %; sigma: +30 %).
-                noise = (disk[j][2] if abs(a) < SHAPE_SIGNIFICANT_Z * math.sqrt(max(float(cov[5, 5]), 0.0))
-                         else sigma_c / max(rms, 1.0))
-                sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[j][0]))
-            sigma = with_model_floor(sigma_c, c)
-            if c < SUB_PIXEL_PX:
-                # Below about half a pixel the pixel footprint dominates the profile and the fit's
-                # curvature says nothing useful (none at R = 0): the reading is "sharp", stated
-                # with 0.2 px, if the profile rules out a 1 px blur (by chi-square PROBE_DCHI2); else
-                # it says nothing (an edge along a pixel axis in noise, whose few pixel phases
-                # trade the radius against the edge's position).
-                undetermined = not probe >= PROBE_DCHI2
-                sigma = SUB_PIXEL_SIGMA_PX
-                f.append("sub_pixel_blur")
-            else:
-                undetermined = not sigma <= UNDETERMINED_SIGMA * c
-            if undetermined:
-                results[i] = BlurEstimate(None, None, tuple(f) + ("blur_undetermined",), npixels[i])
-                continue
-            contrast = abs(float(theta[3] - theta[2]))
-            if contrast < 10 * max(rms, 1e-12) * float(np.median(batch[j][3])):
-                f.append("low_contrast")
-            (q0, q1), n = lines[i]
-            d0, turn = float(theta[0]), float(theta[4])
-            half_len = 0.5 * float(np.linalg.norm(q1 - q0))
-            line_px = (tuple(float(x) for x in q0 + (d0 - turn * half_len) * n),
-                       tuple(float(x) for x in q1 + (d0 + turn * half_len) * n))
-            # A window that cannot hold the spot's reach gives no value (the line is kept for the
-            # corners): such readings came out 2-40 % low, their sigmas not saying so.
-            cut = "window_truncated" in f
-            d_c, d_rms, d_sigma = disk[j] if j in is_shaped and not cut else (None, rms, None)
-            results[i] = BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels[i], d_rms, line_px,
-                                      d_c, None if d_c is None else with_model_floor(d_sigma, d_c),
-                                      line_end_covariance(np.asarray(cov, np.float64), half_len, "sub_pixel_blur" in f))
-    flat = [r if r is not None else BlurEstimate(None, None, ("not_measured",)) for r in results]
+            shapes = _read_shapes(fits, [tasks[i] for i in index], batch, [banded[i] for i in index],
+                                  [flags[i] for i in index], [cramped[i] for i in index])
+            fits = shapes[0]
+        for j, (i, fitted) in enumerate(zip(index, fits)):
+            shaped, disk, radial, halo_cut = shapes[1:] if shapes else (set(), {}, {}, set())
+            results[i], reach, where = _reading(fitted, flags[i], npixels[i], lines[i], batch[j], j in shaped,
+                                                disk.get(j), radial.get(j), j in halo_cut)
+            radius[i] = reach  # None where the fit failed
+            if reach is not None:
+                expected[i] = where
     out: list[list[BlurEstimate]] = [[] for _ in items]
-    for k, r in zip(owner, flat):
-        out[k].append(r)
+    for k, r in zip(owner, results):
+        out[k].append(r if r is not None else BlurEstimate(None, None, ("not_measured",)))
     return out
+
+
+def _profile_of(image: np.ndarray, task: EdgeTask, radius: float | None, expected: tuple[float, float] | None):
+    """An edge's profile for a pass (``radius`` of the last pass's reading; None: the first
+    pass): (profile, profile with the two-disk fit's weights, (line, normal), flags, pixels,
+    whether the clean room narrowed the window below what the spot asks for); None where too few
+    pixels lie in the window."""
+    half, margin, truncated = windows(task, radius)
+    sel = _select(image, task, half, margin, expected)
+    if sel is None or len(sel[0]) < 8:
+        return None
+    d, s_along, v, se, n, L, short, pixels, line, se_banded, boxes = sel
+    flags: list[str] = []
+    if radius is not None:
+        flags = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
+        angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
+        if min(angle, 90.0 - angle) < AXIS_ALIGNED_DEG:
+            flags.append("axis_aligned")
+    narrowed = radius is not None and min(half) < window_wanted(radius) - 1e-9
+    return (d, s_along, v, se, boxes), (d, s_along, v, se_banded, boxes), (line, n), flags, pixels, narrowed
+
+
+def _read_shapes(fits: list, tasks: list[EdgeTask], batch: list, banded: list, flags: list[list[str]],
+                 cramped: list[bool]) -> tuple[list, set[int], dict, dict, set[int]]:
+    """The spot's shape read wherever it can be (see the module docstring), the uniform disk's
+    reading kept beside it (their difference sizes the shape's model error): the fits with the
+    shaped ones in place, which were shaped, each one's disk (diameter, RMS, sigma), the radial
+    profile's (diameter, sigma) where two disks could not hold the spot, and the spots whose halo
+    goes on past a window the clean room narrowed. Per fit: its task, profile, profile with the
+    two-disk weights, flags and whether the clean room narrowed its window."""
+    fits = list(fits)
+    diameter = [2.0 * math.sqrt(squared_radius(np, float(theta[1]))) for theta, *_ in fits]
+    readable = [j for j, (_, _, _, ok, _) in enumerate(fits) if ok and diameter[j] >= SHAPE_MIN_PX]
+    across = [j for j in readable if not _at_one_depth(tasks[j])]
+    wide = [j for j in across if diameter[j] >= SHAPE_ACROSS_MIN_PX]
+    uneven = set(across) - {j for j, ok in zip(wide, _even_along([batch[j] for j in wide])) if ok}
+    shaped = [j for j in readable if j not in uneven]
+    disk: dict[int, tuple[float, float, float]] = {}
+    radial: dict[int, tuple[float, float]] = {}
+    halo_cut: set[int] = set()
+    for j, refit in zip(shaped, fit_profiles([banded[j] for j in shaped], True, [fits[j][0] for j in shaped])):
+        disk[j] = (diameter[j], fits[j][2], 2.0 * _radius_terms(*fits[j][:2])[3])
+        fits[j] = refit
+        if refit[3] and "window_truncated" not in flags[j]:  # where two disks cannot hold it
+            got = radial_reading(banded[j], np.asarray(refit[0], np.float64), refit[2])
+            if got is not None and got[2] and cramped[j]:  # a halo the clean room cut
+                halo_cut.add(j)
+            elif got is not None:
+                radial[j] = got[:2]
+    return fits, set(shaped), disk, radial, halo_cut
+
+
+def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile: tuple, shaped: bool,
+             disk: tuple[float, float, float] | None, radial: tuple[float, float] | None,
+             halo_cut: bool) -> tuple[BlurEstimate, float | None, tuple[float, float] | None]:
+    """One edge's reading from its fit ``(theta, cov, rms, ok, probe)``: the estimate, the outer
+    disk's radius (the spot's reach, for the next pass's window) and where the next pass's
+    noise model puts the edge (offset, radius); None for both where the fit failed. ``disk``,
+    ``radial``: :func:`_read_shapes`' for this edge."""
+    theta, cov, rms, ok, probe = fitted
+    rho, slope, var_rho, sigma_r = _radius_terms(theta, cov)
+    r = math.sqrt(rho)
+    a = float(theta[5]) if shaped else 0.0
+    t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
+    m = 1.0 - a * (1.0 - t * t)  # variance of two disks over that of the outer one
+    if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > MIN_VARIANCE_SHARE):
+        return BlurEstimate(None, None, tuple(flags) + ("fit_failed",), npixels), None, None
+    reach = (r, (float(theta[0]), r))
+    # The second-moment diameter c = 2 R sqrt(1 - a (1 - t^2)): 16 x the spot's variance across
+    # the edge; the uniform disk's diameter where a = 0.
+    k = math.sqrt(m)
+    c = 2.0 * r * k
+    f = list(flags) + (["shaped_spot"] if shaped else []) + (["window_truncated"] if halo_cut else [])
+    # 1 sigma of c from that of R (_radius_terms); the shape's share by the gradient of c in
+    # (a, logit t), with its covariance with R^2.
+    var_c = (2.0 * k * sigma_r) ** 2
+    if shaped:
+        g = np.array([-r * (1.0 - t * t) / k, 2.0 * r * a * t * t * (1.0 - t) / k])
+        C = np.asarray(cov[5:7, 5:7], np.float64)
+        var_c += float(g @ C @ g) + 2.0 * (k / max(r, 1e-6)) * slope * float(g @ np.asarray(cov[1, 5:7]))
+    sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
+    if radial is not None:  # two disks could not hold it: the radial profile's reading
+        c, noise = radial
+        f.append("radial_profile")
+        sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[0]))
+    elif shaped:
+        # Chi-square inflation measures the profile family's misfit, which the model error states
+        # instead (a share of how far the spot reads from a uniform disk). Where a is within
+        # SHAPE_SIGNIFICANT_Z sigmas of 0 the noise is the disk fit's: at a = 0 the two disks'
+        # covariance overstates it (a pure disk's scatter: +0-15 %; sigma: +30 %).
+        noise = (disk[2] if abs(a) < SHAPE_SIGNIFICANT_Z * math.sqrt(max(float(cov[5, 5]), 0.0))
+                 else sigma_c / max(rms, 1.0))
+        sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[0]))
+    sigma = with_model_floor(sigma_c, c)
+    if c < SUB_PIXEL_PX:
+        # Below about half a pixel the pixel footprint dominates the profile and the fit's
+        # curvature says nothing useful (none at R = 0): the reading is "sharp", stated with
+        # 0.2 px, if the profile rules out a 1 px blur (by chi-square PROBE_DCHI2); else it says
+        # nothing (an edge along a pixel axis in noise, whose few pixel phases trade the radius
+        # against the edge's position).
+        undetermined = not probe >= PROBE_DCHI2
+        sigma = SUB_PIXEL_SIGMA_PX
+        f.append("sub_pixel_blur")
+    else:
+        undetermined = not sigma <= UNDETERMINED_SIGMA * c
+    if undetermined:
+        return BlurEstimate(None, None, tuple(f) + ("blur_undetermined",), npixels), *reach
+    contrast = abs(float(theta[3] - theta[2]))
+    if contrast < 10 * max(rms, 1e-12) * float(np.median(profile[3])):
+        f.append("low_contrast")
+    (q0, q1), n = line
+    d0, turn = float(theta[0]), float(theta[4])
+    half_len = 0.5 * float(np.linalg.norm(q1 - q0))
+    line_px = (tuple(float(x) for x in q0 + (d0 - turn * half_len) * n),
+               tuple(float(x) for x in q1 + (d0 + turn * half_len) * n))
+    # A window that cannot hold the spot's reach gives no value (the line is kept for the
+    # corners): such readings came out 2-40 % low, their sigmas not saying so.
+    cut = "window_truncated" in f
+    d_c, d_rms, d_sigma = disk if shaped and not cut else (None, rms, None)
+    return BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels, d_rms, line_px, d_c,
+                        None if d_c is None else with_model_floor(d_sigma, d_c),
+                        line_end_covariance(np.asarray(cov, np.float64), half_len, "sub_pixel_blur" in f)), *reach
