@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from lensfit.bench.coverage import wilson_interval
 from lensfit.errors import InputError
 from lensfit.fit import fit
 from lensfit.pipeline import measure_and_fit
@@ -279,15 +280,5 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     for per in out.values():
         for c in per.values():
             c["rate"] = c["held"] / c["reported"] if c["reported"] else None
-            c["wilson95"] = _wilson(c["held"], c["reported"])
+            c["wilson95"] = wilson_interval(c["held"], c["reported"]) if c["reported"] else None
     return out
-
-
-def _wilson(k: int, n: int, z: float = 1.959964) -> list[float] | None:
-    """The Wilson score interval of a binomial rate k / n."""
-    if n == 0:
-        return None
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z / (1 + z * z / n) * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5
-    return [centre - half, centre + half]
