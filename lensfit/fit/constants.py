@@ -81,10 +81,11 @@ BLUR_SCALE_SIGMA_SHAPED = 0.01
 #: A shaped reading's own model error (1 sigma), as a share of its relative difference from the
 #: uniform disk's reading of the same edge: through two disks, and through the radial rings where
 #: the data rejected two disks (``lensfit.estimators.radial``). Measured on exact edges of
-#: real-ray spots (a 24 mm f/4 retrofocus, an 85 mm f/1.4 Petzval, 0-400 px off the axis): two
-#: disks' readings stayed within 0.05-0.25 of that difference of the true second moment; the
-#: rings', on the Petzval's near-side spots with a comatic tail off the axis, missed by up to
-#: 1.5-2.5 times it (a tail to one side no symmetric profile holds), on the axis by 0.3-0.5.
+#: real-ray spots (a 24 mm f/4 retrofocus, an 85 mm f/1.4 Petzval, on the axis and 150-400 px
+#: off it): two disks' readings stayed within 0.05-0.25 of that difference of the true second
+#: moment (0.3 covers them); the rings' erred by 0-2.8 times it, RMS 1.2 (on the axis 0.3-0.5;
+#: the Petzval's near-side spots off the axis, whose comatic tail to one side no symmetric
+#: profile holds, 1.3-2.8).
 #: Shared by an arm of the V (``lensfit.fit.uncertainty._arms_part``).
 SHAPE_ERROR_SHARE = 0.3
 SHAPE_ERROR_SHARE_RADIAL = 1.2

@@ -23,8 +23,8 @@ from lensfit.fit.model import Layout, _size
 from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
 from lensfit.fit.solve import _image_scatter, _padded_size, _predict_all
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
-from lensfit.fit.uncertainty import (StrataDof, _budget_parts, _correlation, _covariance, _arms_part, _derive, _images_part,
-                                     _image_spread, _null_direction, _positive, _shares, student_z)
+from lensfit.fit.uncertainty import (StrataDof, _arms_part, _budget_parts, _correlation, _covariance, _derive,
+                                     _images_part, _image_spread, _null_direction, _positive, _shares, student_z)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
