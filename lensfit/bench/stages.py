@@ -89,6 +89,17 @@ def _run(code: str, *args: str, env: dict | None = None) -> tuple[float, str]:
     return time.perf_counter() - t, out.stdout
 
 
+def _same_numpy_env() -> dict[str, str]:
+    """The environment of the OpenCV reference: numpy's memory settings as the ``lensfit``
+    process sets its own (``lensfit.running.NUMPY_ENV``), so that the ratio compares the work,
+    not the kernel's handling of huge pages (the reference's float64 temporaries stall the same)."""
+    import os
+
+    from lensfit.running import NUMPY_ENV
+
+    return {**NUMPY_ENV, **os.environ}
+
+
 def _run_measured(*argv: str) -> tuple[float, float]:
     """Seconds and peak resident memory (MiB, the process's own) of ``python -m lensfit ARGV``."""
     from lensfit.bench.peak import run_with_peak
@@ -186,7 +197,7 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
                         document = json.loads(out_json.read_text())
                         document.pop("provenance", None)
                         documents.append(document)
-                    t_cv, _ = _run(_OPENCV, str(folder))
+                    t_cv, _ = _run(_OPENCV, str(folder), env=_same_numpy_env())
                     pairs.append((by_jobs[jobs[-1]][-1], t_cv))
                 fits, cvs = zip(*pairs)
                 row.update(lensfit_fit_process_s=statistics.median(fits), opencv_process_s=statistics.median(cvs),
