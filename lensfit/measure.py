@@ -255,6 +255,9 @@ class _Run:
         self.read = self.clock.reader(self.stack.read)
         self.n = len(stack.images)
         self.detections: dict[int, list[Detection]] = {}
+        # whether the first pass keeps its profiles, and the entry of an earlier round's calibration
+        # the edges are kept with (:meth:`calibrate`)
+        self.keeping, self.entry = False, None
         self.table = SampleTable(pixel_pitch_mm=stack.pixel_pitch_mm, image_shape=stack.shape, lens=dict(stack.lens))
 
     def tick(self, stage: str) -> None:
@@ -355,7 +358,7 @@ class _Run:
             self.detections.update({i: list(v) for i, v in kept.items()})
             table.warnings.extend(notes)
             table.intrinsics = dict(intrinsics)
-            self.entry = None
+            self.entry = entry  # (its edges, where a round before kept none, are kept there)
             return work
         before, self.entry = len(table.warnings), None
         with self.clock.stage("calibrate"):
