@@ -308,13 +308,12 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         fits = queue.results()
         if with_airy and reuse is not None:  # for the next round's start
             reuse["airy_theta"] = {i: np.asarray(fits[j][0][:5], np.float64) for j, i in enumerate(index) if fits[j][3]}
-        shapes = None
+        shaped, disk, radial, halo_cut = set(), {}, {}, set()
         if second_moment and attempt == 1 and airy is None:
-            shapes = _read_shapes(fits, [tasks[i] for i in index], batch, [banded[i] for i in index],
-                                  [flags[i] for i in index], [cramped[i] for i in index])
-            fits = shapes[0]
+            fits, shaped, disk, radial, halo_cut = _read_shapes(fits, [tasks[i] for i in index], batch,
+                                                                [banded[i] for i in index], [flags[i] for i in index],
+                                                                [cramped[i] for i in index])
         for j, (i, fitted) in enumerate(zip(index, fits)):
-            shaped, disk, radial, halo_cut = shapes[1:] if shapes else (set(), {}, {}, set())
             results[i], reach, where = _reading(fitted, flags[i], npixels[i], lines[i], batch[j], j in shaped,
                                                 disk.get(j), radial.get(j), j in halo_cut)
             radius[i] = reach  # None where the fit failed
