@@ -683,3 +683,17 @@ def test_optiland_designs_written_as_lens_files_keep_optilands_paraxial_data(tmp
             lens = getattr(objectives, name)()
             assert back.efl_mm == pytest.approx(float(lens.paraxial.f2()), rel=1e-6), name
             assert back.f_number == pytest.approx(fno, rel=1e-6), name
+
+
+def test_a_case_other_code_measured_is_not_a_finished_case(monkeypatch):
+    """A case's id holds the digest of lensfit's sources: the same case under the same code keeps
+    its id (a resumed run keeps it), under other code it is another case (run again)."""
+    from lensfit.bench import suites
+    from lensfit.specs import specs_dir
+
+    task = {"scene": str(specs_dir() / "scenes" / "demo.toml"), "render": {"method": "convolve"}, "seed": 0}
+    case = {"noise": "none", "estimator": "edge", "solver": {"loss": "huber"}}
+    here = suites.case_id(task, case)
+    assert suites.case_id(task, case) == here
+    monkeypatch.setattr(suites, "code_digest", lambda: "another version")
+    assert suites.case_id(task, case) != here

@@ -7,6 +7,7 @@ settings x seeds (``lensfit.bench.runs`` runs it, ``lensfit.bench.report`` repor
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from dataclasses import dataclass
@@ -166,4 +167,19 @@ def _render_key(task: dict[str, Any]) -> str:
 
 
 def case_id(task: dict[str, Any], case: dict[str, Any]) -> str:
-    return _key(*_render_parts(task), case["noise"], case["estimator"], case["solver"])
+    return _key(*_render_parts(task), case["noise"], case["estimator"], case["solver"], code_digest())
+
+
+@functools.cache
+def code_digest() -> str:
+    """A digest of the lensfit sources that measure and fit: in a case's id, so that a case
+    another version (or an edited checkout) measured is not this code's finished case, and a
+    resumed run after an upgrade runs it again instead of reporting the old figures as its own."""
+    import lensfit
+
+    root = Path(lensfit.__file__).parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
