@@ -143,12 +143,13 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     from synth.scene import scene_from_dict
     from synth.stack import write_stack
 
-    lens_files: dict[str, tuple[Path | None, float]] = {}  # name: (its lens file, or None if shipped; f-number)
+    unshipped: dict[str, tuple[Any, float]] = {}  # name: (prescription, f-number) of optiland's designs
+    lens_files: dict[str, tuple[Path, float]] = {}  # name: (its lens file, f-number) where not shipped
     if designs == "optiland":
         from lensfit.bench.designs import sample_objectives
 
-        lens_files = {f"optiland-{n}": (None, fno) for n, _, fno in sample_objectives()}
-        names = [n for n in (names or list(lens_files)) if n in lens_files]
+        unshipped = {f"optiland-{n}": (rx, fno) for n, rx, fno in sample_objectives()}
+        names = [n for n in (names or list(unshipped)) if n in unshipped]
     else:
         names = names or (spectral_designs() if wavelengths_nm else list_prescriptions())
     if keep is not None:
@@ -165,18 +166,19 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     rows = []
     with tempfile.TemporaryDirectory(prefix="lensfit-bench-lenses-") as tmp:
         root = Path(tmp) if keep is None else Path(keep)
-        if lens_files and reuse is None:
-            lens_files = _write_lens_files(root / "lenses", names)
+        if unshipped and reuse is None:
+            lens_files = _write_lens_files(root / "lenses", {n: unshipped[n] for n in names})
         for name in names:
             if reuse is not None:
                 folder, t_render = Path(reuse) / name, None
             else:
                 say(f"{name}: rendering 24 shots")
                 t0 = time.perf_counter()
-                ref, design_n = lens_files.get(name, (None, None))
-                n_far = f_number if f_number is not None else _wide_open(str(ref) if ref else name, design_n)
-                scene = scene_from_dict(lens_scene(str(ref) if ref else name, f_number=n_far, spp=spp,
-                                                   wavelengths_nm=wavelengths_nm, scale=scale),
+                path, design_n = lens_files.get(name, (None, None))
+                lens = name if path is None else str(path)
+                n_far = f_number if f_number is not None else _wide_open(lens, design_n)
+                scene = scene_from_dict(lens_scene(lens, f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm,
+                                                   scale=scale),
                                         f"<{name} bracket>")
                 folder = write_stack(render(scene), root / name)
                 t_render = time.perf_counter() - t0
@@ -224,18 +226,16 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
             "coverage": coverage(rows)}
 
 
-def _write_lens_files(folder: Path, names: list[str]) -> dict[str, tuple[Path, float]]:
-    """optiland's sample objectives named in ``names`` as lens files in ``folder``."""
-    from lensfit.bench.designs import lens_file_text, sample_objectives
+def _write_lens_files(folder: Path, designs: dict[str, tuple[Any, float]]) -> dict[str, tuple[Path, float]]:
+    """``designs`` (name: optiland's prescription and f-number) as lens files in ``folder``."""
+    from lensfit.bench.designs import lens_file_text
 
     folder.mkdir(parents=True, exist_ok=True)
     out = {}
-    for design, rx, fno in sample_objectives():
-        name = f"optiland-{design}"
-        if name in names:
-            path = folder / f"{name}.toml"
-            path.write_text(lens_file_text(rx, name, f"optiland.samples.objectives.{design}", fno))
-            out[name] = (path, fno)
+    for name, (rx, fno) in designs.items():
+        path = folder / f"{name}.toml"
+        path.write_text(lens_file_text(rx, name, f"optiland.samples.objectives.{name.removeprefix('optiland-')}", fno))
+        out[name] = (path, fno)
     return out
 
 
@@ -243,8 +243,6 @@ def _wide_open(lens: str, design_n: float | None) -> float:
     """The design's own f-number, or where its clear apertures cut the axial beam at the far
     setting's focus (40 focal lengths; synth refuses such a scene) the fastest it opens to there,
     rounded up to a tenth of a stop."""
-    import math
-
     from synth.lens import load_prescription, paraxial
     from synth.lens.focus import fastest_f_number
 

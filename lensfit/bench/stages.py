@@ -17,6 +17,7 @@ lensfit) in a fresh process; its ratio to a whole ``lensfit fit`` is the figure 
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -93,8 +94,6 @@ def _same_numpy_env() -> dict[str, str]:
     """The environment of the OpenCV reference: numpy's memory settings as the ``lensfit``
     process sets its own (``lensfit.running.NUMPY_ENV``), so that the ratio compares the work,
     not the kernel's handling of huge pages (the reference's float64 temporaries stall the same)."""
-    import os
-
     from lensfit.running import NUMPY_ENV
 
     return {**NUMPY_ENV, **os.environ}
@@ -211,8 +210,6 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
             rows.append(row)
     if progress:
         progress("done", len(configs), len(configs))
-    import os
-
     return {"rows": rows, "jobs": list(jobs), "provenance": provenance("lensfit bench-stages", cores=os.cpu_count())}
 
 
@@ -245,7 +242,6 @@ def table(report: dict) -> str:
                 same = "identical" if r["jobs_identical"] else "DIFFER"
                 lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {times} | {r['jobs_speedup']:.2f}x | {same} |")
     return "\n".join(lines)
-
 
 
 def markdown(report: dict) -> str:

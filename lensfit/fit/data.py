@@ -304,10 +304,19 @@ def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), disto
         setting in undistorted or (setting in distorted and "distortion_scaled" in flags))
     if "shaped_spot" not in flags:
         return disk_scale_sigma(c, plain)
-    disk = row.get("disk_diameter_px")
-    if disk is None or not math.isfinite(float(disk)) or c <= 0:
+    departure = _departure(row)
+    if departure is None:
         return BLUR_SCALE_SIGMA_SHAPED
-    return math.hypot(disk_scale_sigma(c, plain), SHAPE_SCALE_SHARE * abs(c - float(disk)) / c)
+    return math.hypot(disk_scale_sigma(c, plain), SHAPE_SCALE_SHARE * departure)
+
+
+def _departure(row: dict[str, Any]) -> float | None:
+    """A shaped reading's relative difference from the uniform disk's reading of the same edge,
+    ``|c - disk| / c``; None where the reading is not shaped or gives no disk reading."""
+    c, disk = float(row["coc_diameter_px"]), row.get("disk_diameter_px")
+    if "shaped_spot" not in _flags(row) or disk is None or not math.isfinite(float(disk)) or c <= 0:
+        return None
+    return abs(c - float(disk)) / c
 
 
 def _pixel_pitch(given: float | None, stated: Any) -> float:
@@ -328,9 +337,9 @@ def _shape_error(row: dict[str, Any]) -> float:
     """A shaped reading's relative model error (1 sigma): ``SHAPE_ERROR_SHARE`` (two disks) or
     ``SHAPE_ERROR_SHARE_RADIAL`` (flag ``radial_profile``: the data rejected two disks) of its
     relative difference from the uniform disk's reading of the same edge."""
-    c, disk = float(row["coc_diameter_px"]), float(row["disk_diameter_px"])
+    departure = _departure(row)
     share = SHAPE_ERROR_SHARE_RADIAL if "radial_profile" in _flags(row) else SHAPE_ERROR_SHARE
-    return share * abs(c - disk) / c if c > 0 else math.nan
+    return math.nan if departure is None else share * departure
 
 
 def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[np.ndarray, dict]:
@@ -352,10 +361,9 @@ def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[
     out: dict[str, tuple[float, int]] = {}
     setting = np.array([str(r["setting"]) for r in used])
     w = np.array([1.0 / float(r["distance_mm"]) for r in used])
-    flags = [_flags(r) for r in used]
-    is_shaped = np.array(["shaped_spot" in f and r.get("disk_diameter_px") is not None
-                          and float(r["coc_diameter_px"]) > 0 for f, r in zip(flags, used)])
-    unread = np.array([not f & {"shaped_spot", "diffraction_modelled", "sub_pixel_blur"} for f in flags])
+    departure = np.array([_departure(r) for r in used], dtype=float)  # NaN: no shape read
+    is_shaped = np.isfinite(departure)
+    unread = np.array([not _flags(r) & {"shaped_spot", "diffraction_modelled", "sub_pixel_blur"} for r in used])
     c = np.array([float(r["coc_diameter_px"]) for r in used])
     for label in labels:
         mine = setting == label
@@ -365,7 +373,7 @@ def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[
             continue
         order = resolved[np.argsort(w[resolved])]
         w_sorted = w[order]
-        rel = np.array([abs(c[i] - float(used[i]["disk_diameter_px"])) / c[i] for i in order])
+        rel = departure[order]
         # the nearest resolved spots in inverse distance on either side (the reading may lie on
         # either side of the focus, whose spots differ): the larger of their medians
         at = np.searchsorted(w_sorted, w[which])

@@ -99,9 +99,10 @@ def _arms_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, theta
     if p == 0:
         return out
     n = len(data.coc_px)
-    at_x = theta[1:1 + m] / 1000.0  # each setting's inverse focus distance, 1/mm
-    curv = theta[2 + 3 * m:2 + 4 * m] / 1000.0
-    vertex = at_x[data.setting] + curv[data.setting] * np.nan_to_num(np.asarray(data.field2, float))
+    at = Layout(m)
+    # each sample's in-focus inverse distance (1/mm): its setting's, moved by the field curvature
+    vertex = (theta[at.inv_focus_per_m()][data.setting] + theta[at.curvature()][data.setting]
+              * np.nan_to_num(np.asarray(data.field2, float))) / 1000.0
     near = data.w_mean > vertex
     on = rows > 0
     lever = data.coc_px * np.sqrt(rows) / data.sigma_px
