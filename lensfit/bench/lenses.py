@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from lensfit.bench.coverage import wilson_interval
-from lensfit.errors import InputError
+from lensfit.errors import InputError, SpecError
 from lensfit.fit import fit
 from lensfit.pipeline import measure_and_fit
 from lensfit.specs import load_toml, specs_dir
@@ -189,7 +189,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
             # (the spots' shapes, or the pattern modelled; lensfit.fit.spots); its fit is the bracket's.
             try:
                 table, bracket, _ = measure_and_fit(folder, auto_diffraction=True)
-            except InputError as exc:  # the stack refused as a user's would be: a row saying why
+            except (InputError, SpecError) as exc:  # the stack refused as a user's would be: a row saying why
                 rows.append({"lens": name, "refused": str(exc), "fits": {}})
                 continue
             t_measure = time.perf_counter() - t0
