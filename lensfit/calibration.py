@@ -19,14 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lensfit.calibration_sigma import _correlated_sigma, _focal_information_inverse, jackknife_dof
+from lensfit.calibration_sigma import correlated_sigma, focal_information_inverse, jackknife_dof
 from lensfit.errors import InputError
 from lensfit.targets import Detection
 
 MIN_VIEWS = 3
 MIN_POINTS = 6
 #: Below this the focal length's sigma is OpenCV's, or read through the refined corners'
-#: covariance where every view states it (:func:`_correlated_sigma`).
+#: covariance where every view states it (:func:`correlated_sigma`).
 JACKKNIFE_MIN_VIEWS = 6
 DISTORTION_GAIN = 0.9  # keep k1, k2 only if they cut the reprojection RMS below 90 %
 #: A view whose corners reproject more than this many times the setting's median view RMS off
@@ -190,24 +190,39 @@ def outlier_views(detections: dict[str, list[Detection]], image_shape: tuple[int
 
 def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, int],
                fix_principal_point: bool, with_jackknife: bool) -> dict[str, Intrinsics]:
-    import cv2
-
-    h, w = image_shape
     for label, dets in detections.items():
         if len(_usable(dets)) < MIN_VIEWS:
             raise InputError("setting", label, f"seen in at least {MIN_VIEWS} images with {MIN_POINTS}+ detected "
                              "corners", f"only {len(_usable(dets))} usable view(s); add views of the targets (some "
                              "tilted by 20-40 degrees) in this setting")
-    flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
-    if fix_principal_point:
-        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
-    K0 = np.array([[1.0, 0.0, (w - 1) / 2], [0.0, 1.0, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    return _Calibration(detections, image_shape, fix_principal_point, with_jackknife).intrinsics()
 
-    def run(dets, K, dist, extra):
+
+class _Calibration:
+    """One calibration of every setting (:func:`calibrate`), step by step: OpenCV's runs under the
+    flags it settles on (:meth:`run`), the distortion the data ask for (:meth:`choose_distortion`),
+    the focal length's sigma (:meth:`focal_sigma`) and each setting's intrinsics
+    (:meth:`intrinsics`)."""
+
+    def __init__(self, detections: dict[str, list[Detection]], image_shape: tuple[int, int],
+                 fix_principal_point: bool, with_jackknife: bool):
+        import cv2
+
+        h, w = image_shape
+        self.cv2, self.size, self.detections, self.with_jackknife = cv2, (w, h), detections, with_jackknife
+        self.flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
+        if fix_principal_point:
+            self.flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+        self.K0 = np.array([[1.0, 0.0, (w - 1) / 2], [0.0, 1.0, (h - 1) / 2], [0.0, 0.0, 1.0]])
+
+    def run(self, dets, K, dist, extra):
+        """OpenCV's calibration of ``dets`` from ``K``, ``dist`` under the flags and ``extra``:
+        (RMS, K, distortion, the focal length's sigma, its entry of the inverse information, poses)."""
+        cv2 = self.cv2
         obj = [d.object_points_mm.astype(np.float32) for d in _usable(dets)]
         img = [d.image_points_px.astype(np.float32) for d in _usable(dets)]
         rms, K, dist, rvecs, tvecs, std, _, _ = cv2.calibrateCameraExtended(
-            obj, img, (w, h), K.copy(), dist.copy(), flags=flags | extra,
+            obj, img, self.size, K.copy(), dist.copy(), flags=self.flags | extra,
             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
         # With a fixed aspect ratio OpenCV reports the spread on fy (index 1) and 0 on fx.
         sigma = float(max(np.ravel(std)[0], np.ravel(std)[1]))
@@ -218,7 +233,7 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         unit = sigma**2 / max(rms**2 * points / max(points - free, 1), 1e-300)
         return rms, K, dist, sigma, unit, (rvecs, tvecs)
 
-    def one_camera(f_px: dict[str, float], centre: np.ndarray) -> list[Detection]:
+    def one_camera(self, f_px: dict[str, float], centre: np.ndarray) -> list[Detection]:
         """Every setting's views as one camera's: image points scaled about the principal point
         by the first setting's focal length over their own. Pinhole projection and radial
         distortion act on normalised coordinates, ``u = c + f_k d(x)``, so this is exact; all
@@ -227,36 +242,43 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         moved the focal lengths by 0.3-0.7 %)."""
         ref = f_px[next(iter(f_px))]
         return [Detection(d.target_id, d.object_points_mm, centre + (d.image_points_px - centre) * (ref / f_px[label]),
-                          d.ids) for label, dets in detections.items() for d in dets]
+                          d.ids) for label, dets in self.detections.items() for d in dets]
 
-    # Radial distortion only when the data ask for it: it must cut the reprojection error by
-    # a tenth, over all views or over one setting's (a sharp setting shows what a blurred one's
-    # noisier corners hide: a double Gauss bracket's far views 0.048 -> 0.037 px, all views
-    # together less than a tenth, and its far focal length 0.45 % off without it); otherwise
-    # (narrow views, little distortion) k1, k2 merely trade off against the focal length and
-    # the principal point.
-    plain = cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
-    gains = []
-    if len(detections) == 1:
-        everything = [d for dets in detections.values() for d in dets]
-    else:
-        f_plain = {}
-        for label, dets in detections.items():
-            rms, K, *_ = run(dets, K0, np.zeros(5), plain)
-            f_plain[label] = K[0, 0]
-            gains.append(run(dets, K0, np.zeros(5), 0)[0] / rms)
-        everything = one_camera(f_plain, K0[:2, 2])
-    fits = {"radial": run(everything, K0, np.zeros(5), 0), "plain": run(everything, K0, np.zeros(5), plain)}
-    gains.append(fits["radial"][0] / fits["plain"][0])
-    kept = "radial" if min(gains) <= DISTORTION_GAIN else "plain"
-    if kept == "plain":
-        flags |= plain
+    def choose_distortion(self) -> tuple[dict[str, tuple], str]:
+        """All views calibrated with radial distortion and without ("radial", "plain"), and which is
+        kept (the flags then fix k1, k2 where it is "plain").
 
-    def focal_sigma(dets, K, dist, extra, sigma_opencv, unit, f_all, solution):
+        Radial distortion only when the data ask for it: it must cut the reprojection error by a
+        tenth, over all views or over one setting's (a sharp setting shows what a blurred one's
+        noisier corners hide: a double Gauss bracket's far views 0.048 -> 0.037 px, all views
+        together less than a tenth, and its far focal length 0.45 % off without it); otherwise
+        (narrow views, little distortion) k1, k2 merely trade off against the focal length and
+        the principal point."""
+        cv2, K0 = self.cv2, self.K0
+        plain = cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
+        gains = []
+        if len(self.detections) == 1:
+            everything = [d for dets in self.detections.values() for d in dets]
+        else:
+            f_plain = {}
+            for label, dets in self.detections.items():
+                rms, K, *_ = self.run(dets, K0, np.zeros(5), plain)
+                f_plain[label] = K[0, 0]
+                gains.append(self.run(dets, K0, np.zeros(5), 0)[0] / rms)
+            everything = self.one_camera(f_plain, K0[:2, 2])
+        fits = {"radial": self.run(everything, K0, np.zeros(5), 0),
+                "plain": self.run(everything, K0, np.zeros(5), plain)}
+        gains.append(fits["radial"][0] / fits["plain"][0])
+        kept = "radial" if min(gains) <= DISTORTION_GAIN else "plain"
+        if kept == "plain":
+            self.flags |= plain
+        return fits, kept
+
+    def focal_sigma(self, dets, extra, sigma_opencv, unit, f_all, solution):
         """The focal length's 1 sigma (px) and how it was found (``SIGMA_METHODS``): with
         ``JACKKNIFE_MIN_VIEWS`` views or more the leave-one-view-out spread, each view's shift
         weighted by its leverage; with fewer, the residuals read through the refined corners'
-        covariance (:func:`_correlated_sigma` at ``solution``: the calibration's K, distortion
+        covariance (:func:`correlated_sigma` at ``solution``: the calibration's K, distortion
         and poses), else OpenCV's sigma.
 
         OpenCV's sigma assumes independent corner errors; corners on blurred views err per view
@@ -276,25 +298,26 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         """
         usable = _usable(dets)
         n = len(usable)
-        if not with_jackknife:
+        if not self.with_jackknife:
             return sigma_opencv, "opencv", 0.0, 0.0
+        flags = self.flags
         # the model's sigma: through the refined corners' covariance, else OpenCV's model
-        model, method = _correlated_sigma(usable, *solution, flags | extra), "corner covariance"
+        model, method = correlated_sigma(usable, *solution, flags | extra), "corner covariance"
         if model is None:
-            model, method = _correlated_sigma(usable, *solution, flags | extra, independent=True), "opencv"
+            model, method = correlated_sigma(usable, *solution, flags | extra, independent=True), "opencv"
         if n < JACKKNIFE_MIN_VIEWS:
             return (sigma_opencv if model is None else model), method, 0.0, 0.0
         # each leave-one-out calibration started from the whole one's intrinsics: the same
         # minimum (sigma within 1e-7), 13 % less time than OpenCV's own start from homographies;
         # the leverages from the inverse information equilibrated (OpenCV's reported sigma
-        # truncates it on narrow views: _correlated_sigma)
-        weighted, guess = 0.0, extra | cv2.CALIB_USE_INTRINSIC_GUESS
-        unit = _focal_information_inverse(usable, *solution, flags | extra) or unit
+        # truncates it on narrow views: correlated_sigma)
+        weighted, guess = 0.0, extra | self.cv2.CALIB_USE_INTRINSIC_GUESS
+        unit = focal_information_inverse(usable, *solution, flags | extra) or unit
         leverages = []
         for i in range(n):
             subset = usable[:i] + usable[i + 1:]
-            _, K_i, dist_i, _, unit_i, poses_i = run(subset, solution[0], solution[1], guess)
-            unit_i = _focal_information_inverse(subset, K_i, dist_i, poses_i, flags | guess) or unit_i
+            _, K_i, dist_i, _, unit_i, poses_i = self.run(subset, solution[0], solution[1], guess)
+            unit_i = focal_information_inverse(subset, K_i, dist_i, poses_i, flags | guess) or unit_i
             kept = min(unit / unit_i, 1.0) if unit_i > 0 else 1.0
             weighted += (K_i[0, 0] - f_all) ** 2 * kept
             leverages.append(1.0 - kept)
@@ -306,26 +329,31 @@ def _calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, i
         return (float(np.sqrt((dof * weighted + MODEL_PRIOR_DOF * model**2) / (dof + MODEL_PRIOR_DOF))), "jackknife",
                 dof + MODEL_PRIOR_DOF, views)
 
-    def setting(dets, K_start, dist_start, extra):
-        rms, K, dist, sigma, unit, poses = run(dets, K_start, dist_start, extra)
+    def setting(self, dets, K_start, dist_start, extra) -> Intrinsics:
+        """One setting's intrinsics, calibrated from ``K_start``, ``dist_start`` under ``extra``."""
+        rms, K, dist, sigma, unit, poses = self.run(dets, K_start, dist_start, extra)
         return Intrinsics(float(K[0, 0]), (float(K[0, 2]), float(K[1, 2])), tuple(float(v) for v in dist.ravel()),
                           float(rms), len(_usable(dets)), "calibrated",
-                          *focal_sigma(dets, K_start, dist_start, extra, sigma, unit, float(K[0, 0]), (K, dist, poses)))
+                          *self.focal_sigma(dets, extra, sigma, unit, float(K[0, 0]), (K, dist, poses)))
 
-    if len(detections) == 1:
-        (label, dets), = detections.items()
-        return {label: setting(dets, K0, np.zeros(5), 0)}
-    # Shared principal point and distortion from all views on one scale, each setting's focal
-    # length with them held, then once more on the scale those focal lengths give.
-    fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
-    _, K_all, dist_all, *_ = fits[kept]  # all views on one scale, with the distortion the data ask for
-    f_px = {label: run(dets, K_all, dist_all, fixed)[1][0, 0] for label, dets in detections.items()}
-    _, K_all, dist_all, *_ = run(one_camera(f_px, K_all[:2, 2]), K0, np.zeros(5), 0)
-    return {label: setting(dets, K_all, dist_all, fixed) for label, dets in detections.items()}
+    def intrinsics(self) -> dict[str, Intrinsics]:
+        """Every setting's intrinsics. Shared principal point and distortion from all views on one
+        scale, each setting's focal length with them held, then once more on the scale those
+        focal lengths give."""
+        cv2 = self.cv2
+        fits, kept = self.choose_distortion()
+        if len(self.detections) == 1:
+            (label, dets), = self.detections.items()
+            return {label: self.setting(dets, self.K0, np.zeros(5), 0)}
+        fixed = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
+        _, K_all, dist_all, *_ = fits[kept]  # all views on one scale, with the distortion the data ask for
+        f_px = {label: self.run(dets, K_all, dist_all, fixed)[1][0, 0] for label, dets in self.detections.items()}
+        _, K_all, dist_all, *_ = self.run(self.one_camera(f_px, K_all[:2, 2]), self.K0, np.zeros(5), 0)
+        return {label: self.setting(dets, K_all, dist_all, fixed) for label, dets in self.detections.items()}
 
 
 #: A jackknife's variance is pooled with the model's (the residuals read through the refined
-#: corners' covariance, :func:`lensfit.calibration_sigma._correlated_sigma`; else through
+#: corners' covariance, :func:`lensfit.calibration_sigma.correlated_sigma`; else through
 #: OpenCV's model of independent points) as a prior worth this many degrees of freedom:
 #: ``(nu s_jk^2 + MODEL_PRIOR_DOF s_model^2) / (nu + MODEL_PRIOR_DOF)`` with ``nu +
 #: MODEL_PRIOR_DOF`` degrees of freedom (the conjugate update of a scaled inverse chi-square).

@@ -1,5 +1,5 @@
 """The calibrated focal length's sigma (``lensfit.calibration``): the sandwich through the refined
-corners' covariance and its excess (:func:`_correlated_sigma`, :func:`_variance_components`),
+corners' covariance and its excess (:func:`correlated_sigma`, :func:`_variance_components`),
 the calibration's normal matrix inverted equilibrated (:func:`_information_inverse`), and the
 leave-one-view-out jackknife's leverages and degrees of freedom (:func:`jackknife_dof`)."""
 
@@ -29,7 +29,7 @@ def jackknife_dof(leverages: list[float]) -> float:
     return float(min(max(effective - 1.0, 1.0), n - 1))
 
 
-def _correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, poses, flags: int,
+def correlated_sigma(dets: list[Detection], K: np.ndarray, dist: np.ndarray, poses, flags: int,
                       independent: bool = False) -> float | None:
     """1 sigma of the focal length (px) where the corner errors are correlated as each view's
     ``point_cov_px2`` says (None where a view does not say); ``independent``: every coordinate's
@@ -144,7 +144,7 @@ def _view_jacobians(dets: list[Detection], K: np.ndarray, dist: np.ndarray, pose
     return out
 
 
-def _focal_information_inverse(dets: list[Detection], K: np.ndarray, dist: np.ndarray, poses,
+def focal_information_inverse(dets: list[Detection], K: np.ndarray, dist: np.ndarray, poses,
                                flags: int) -> float | None:
     """The focal length's entry of the calibration's inverse normal matrix (its variance per unit
     variance of a coordinate's error): the leave-one-view-out jackknife's leverages."""

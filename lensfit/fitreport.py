@@ -101,7 +101,7 @@ def _png(fig) -> str:
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def _edge_values(table: SampleTable, result: FitResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def edge_values(table: SampleTable, result: FitResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per sample of ``table``: blur (NaN where unmeasured), residual / sigma and robust weight
     (NaN where the fit did not use it)."""
     n = len(table.samples)
@@ -267,7 +267,7 @@ def pose_figure(table: SampleTable, result: FitResult, targets: list[dict[str, A
     return fig
 
 
-def _to_sigma(value: float | None, sigma: float | None, unbounded: str = "") -> str:
+def to_sigma(value: float | None, sigma: float | None, unbounded: str = "") -> str:
     """``value`` to the decimal of its sigma's second significant digit (6 significant digits
     where the sigma is 0 or unknown); ``unbounded`` for an interval end that is None."""
     if value is None:
@@ -294,8 +294,8 @@ def _estimates_table(result: FitResult, document: dict[str, Any]) -> str:
                 cells = [f"<span title='{why}'>not determined</span>" if why else "not determined", "", ""]
             else:
                 lo, hi = est.ci95
-                cells = [_to_sigma(est.value, est.sigma), f"{est.sigma:.2g}",
-                         f"[{_to_sigma(lo, est.sigma, '-inf')}, {_to_sigma(hi, est.sigma, 'inf')}]"]
+                cells = [to_sigma(est.value, est.sigma), f"{est.sigma:.2g}",
+                         f"[{to_sigma(lo, est.sigma, '-inf')}, {to_sigma(hi, est.sigma, 'inf')}]"]
             row = f"<tr><td>{html.escape(label)}</td><td>{q}</td>" + "".join(f"<td>{c}</td>" for c in cells)
             if truth:
                 t = truth.get((label, q))
@@ -367,7 +367,7 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
     parts.append("<h2>Blur versus inverse distance</h2>")
     parts.append(f"<img alt='fit plot' src='data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}'>")
 
-    blur, z, w = _edge_values(table, result)
+    blur, z, w = edge_values(table, result)
     images = [(im.file.name, im.setting) for im in stack.images] if stack is not None else []
     rows = image_rows(table, blur, z, w, images)
     parts.append("<h2>Images</h2><div class='scroll'><table><tr><th>image</th><th>setting</th><th>corners</th>"

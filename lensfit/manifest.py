@@ -255,7 +255,7 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     SpecError
         A bad target file, or a draft that does not validate (a bug: reported, not written).
     """
-    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS, check_image_size
+    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
     from lensfit.specs import validate
 
     folder = Path(folder)
@@ -272,34 +272,9 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     if len(files) > MAX_IMAGES:  # (before any file is opened: stack.toml could not list them)
         raise InputError("photos", f"{len(files)} image files in {shown(str(folder))}", f"at most {MAX_IMAGES}, what "
                          "one stack may list", "put each stack's photos in a folder of their own")
-    max_pixels = max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6)
-    sizes = {}
-    for p in files:
-        sizes[p] = image_size(p)
-        check_image_size(p, *sizes[p], max_pixels)
-    # Portrait photos whose pixels were turned (an export that applied the EXIF orientation) have
-    # the others' width and height swapped: turned back on reading (rotate_deg), the sensor's
-    # orientation taken as the one most photos have.
-    counts = {shape: sum(1 for v in sizes.values() if v == shape) for shape in set(sizes.values())}
-    upright = max(counts, key=lambda shape: (counts[shape], shape[1] >= shape[0]))
-    turned = [p for p in files if sizes[p] == (upright[1], upright[0]) and upright[0] != upright[1]]
-    for p in turned:
-        sizes[p] = upright
-    shapes = sorted(set(sizes.values()))
-    if len(shapes) > 1:
-        odd = next(p for p in files if sizes[p] != sizes[files[0]])
-        raise InputError("photos", str(folder), "images of one size (one camera, one crop)",
-                         f"{files[0].name} is {sizes[files[0]][1]} x {sizes[files[0]][0]} px but {odd.name} is "
-                         f"{sizes[odd][1]} x {sizes[odd][0]}; move the odd ones to another folder")
-    height, width = shapes[0]
+    turned, upright, (_, width) = _photo_sizes(files, folder, max_pixels or int(DEFAULT_MAX_MEGAPIXELS * 1e6))
     records = [read_camera_record(p) for p in files]
-    focals = sorted({_round(r.focal_length_mm, 3) for r in records if r.focal_length_mm})
-    if len(focals) > 1:
-        by = {f: [p.name for p, r in zip(files, records) if _round(r.focal_length_mm, 3) == f] for f in focals}
-        raise InputError("photos", str(folder), "one focal length (a stack fits one lens: a zoom at two focal "
-                         "lengths is two lenses)", "; ".join(f"{f:g} mm: {', '.join(v[:3])}" + (" ..." if len(v) > 3
-                                                                                                   else "")
-                                                             for f, v in by.items()) + "; split them into folders")
+    _one_focal_length(files, records, folder)
     notes = []
     if turned:
         notes.append(f"{len(turned)} portrait photo(s) (e.g. {turned[0].name}, {upright[0]} x {upright[1]} px against "
@@ -320,6 +295,55 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     targets, measured_note = as_measured(targets, measured_square_mm)
     notes += [note for note in (target_note, measured_note) if note]
 
+    keys, labels = _setting_keys(records, grouping, notes)
+    images = [_image_entry(p, r, labels[k], p in turned, notes) for p, r, k in zip(files, records, keys)]
+    rows = [{"file": p.name, "setting": labels[k], "focal_length_mm": r.focal_length_mm, "f_number": r.f_number,
+             "focus_distance_mm": r.focus_distance_mm} for p, r, k in zip(files, records, keys)]
+    manifest = {"camera": camera, "target": targets, "image": images}
+    validate(manifest, "stack", folder / "stack.toml")
+    return Draft(manifest_text(manifest, notes, folder), manifest, rows, notes)
+
+
+def _photo_sizes(files: list[Path], folder: Path, max_pixels: int):
+    """The photos turned by an export, the sensor's upright (height, width) and the one shape all
+    share once turned back (an InputError where they differ, or a photo exceeds ``max_pixels``)."""
+    from lensfit.limits import check_image_size
+
+    sizes = {}
+    for p in files:
+        sizes[p] = image_size(p)
+        check_image_size(p, *sizes[p], max_pixels)
+    # Portrait photos whose pixels were turned (an export that applied the EXIF orientation) have
+    # the others' width and height swapped: turned back on reading (rotate_deg), the sensor's
+    # orientation taken as the one most photos have.
+    counts = {shape: sum(1 for v in sizes.values() if v == shape) for shape in set(sizes.values())}
+    upright = max(counts, key=lambda shape: (counts[shape], shape[1] >= shape[0]))
+    turned = [p for p in files if sizes[p] == (upright[1], upright[0]) and upright[0] != upright[1]]
+    for p in turned:
+        sizes[p] = upright
+    shapes = sorted(set(sizes.values()))
+    if len(shapes) > 1:
+        odd = next(p for p in files if sizes[p] != sizes[files[0]])
+        raise InputError("photos", str(folder), "images of one size (one camera, one crop)",
+                         f"{files[0].name} is {sizes[files[0]][1]} x {sizes[files[0]][0]} px but {odd.name} is "
+                         f"{sizes[odd][1]} x {sizes[odd][0]}; move the odd ones to another folder")
+    return turned, upright, shapes[0]
+
+
+def _one_focal_length(files: list[Path], records: list, folder: Path) -> None:
+    """An InputError where the photos' EXIF records more than one focal length (one lens per stack)."""
+    focals = sorted({_round(r.focal_length_mm, 3) for r in records if r.focal_length_mm})
+    if len(focals) > 1:
+        by = {f: [p.name for p, r in zip(files, records) if _round(r.focal_length_mm, 3) == f] for f in focals}
+        raise InputError("photos", str(folder), "one focal length (a stack fits one lens: a zoom at two focal "
+                         "lengths is two lenses)", "; ".join(f"{f:g} mm: {', '.join(v[:3])}" + (" ..." if len(v) > 3
+                                                                                                   else "")
+                                                             for f, v in by.items()) + "; split them into folders")
+
+
+def _setting_keys(records: list, grouping: str, notes: list[str]) -> tuple[list, dict]:
+    """Each photo's setting key by ``grouping`` and the keys' labels; notes where the EXIF leaves
+    the grouping in doubt."""
     keys = []
     for i, r in enumerate(records):
         if grouping == "per-image":
@@ -335,35 +359,33 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
         if all(r.focus_distance_mm is None for r in records):
             notes.append("the EXIF records no focus distance: photos are grouped by f-number alone; if you refocused "
                          "between shots, give those photos different setting labels (or --settings per-image)")
-    images, rows = [], []
-    for p, r, k in zip(files, records, keys):
-        entry: dict[str, Any] = {"file": p.name}
-        if p in turned:
-            entry["rotate_deg"] = 90
-        if p.suffix.lower() in JPEG_SUFFIXES:
-            entry["encoding"] = "srgb"
-        elif p.suffix.lower() in (".png", ".tif", ".tiff"):
-            entry["encoding"] = "linear"
-            notes_png = "PNG/TIFF files are read as linear (encoding = \"linear\"); write \"srgb\" for exported, " \
-                        "tone-mapped images"
-            if notes_png not in notes:
-                notes.append(notes_png)
-        entry["setting"] = labels[k]
-        exif = {name: value for name, value in (
-            ("camera", r.camera), ("focal_length_mm", _round(r.focal_length_mm)), ("f_number", _round(r.f_number)),
-            ("focus_distance_mm", _round(r.focus_distance_mm) if r.focus_distance_mm not in (None, float("inf"))
-             else ("inf" if r.focus_distance_mm else None)),
-            ("shutter_s", _round(r.shutter_s)), ("iso", _round(r.iso)), ("taken", r.taken))
-            if value is not None}
-        exif = {name: shown(value) if isinstance(value, str) else value for name, value in exif.items()}
-        if exif:
-            entry["x_exif"] = exif
-        images.append(entry)
-        rows.append({"file": p.name, "setting": labels[k], "focal_length_mm": r.focal_length_mm,
-                     "f_number": r.f_number, "focus_distance_mm": r.focus_distance_mm})
-    manifest = {"camera": camera, "target": targets, "image": images}
-    validate(manifest, "stack", folder / "stack.toml")
-    return Draft(manifest_text(manifest, notes, folder), manifest, rows, notes)
+    return keys, labels
+
+
+def _image_entry(p: Path, r: Any, label: str, turned: bool, notes: list[str]) -> dict[str, Any]:
+    """A photo's [[image]] entry (file, rotation, encoding, setting, the EXIF as x_exif)."""
+    entry: dict[str, Any] = {"file": p.name}
+    if turned:
+        entry["rotate_deg"] = 90
+    if p.suffix.lower() in JPEG_SUFFIXES:
+        entry["encoding"] = "srgb"
+    elif p.suffix.lower() in (".png", ".tif", ".tiff"):
+        entry["encoding"] = "linear"
+        notes_png = "PNG/TIFF files are read as linear (encoding = \"linear\"); write \"srgb\" for exported, " \
+                    "tone-mapped images"
+        if notes_png not in notes:
+            notes.append(notes_png)
+    entry["setting"] = label
+    exif = {name: value for name, value in (
+        ("camera", r.camera), ("focal_length_mm", _round(r.focal_length_mm)), ("f_number", _round(r.f_number)),
+        ("focus_distance_mm", _round(r.focus_distance_mm) if r.focus_distance_mm not in (None, float("inf"))
+         else ("inf" if r.focus_distance_mm else None)),
+        ("shutter_s", _round(r.shutter_s)), ("iso", _round(r.iso)), ("taken", r.taken))
+        if value is not None}
+    exif = {name: shown(value) if isinstance(value, str) else value for name, value in exif.items()}
+    if exif:
+        entry["x_exif"] = exif
+    return entry
 
 
 def manifest_text(manifest: dict[str, Any], notes: list[str], folder: Path) -> str:

@@ -19,7 +19,7 @@ The Airy pattern's scale depends on the working f-number ``N_w = S / A`` (``S = 
 calibration's pinhole distance, ``A`` the fitted entrance-pupil diameter), which the first fit
 gives with the diffraction still in the blur (several per cent off at ``a`` of 1-2 px); each
 round takes ``A`` from the last fit. Two to four rounds settle it within 0.1 % (they stop where
-the last change, or the next one as predicted, is below that: :func:`_settled_next`). A round
+the last change, or the next one as predicted, is below that: :func:`settled_next`). A round
 measures the stack again from the targets as first detected (the corners are refined with the
 new readings' edge lines and the intrinsics calibrated again: the uniform disk's lines are pulled
 by the neighbouring edges' Airy tails, which widened f's interval 2.5x where they were kept),
@@ -47,7 +47,7 @@ from lensfit.processing import POLICIES, apply, assess
 MAX_ROUNDS = 4
 SETTLED_REL = 1e-3
 #: The least response of N to the Airy scale (|d ln N / d ln a|) the rounds' stopping rule takes
-#: (:func:`_settled_next`).
+#: (:func:`settled_next`).
 KAPPA_FLOOR = 0.25
 #: The diffraction test (run from an Airy scale of TEST_MIN_AIRY_PX at 550 nm): the edges it
 #: looks at (a plain reading below this many px or Airy scales, where the pattern shapes the
@@ -287,7 +287,7 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
     if warming is not None:
         warming.join()
     rounds_options = {**options, "floor_choice": False}
-    table, result = _rounds(stack, table, result, airy, estimator, wavelength_nm, rounds_options, progress, rounds)
+    table, result = diffraction_rounds(stack, table, result, airy, estimator, wavelength_nm, rounds_options, progress, rounds)
     if (options.get("blur_floor_px") is None and options.get("floor_choice", True)
             and (sensitive := floor_sensitive(result))):
         # Each round takes the Airy scale from the fit before it, so the fit without the floor is
@@ -295,13 +295,13 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
         # the fuzz's 13 mm f/4 stack read N +8 % there, +0.4 % after its rounds).
         without = {**rounds_options, "blur_floor_px": 0.0}
         alt = fit(table, **without)
-        _, alt = _rounds(stack, table, alt, airy_per_setting(alt, wavelength_nm), estimator, wavelength_nm,
+        _, alt = diffraction_rounds(stack, table, alt, airy_per_setting(alt, wavelength_nm), estimator, wavelength_nm,
                          without, progress, [])
         widen(result, alt, sensitive)
     return table, result, rounds
 
 
-def _rounds(stack: Any, table: Any, result: Any, airy: dict[str, float], estimator: str, wavelength_nm: float,
+def diffraction_rounds(stack: Any, table: Any, result: Any, airy: dict[str, float], estimator: str, wavelength_nm: float,
             options: dict[str, Any], progress: Callable[[str, int, int], None] | None, rounds: list):
     """Measure ``stack`` again with the Airy scales ``airy`` and fit, each round's scales from the
     fit before, until the f-numbers settle; appends each round's scales to ``rounds``; returns
@@ -323,7 +323,7 @@ def _rounds(stack: Any, table: Any, result: Any, airy: dict[str, float], estimat
         changes = _changes(new, result)
         table, result = new_table, new
         airy = airy_per_setting(new, wavelength_nm)
-        if _settled(rounds, airy, changes, list(new.settings)):
+        if rounds_settled(rounds, airy, changes, list(new.settings)):
             break
     return table, result
 
@@ -334,21 +334,21 @@ def _unread(result: Any, airy: dict[str, float]) -> Any:
     blur and the f-number runs off. (Seen: a 9.6 mm f/20 scene on 6 um pixels, every blur 0.02-0.18
     px under a 1.8 px pattern: read at 0.12 px, then at 54 px, where every edge's fit failed, and
     ``lensfit fit`` stopped with an input error that asked for samples.)"""
-    from lensfit.fit.core import _refused
+    from lensfit.fit.core import refused_result
 
     scales = ", ".join(f"{k} {v:.3g} px" for k, v in airy.items())
     reason = (f"read through the Airy pattern that the fit before put at {scales} (550 nm), no edge gave a blur: the "
               "blur is too small beside the pattern for these images to tell the aperture; put targets farther "
               "from the focus distance, or open the aperture")
-    out = _refused(result.samples, result.loss, reason)
+    out = refused_result(result.samples, result.loss, reason)
     out.warnings.extend(result.warnings)
     return out
 
 
-def _settled(rounds: list[dict[str, float]], following: dict[str, float], changes: dict[str, float],
+def rounds_settled(rounds: list[dict[str, float]], following: dict[str, float], changes: dict[str, float],
              labels: list[str]) -> bool:
     """Whether the rounds stop: every f-number changed by under ``SETTLED_REL`` in the last round
-    (``changes``), or would in the next (:func:`_settled_next`); ``rounds`` the Airy scales read
+    (``changes``), or would in the next (:func:`settled_next`); ``rounds`` the Airy scales read
     with so far, ``following`` the next round's. A setting without two f-numbers to compare (the
     fit before refused it: the pattern's tails taken for blur can leave the first fit's aperture
     undetermined) is settled when its Airy scale is: counted as settled at once, a stack at f/30
@@ -358,7 +358,7 @@ def _settled(rounds: list[dict[str, float]], following: dict[str, float], change
     if any(k not in changes and last.get(k) and following.get(k) and abs(following[k] / last[k] - 1.0) >= SETTLED_REL
            for k in labels):
         return False
-    return max(changes.values(), default=0.0) < SETTLED_REL or (len(rounds) >= 2 and _settled_next(
+    return max(changes.values(), default=0.0) < SETTLED_REL or (len(rounds) >= 2 and settled_next(
         rounds[-2], last, following, changes))
 
 
@@ -390,7 +390,7 @@ def _changes(new: Any, old: Any) -> dict[str, float]:
     return out
 
 
-def _settled_next(before: dict[str, float], last: dict[str, float], following: dict[str, float],
+def settled_next(before: dict[str, float], last: dict[str, float], following: dict[str, float],
                   changes: dict[str, float]) -> bool:
     """Would the next round change no f-number by ``SETTLED_REL`` or more? A round's f-number
     responds to the Airy scale it was read with by a factor kappa (|d ln N / d ln a|), so the next

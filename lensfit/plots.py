@@ -76,13 +76,13 @@ def plot_fit(result: FitResult, path, *, title: str | None = None, image_format:
     axr.set_xlabel("inverse distance from the lens (1/m)")
     axr.grid(alpha=0.3)
     if isinstance(path, (str, Path)):
-        fig.savefig(path, dpi=110, metadata=_creator(path))
+        fig.savefig(path, dpi=110, metadata=creator(path))
     else:
         fig.savefig(path, dpi=110, format=image_format or "png")
     plt.close(fig)
 
 
-def _creator(path: str | Path) -> dict[str, str]:
+def creator(path: str | Path) -> dict[str, str]:
     """Matplotlib metadata naming lensfit as the writer (``lensfit.outputs.written_by`` reads it)."""
     from lensfit.outputs import software_tag
 

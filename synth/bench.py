@@ -130,8 +130,8 @@ def run_bench(repeats: int = 3, spp_list=(4, 16, 64, 256, 1024), include_compile
 #: no JAX), renders each described shot and writes it as Mitsuba's own EXR.
 _MITSUBA_PROCESS = """
 import os, pickle, sys
-from synth.mitsuba import _mitsuba, build_scene
-mi = _mitsuba(sys.argv[2])
+from synth.mitsuba import build_scene, load_mitsuba
+mi = load_mitsuba(sys.argv[2])
 with open(sys.argv[1], "rb") as fh:
     shots = pickle.load(fh)
 for k, desc in enumerate(shots):

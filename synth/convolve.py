@@ -103,7 +103,7 @@ def _convolve_full(planes: tuple[np.ndarray, ...], kernel: np.ndarray) -> list[n
         return [scipy.fft.irfft2(scipy.fft.rfft2(p, fshape) * spectrum, fshape)[:shape[0], :shape[1]] for p in planes]
 
 
-def _block_mean(image: np.ndarray, n: int) -> np.ndarray:
+def block_mean(image: np.ndarray, n: int) -> np.ndarray:
     """The means of ``image``'s n x n blocks (its sides multiples of n), float32: OpenCV's area
     resampling, which at a whole factor is that mean (within float32 rounding; 8x numpy's
     reshaped mean on a 13 MP plane)."""
@@ -183,7 +183,7 @@ def render_convolve(shot: Shot, background: float, supersampling: int, *, camera
         start_u = R * a0 - (pad + lead) // SO
         start_v = R * b0 - (pad + lead) // SO
         nv, nu = colour.shape[0] // SO, colour.shape[1] // SO
-        colour, alpha = _block_mean(colour, SO), _block_mean(alpha, SO)
+        colour, alpha = block_mean(colour, SO), block_mean(alpha, SO)
         # Paste into the image window.
         iu0, iv0 = max(start_u, 0), max(start_v, 0)
         iu1, iv1 = min(start_u + nu, W), min(start_v + nv, H)

@@ -90,7 +90,7 @@ def _bundled_libllvm() -> str | None:
 MIN_LLVM = (20, 0)
 
 
-def _mitsuba(variant: str = "scalar_rgb"):
+def load_mitsuba(variant: str = "scalar_rgb"):
     if variant not in VARIANTS:
         raise InputError("mitsuba_variant", variant, "one of " + ", ".join(VARIANTS))
     imported_before = "mitsuba" in sys.modules and "DRJIT_LIBLLVM_PATH" not in os.environ
@@ -125,7 +125,7 @@ def _mitsuba(variant: str = "scalar_rgb"):
 
 def version(variant: str = "scalar_rgb") -> str:
     """The Mitsuba version and variant a render used (for truth.json)."""
-    mi = _mitsuba(variant)
+    mi = load_mitsuba(variant)
     return f"Mitsuba {mi.__version__} {mi.variant()}"
 
 
@@ -260,7 +260,7 @@ def scene_dict(shot, background: float, spp: int, seed: int, rows: tuple[int, in
                variant: str = "scalar_rgb") -> dict:
     """The Mitsuba scene of one shot (optionally only image rows ``rows = (first, count)``;
     ``variant``: one of ``VARIANTS``)."""
-    return build_scene(_mitsuba(variant), describe(shot, background, spp, seed), rows)
+    return build_scene(load_mitsuba(variant), describe(shot, background, spp, seed), rows)
 
 
 def render_mitsuba(shot, background: float, spp: int, seed: int, progress: Callable[[int], None] | None = None,
@@ -273,7 +273,7 @@ def render_mitsuba(shot, background: float, spp: int, seed: int, progress: Calla
     it; ``progress(height)`` after it). Deterministic for a seed and variant.
     """
     check(shot, effects)
-    mi = _mitsuba(variant)
+    mi = load_mitsuba(variant)
     H = shot.camera.height_px
     desc = describe(shot, background, spp, seed % 2**31)
     shapes = _shapes(mi, desc)

@@ -23,14 +23,14 @@ import numpy as np
 from lensfit import __version__
 from lensfit.errors import InputError
 from lensfit.outputs import provenance
-from synth.convolve import _block_mean, render_convolve
+from synth.convolve import block_mean, render_convolve
 from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
 from synth.raytrace import cell_factor, render_raytrace
 from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
 from synth.effects.stages import ShotState, fine_choice, quantise_16bit, run_stages, working_f_number
 from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan
-from synth.truth import _finite_or_none, _target_truth, chief_ray_depth, stack_manifest
+from synth.truth import finite_or_none, target_truth, chief_ray_depth, stack_manifest
 
 #: Planning and truth live in synth.planning and synth.truth; their public names are here too.
 __all__ = ["render", "plan", "GeometricCache", "choose_method", "convolve_is_exact", "check_overrides", "RenderResult",
@@ -251,7 +251,7 @@ def _shared_cells(spp: int) -> int:
 def _cells(fine: np.ndarray, n: int) -> np.ndarray:
     """A copy of ``fine`` with each n x n block of its cells merged into their mean (n = 1: the
     cells as they are)."""
-    return fine.copy() if n == 1 else _block_mean(fine, n)
+    return fine.copy() if n == 1 else block_mean(fine, n)
 
 
 def _mitsuba_version(variant: str) -> str:
@@ -362,10 +362,10 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         result.maps[map_file] = {"depth_mm": depth.astype(np.float32), "coc_diameter_px": coc.astype(np.float32)}
         settings.setdefault(shot.setting, {
             "f_number": cam.f_number,
-            "focus_distance_mm": _finite_or_none(cam.focus_distance_mm),
+            "focus_distance_mm": finite_or_none(cam.focus_distance_mm),
             "inverse_focus_distance_per_mm": cam.inverse_focus_distance_per_mm,
             "sensor_distance_mm": cam.sensor_distance_mm,
-            "focus_distance_from_sensor_mm": _finite_or_none(cam.focus_distance_mm + cam.sensor_distance_mm),
+            "focus_distance_from_sensor_mm": finite_or_none(cam.focus_distance_mm + cam.sensor_distance_mm),
             "aperture_diameter_mm": cam.aperture_diameter_mm,
             "focal_length_px": cam.focal_length_px,
             **(cam.truth() if getattr(cam, "prescription", None) is not None else {}),
@@ -379,7 +379,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             "stages": list(sp.stages),
             **extra,
             "maps": map_file,
-            "targets": [_target_truth(o, shot, scene.effects.distortion) for o in shot.objects],
+            "targets": [target_truth(o, shot, scene.effects.distortion) for o in shot.objects],
         })
     cx, cy = scene.shots[0].camera.principal_point_px
     result.truth = {

@@ -69,7 +69,7 @@ def chief_ray_depth(shot: Shot, distortion=None) -> np.ndarray:
     return depth
 
 
-def _finite_or_none(x: float):
+def finite_or_none(x: float):
     return None if not math.isfinite(x) else float(x)
 
 
@@ -81,7 +81,7 @@ def _distorted_px(px: np.ndarray, cam, distortion) -> np.ndarray:
     return np.stack([cx + f * xd, cy + f * yd], axis=-1)
 
 
-def _target_truth(obj, shot: Shot, distortion=None) -> dict[str, Any]:
+def target_truth(obj, shot: Shot, distortion=None) -> dict[str, Any]:
     """A target's truth entry. ``*_px`` are pinhole (undistorted) positions; with ``distortion``
     each also has a ``*_px_distorted`` twin: where the image shows it."""
     cam = shot.camera

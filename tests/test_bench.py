@@ -252,7 +252,7 @@ def test_bench_stages_makes_a_larger_stack_from_its_images_again_and_measures_me
     stack); a process's peak memory read from wait4 grows with what it holds."""
     import tomllib
 
-    from lensfit.bench.stages import _subset
+    from lensfit.bench.stages import subset
     from lensfit.stack import load_stack
 
     src = tmp_path / "src"
@@ -264,7 +264,7 @@ def test_bench_stages_makes_a_larger_stack_from_its_images_again_and_measures_me
              'dictionary = "DICT_4X4_50"')
     (src / "stack.toml").write_text(f"[camera]\npixel_pitch_mm = 0.01\n\n[[target]]\n{board}\n\n"
                                     + "".join(f'[[image]]\nfile = "{n}"\nsetting = "a"\n\n' for n in names))
-    out = _subset(src, tmp_path / "big", 7, 1.0)
+    out = subset(src, tmp_path / "big", 7, 1.0)
     files = [e["file"] for e in tomllib.loads((out / "stack.toml").read_text())["image"]]
     assert len(files) == len(set(files)) == 7 and files[:3] == names
     for k, name in enumerate(files):
@@ -393,11 +393,11 @@ tilt_deg = [20.0, 10.0]
 def test_a_shared_render_is_timed_with_its_own_seconds_less_compilation():
     # The seconds a task that takes a shared render adds for it: the render's window less the
     # union of JAX's compile spans within it (overlapping spans counted once).
-    from lensfit.bench.runs import _warm_seconds
+    from lensfit.bench.runs import warm_seconds
 
-    assert _warm_seconds((0.0, 10.0), [(1.0, 3.0), (2.0, 4.0), (8.0, 12.0)]) == pytest.approx(5.0)
-    assert _warm_seconds((0.0, 10.0), []) == pytest.approx(10.0)
-    assert _warm_seconds((5.0, 6.0), [(0.0, 20.0)]) == 0.0
+    assert warm_seconds((0.0, 10.0), [(1.0, 3.0), (2.0, 4.0), (8.0, 12.0)]) == pytest.approx(5.0)
+    assert warm_seconds((0.0, 10.0), []) == pytest.approx(10.0)
+    assert warm_seconds((5.0, 6.0), [(0.0, 20.0)]) == 0.0
 
 
 def test_design_effect_reads_the_correlation_it_was_drawn_with():
@@ -621,25 +621,25 @@ def test_bench_developed_judges_refusals_by_the_processing_named_and_strips_only
     Software-less copy keeps every other EXIF tag."""
     from PIL import Image
 
-    from lensfit.bench.developed import _passed, _without_software
+    from lensfit.bench.developed import row_passed, without_software
 
     good = {"refused": False, "relative_error": 0.001, "inside": True}
     refused = {"refused": True, "reason": "developed"}
     named = {"developer": "darktable 4.2.1", "halos": False}
     errors = {"focal_length_mm": good, "f_number": refused, "focus_distance_mm": good}
-    assert _passed(errors, named, control=False)
-    assert not _passed(errors, {"developer": None, "halos": False}, control=False)
-    assert not _passed(errors, named, control=True)
-    assert not _passed(dict(errors, f_number={"refused": False, "relative_error": 0.06, "inside": False}), named,
+    assert row_passed(errors, named, control=False)
+    assert not row_passed(errors, {"developer": None, "halos": False}, control=False)
+    assert not row_passed(errors, named, control=True)
+    assert not row_passed(dict(errors, f_number={"refused": False, "relative_error": 0.06, "inside": False}), named,
                        control=False)
-    assert not _passed(dict(errors, focal_length_mm=refused), named, control=False)
+    assert not row_passed(dict(errors, focal_length_mm=refused), named, control=False)
     src = tmp_path / "src"
     src.mkdir()
     exif = Image.Exif()
     exif[0x010F], exif[0x0131] = "Canon", "darktable 4.2.1"
     pixels = (np.arange(64 * 48, dtype=np.uint8).reshape(48, 64))
     Image.fromarray(pixels).save(src / "a.jpg", "JPEG", quality=95, exif=exif)
-    _without_software(src, tmp_path / "dst")
+    without_software(src, tmp_path / "dst")
     with Image.open(tmp_path / "dst" / "a.jpg") as im:
         tags = im.getexif()
         assert 0x0131 not in tags and tags[0x010F] == "Canon"

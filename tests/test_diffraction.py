@@ -429,7 +429,7 @@ def test_the_rounds_stop_where_the_next_would_move_no_f_number_by_the_tolerance(
     saves would have changed N by less than SETTLED_REL; at kappa 0.03 it saves one."""
     import math as m
 
-    from lensfit.pipeline import SETTLED_REL, _settled_next
+    from lensfit.pipeline import SETTLED_REL, settled_next
 
     def linear(kappa):
         return lambda a: 11.0 * (a / 1.03) ** (-kappa)
@@ -451,7 +451,7 @@ def test_the_rounds_stop_where_the_next_would_move_no_f_number_by_the_tolerance(
             next_change = abs(n_of(following) / n[-1] - 1.0)
             if change["s"] < SETTLED_REL:
                 break
-            if _settled_next({"s": a[-2]}, {"s": a[-1]}, {"s": following}, change):
+            if settled_next({"s": a[-2]}, {"s": a[-1]}, {"s": following}, change):
                 assert next_change < SETTLED_REL, (name, next_change)
                 saved[name] = True
                 break
@@ -460,7 +460,7 @@ def test_the_rounds_stop_where_the_next_would_move_no_f_number_by_the_tolerance(
     # is saved; from 0.1 on, the rule never stops before the observed change does.
     assert saved == {0.01: False, 0.03: True, 0.1: False, 0.3: False, 0.6: False, "curved": True}
     # A setting whose Airy scale did not move gives no slope to go by.
-    assert not _settled_next({"s": 1.0}, {"s": 1.0}, {"s": 1.01}, {"s": 0.002})
+    assert not settled_next({"s": 1.0}, {"s": 1.0}, {"s": 1.01}, {"s": 0.002})
 
 
 def test_a_setting_whose_f_number_was_not_determined_before_settles_only_with_its_airy_scale():
@@ -469,15 +469,15 @@ def test_a_setting_whose_f_number_was_not_determined_before_settles_only_with_it
     round by; the rounds stop only once that setting's Airy scale stops moving. Seen on a random
     f/30 scene: read once at 4.3 px for a true 2.9 px, the next scale 2.4 px, and the rounds had
     stopped there (N 17 % low at 3.5 sigma)."""
-    from lensfit.pipeline import SETTLED_REL, _settled
+    from lensfit.pipeline import SETTLED_REL, rounds_settled
 
-    assert not _settled([{"a": 4.32}], {"a": 2.39}, {}, ["a"])  # nothing to compare, the scale moved 45 %
-    assert _settled([{"a": 2.905}], {"a": 2.905 * (1 + SETTLED_REL / 2)}, {}, ["a"])  # the scale has settled
+    assert not rounds_settled([{"a": 4.32}], {"a": 2.39}, {}, ["a"])  # nothing to compare, the scale moved 45 %
+    assert rounds_settled([{"a": 2.905}], {"a": 2.905 * (1 + SETTLED_REL / 2)}, {}, ["a"])  # the scale has settled
     # one setting compared and settled, the other without an f-number before and its scale moving
-    assert not _settled([{"a": 1.0, "b": 1.0}], {"a": 1.0, "b": 1.2}, {"a": SETTLED_REL / 2}, ["a", "b"])
-    assert _settled([{"a": 1.0, "b": 1.0}], {"a": 1.0, "b": 1.0}, {"a": SETTLED_REL / 2}, ["a", "b"])
+    assert not rounds_settled([{"a": 1.0, "b": 1.0}], {"a": 1.0, "b": 1.2}, {"a": SETTLED_REL / 2}, ["a", "b"])
+    assert rounds_settled([{"a": 1.0, "b": 1.0}], {"a": 1.0, "b": 1.0}, {"a": SETTLED_REL / 2}, ["a", "b"])
     # an f-number that moved by more than the tolerance is not settled, whatever the scales do
-    assert not _settled([{"a": 1.0}], {"a": 1.0}, {"a": 10 * SETTLED_REL}, ["a"])
+    assert not rounds_settled([{"a": 1.0}], {"a": 1.0}, {"a": 10 * SETTLED_REL}, ["a"])
 
 
 def test_the_airy_scale_of_an_aperture_the_fit_did_not_determine_is_none():
@@ -548,7 +548,7 @@ def test_a_round_that_reads_no_edge_is_a_refusal_that_says_why(monkeypatch):
 
     import lensfit.measure
     from lensfit.fit import Outcome, prepare
-    from lensfit.pipeline import _rounds
+    from lensfit.pipeline import diffraction_rounds
 
     rows = [{"setting": "a", "distance_mm": d, "coc_diameter_px": c, "sigma_px": 0.05}
             for d, c in ((800.0, 0.5), (1200.0, 0.4), (2000.0, 0.3))]
@@ -556,7 +556,7 @@ def test_a_round_that_reads_no_edge_is_a_refusal_that_says_why(monkeypatch):
     unread = SimpleNamespace(samples=[SimpleNamespace(coc_diameter_px=None, sigma_px=None)] * 3, diffraction=None)
     monkeypatch.setattr(lensfit.measure, "measure", lambda *args, **kwargs: unread)
     calls = []
-    table, result = _rounds(None, SimpleNamespace(diffraction={"modelled": True}), before, {"a": 54.0}, "edge",
+    table, result = diffraction_rounds(None, SimpleNamespace(diffraction={"modelled": True}), before, {"a": 54.0}, "edge",
                             550.0, {}, None, calls)
     assert table is unread and calls == [{"a": 54.0}]
     assert result.code == Outcome.NOT_IDENTIFIABLE

@@ -237,18 +237,18 @@ def test_readings_are_divided_by_the_scale_or_dropped_beyond_its_range():
 def test_lensfit_fit_says_when_the_readings_went_through_a_distortion(calibration_samples, capsys):
     """The printed results name the calibrated distortion the blur was read through, and say
     nothing of it where the calibration found none."""
-    from lensfit.cli.fit import _print_fit
+    from lensfit.cli.fit import print_fit
     from lensfit.fit import fit, results_document
 
     result = fit(calibration_samples)
     document = results_document(result, ["lensfit", "fit"], intrinsics=calibration_samples.intrinsics)
     label = next(iter(document["calibration"]))
     assert not any(document["calibration"][label]["distortion_opencv"])
-    _print_fit(result, document)
+    print_fit(result, document)
     assert "lens distortion" not in capsys.readouterr().out
     document["calibration"][label] = {**document["calibration"][label],
                                       "distortion_opencv": [-0.25, 0.05, 0.0, 0.0, 0.0]}
-    _print_fit(result, document)
+    print_fit(result, document)
     assert "lens distortion k1 -0.25, k2 +0.05: each edge's blur is read through it" in capsys.readouterr().out
 
 

@@ -120,14 +120,14 @@ def test_large_pose_errors_are_a_term_of_their_own():
 def test_the_images_scatter_reads_their_pose_errors(pose):
     """The scatter of the images' shared distance errors that the fit finds (``tau``, relative),
     against the per-image pose errors the captures were drawn with: none where there are none."""
-    from lensfit.fit.solve import _image_scatter
+    from lensfit.fit.solve import image_scatter
 
     rng = np.random.default_rng(5)
     taus = []
     for _ in range(6):
         rows, fpx, fsg = capture(rng, pose_rel_sigma=pose, noise_px=0.01)
         r = fit(rows, pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px=fsg, **THIN)
-        sc = _image_scatter(r._full, 1, r.samples, r.weights)
+        sc = image_scatter(r._full, 1, r.samples, r.weights)
         assert sc.images == IMAGES
         taus.append(sc.tau)
     if pose == 0.0:
@@ -143,7 +143,7 @@ def _covariance_scatters(monkeypatch):
     import lensfit.fit.core as core
 
     seen = []
-    real = core._image_scatter
+    real = core.image_scatter
 
     def spy(theta, m, data, rows, jac=None, cov_fit=None):
         sc = real(theta, m, data, rows, jac, cov_fit)
@@ -154,7 +154,7 @@ def _covariance_scatters(monkeypatch):
             seen.append((sc.tau, deltas, sc.gain))
         return sc
 
-    monkeypatch.setattr(core, "_image_scatter", spy)
+    monkeypatch.setattr(core, "image_scatter", spy)
     return seen
 
 
@@ -443,7 +443,7 @@ def test_a_brackets_intervals_hold_the_truth_under_shared_pose_errors():
 def test_a_brackets_images_spread_is_not_widened_by_their_leverage():
     """A focus bracket of two settings, five images each, readings with honest sigmas and no pose
     errors: each image carries much of its setting's parameters. The images' spread
-    (lensfit.fit.uncertainty._image_spread, CR2) reads the readings' own scatter, so the f-number's
+    (lensfit.fit.uncertainty.image_spread, CR2) reads the readings' own scatter, so the f-number's
     and the focus distances' errors over their sigmas have an RMS of about 1. The
     leave-one-image-out jackknife it replaced (to first order CR3, its root (I - H_gg)^-1) read
     them wide here: RMS 0.79, 95 % half-widths 6.3x the error (now 0.92 and 3.6x). A quantity
@@ -471,13 +471,13 @@ def test_a_floor_stuck_at_zero_is_left():
     """The model takes the blur floor squared, so a floor of exactly 0 is a stationary point
     whatever the data: a solve started there stays there. Readings with a 0.6 px floor, solved
     from the fit's other parameters with the floor at 0: one solve ends at 0 (the saddle), the
-    escape the fit takes (lensfit.fit.solve._floor_escape) at the floor the data show, at a lower
+    escape the fit takes (lensfit.fit.solve.floor_escape) at the floor the data show, at a lower
     cost."""
     import jax
 
     from lensfit.fit.data import prepare
     from lensfit.fit.model import Layout
-    from lensfit.fit.solve import _floor_escape, _solver, _solver_args
+    from lensfit.fit.solve import floor_escape, solver_for, solver_args
 
     rng = np.random.default_rng(5)
     rows, fpx, fsg = capture(rng, pose_rel_sigma=0.0, noise_px=0.02)
@@ -488,19 +488,19 @@ def test_a_floor_stuck_at_zero_is_left():
     theta = np.zeros(at.size)
     theta[at.LOG_F], theta[at.inv_focus_per_m(0)], theta[at.log_n(0)] = math.log(F), 1000.0 / X, math.log(N)
     free_idx = np.array([at.LOG_F, at.inv_focus_per_m(0), at.log_n(0), at.floor(0)])
-    args = _solver_args(theta, free_idx, data, 1.0 / data.sigma_px, [fpx], [1.0 / fsg], [1.0])
+    args = solver_args(theta, free_idx, data, 1.0 / data.sigma_px, [fpx], [1.0 / fsg], [1.0])
     assert abs(s / PITCH / fpx - 1) < 0.01
     with jax.enable_x64(True):
-        stuck = np.asarray(_solver(1)[0](theta[free_idx], args)[0])
-        left = _floor_escape(stuck, free_idx, args, 1)
+        stuck = np.asarray(solver_for(1)[0](theta[free_idx], args)[0])
+        left = floor_escape(stuck, free_idx, args, 1)
         assert left is not None
-        cost = [float(np.sum(np.asarray(_solver(1)[1](t, args)[0]) ** 2)) for t in (stuck, left)]
+        cost = [float(np.sum(np.asarray(solver_for(1)[1](t, args)[0]) ** 2)) for t in (stuck, left)]
     assert stuck[3] == 0.0
     assert abs(abs(left[3]) - 0.6) < 0.05 and cost[1] < cost[0] - 10.0
 
 
 def test_the_images_spread_is_the_bias_reduced_cluster_robust_sum():
-    """lensfit.fit.uncertainty._image_spread against CR2 written out with scipy's matrix square
+    """lensfit.fit.uncertainty.image_spread against CR2 written out with scipy's matrix square
     root (Bell and McCaffrey 2002): ``sum_g H^-1 J_g' (I - H_gg)^-1/2 r_g r_g' (I - H_gg)^-1/2
     J_g H^-1`` per stratum, on a random weighted least-squares problem of 8 images in two
     settings (rows beyond the samples: a calibration row and padding, in ``H`` only)."""
@@ -508,7 +508,7 @@ def test_the_images_spread_is_the_bias_reduced_cluster_robust_sum():
 
     from scipy.linalg import sqrtm
 
-    from lensfit.fit.uncertainty import _image_spread
+    from lensfit.fit.uncertainty import image_spread
 
     rng = np.random.default_rng(7)
     n, p = 64, 4
@@ -521,7 +521,7 @@ def test_the_images_spread_is_the_bias_reduced_cluster_robust_sum():
     data = SimpleNamespace(group=group, setting=setting)
     used = np.ones(n, bool)
     used[5] = False  # a sample left out by the fit
-    cov, strata = _image_spread(cov_fit, 0.01 * cov_fit, jac, res, cov_fit, np.arange(p), data, used)
+    cov, strata = image_spread(cov_fit, 0.01 * cov_fit, jac, res, cov_fit, np.arange(p), data, used)
     assert strata is not None and len(strata) == 2
     for h, (part, dof) in enumerate(strata):
         want = np.zeros((p, p))

@@ -515,7 +515,7 @@ def test_errors_shared_by_an_image_widen_the_intervals(loss, least):
     """Each image's pose error moves all its edges' distances together (here 0.3 % per image,
     10 images of 20 edges): independent-sample covariance holds the truth in about 12 % of
     focus-distance 95 % intervals; the images' shared errors as a term of their own
-    (lensfit.fit.uncertainty._images_part, their scatter read through each image's response,
+    (lensfit.fit.uncertainty.images_part, their scatter read through each image's response,
     lensfit.fit.solve._shift_response), with Student-t quantiles for its 9 degrees of freedom,
     restore 96 % under least squares and Huber in these 50 trials (98 % in 400). (The mean of
     that term and the images' cluster-robust spread, until 2026-11-28: 92 and 90 %, 92.5 and
@@ -566,7 +566,7 @@ def test_a_floor_left_at_zero_by_an_earlier_solve_is_tried_again(loss, monkeypat
     f, N, D, floor = 50.0, 4.0, 1500.0, 1.5
     rng = np.random.default_rng(9)
     rows, fpx, fpx_sigma = simulate(f, N, D, spread(1000, 2500, 80), rng, floor_px=floor, noise_px=0.03)
-    real = stages._solver
+    real = stages.solver_for
     zeroed = []
 
     class FirstSolveZeroesTheFloor:
@@ -590,7 +590,7 @@ def test_a_floor_left_at_zero_by_an_earlier_solve_is_tried_again(loss, monkeypat
                 return sol, ok
             return solve
 
-    monkeypatch.setattr(stages, "_solver", FirstSolveZeroesTheFloor)
+    monkeypatch.setattr(stages, "solver_for", FirstSolveZeroesTheFloor)
     r = run_fit(rows, fpx, fpx_sigma, loss=loss)
     assert zeroed and r.ok, r.reasons
     check_close(r.settings["a"]["blur_floor_px"], floor, 0.05)

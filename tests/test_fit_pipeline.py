@@ -201,13 +201,13 @@ def test_focus_bracket_scene_fits_jointly(tmp_path, monkeypatch):
     from synth.scene import load_scene
 
     through_lines = []
-    plain = calibration._correlated_sigma
+    plain = calibration.correlated_sigma
 
     def recorded(*args, **kwargs):
         through_lines.append(plain(*args, **kwargs))
         return through_lines[-1]
 
-    monkeypatch.setattr(calibration, "_correlated_sigma", recorded)
+    monkeypatch.setattr(calibration, "correlated_sigma", recorded)
     out = tmp_path / "fb"
     write_stack(render(load_scene(specs_dir() / "scenes" / "focus_bracket.toml")), out)
     truth = json.loads((out / "truth.json").read_text())

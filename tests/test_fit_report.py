@@ -12,7 +12,7 @@ import pytest
 
 from helpers import CHROMIUM, read_in_browser
 from lensfit.cli import main as lensfit_main
-from lensfit.fitreport import _edge_values, image_rows, write_fit_report
+from lensfit.fitreport import edge_values, image_rows, write_fit_report
 from lensfit.fit import fit, results_document
 from lensfit.outputs import written_by
 from lensfit.stack import load_stack
@@ -26,7 +26,7 @@ def test_an_image_whose_blur_is_wrong_stands_out(calibration_samples):
     table.samples = [dataclasses.replace(s, coc_diameter_px=s.coc_diameter_px * 1.4)
                      if s.image == bad and s.coc_diameter_px is not None else s for s in table.samples]
     result = fit(table)
-    rows = {r["image"]: r for r in image_rows(table, *_edge_values(table, result))}
+    rows = {r["image"]: r for r in image_rows(table, *edge_values(table, result))}
     worst = max(rows.values(), key=lambda r: r["rms_residual_sigma"])
     assert worst["image"] == bad
     assert worst["rms_residual_sigma"] > 2 * np.median([r["rms_residual_sigma"] for r in rows.values()])
@@ -87,9 +87,9 @@ def test_cli_report_written_once_replaced_only_with_force(calibration_stack, tmp
 def test_estimates_carry_the_digits_their_sigma_allows(value, sigma, shown):
     """Two significant digits of the sigma decide the estimate's last digit (the report printed
     six whatever the sigma); an unbounded interval end reads inf."""
-    from lensfit.fitreport import _to_sigma
+    from lensfit.fitreport import to_sigma
 
-    assert _to_sigma(value, sigma, "inf") == shown
+    assert to_sigma(value, sigma, "inf") == shown
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="needs headless Chromium (Debian's package chromium; .ci/run installs it)")

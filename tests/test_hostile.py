@@ -156,10 +156,10 @@ def test_written_by_tells_our_plots_from_a_users(tmp_path, suffix):
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from lensfit.plots import _creator
+    from lensfit.plots import creator
 
     fig = plt.figure()
-    fig.savefig(tmp_path / f"ours{suffix}", metadata=_creator(tmp_path / f"ours{suffix}"))
+    fig.savefig(tmp_path / f"ours{suffix}", metadata=creator(tmp_path / f"ours{suffix}"))
     fig.savefig(tmp_path / f"users{suffix}")
     plt.close(fig)
     assert written_by(tmp_path / f"ours{suffix}") == "lensfit"
@@ -283,7 +283,7 @@ def test_unforeseen_failure_is_one_line(capsys, monkeypatch):
     def broken(args):
         raise RuntimeError("something nobody planned for")
 
-    monkeypatch.setattr(lensfit.cli, "_dof_command", broken)
+    monkeypatch.setattr(lensfit.cli, "dof_command", broken)
     code, _, err = run_cli(capsys, lensfit_main, "dof", "--focal-length", 50, "--f-number", 2, "--focus-distance",
                            1000, "--coc", 0.03)
     assert code == 70

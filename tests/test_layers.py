@@ -211,3 +211,16 @@ def test_the_fit_and_measure_functions_are_short():
                 if lines > FIT_FUNCTION_LINES:
                     long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
     assert not long, long
+
+
+def test_no_private_name_crosses_a_module():
+    """A module's underscored names are its own: another module (the tests too) imports only what
+    a module offers, so that a private helper can change without reading the whole house."""
+    crossing = []
+    paths = list(MODULES.values()) + sorted((ROOT / "tests").rglob("*.py"))
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in PACKAGES:
+                crossing += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}" for a in node.names
+                             if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not crossing, "\n".join(crossing)

@@ -26,10 +26,10 @@ pytest.importorskip("mitsuba")
 def variant_or_skip(variant: str) -> str:
     """The variant, or a skip where it cannot start here (llvm_ad_rgb needs libLLVM 20 or later,
     which the test extra installs on Linux x86_64: karellen-llvm-core)."""
-    from synth.mitsuba import _mitsuba
+    from synth.mitsuba import load_mitsuba
 
     try:
-        _mitsuba(variant)
+        load_mitsuba(variant)
     except InputError as e:
         pytest.skip(str(e))
     return variant
@@ -112,8 +112,8 @@ def test_an_llvm_too_old_for_mitsubas_kernels_is_refused_not_a_crash():
     old = sorted(glob.glob("/usr/lib/x86_64-linux-gnu/libLLVM-1[0-9].so*"))
     if not old:
         pytest.skip("no libLLVM older than 20 on this machine")
-    code = ("from lensfit.errors import InputError\nfrom synth.mitsuba import _mitsuba\n"
-            "try:\n    _mitsuba('llvm_ad_rgb')\nexcept InputError as e:\n    print('refused:', e)\n")
+    code = ("from lensfit.errors import InputError\nfrom synth.mitsuba import load_mitsuba\n"
+            "try:\n    load_mitsuba('llvm_ad_rgb')\nexcept InputError as e:\n    print('refused:', e)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env={**os.environ, "DRJIT_LIBLLVM_PATH": old[-1]}, timeout=120)
     assert proc.returncode == 0, proc.stderr[-500:]

@@ -84,7 +84,7 @@ def _in_camera(dngs: list[Path], out: Path) -> None:
             out / f"{dng.stem}.jpg", "JPEG", quality=90, subsampling=2)
 
 
-def _without_software(src: Path, dst: Path) -> None:
+def without_software(src: Path, dst: Path) -> None:
     """The JPEGs of ``src`` with the EXIF Software tag removed (saved again with their own
     quantisation tables: the pixels change by the re-encoding only)."""
     from PIL import Image
@@ -112,7 +112,7 @@ def _compare(results: dict[str, Any]) -> dict[str, Any]:
             for q in QUANTITIES}
 
 
-def _passed(errors: dict[str, Any], processing: dict[str, Any] | None, control: bool) -> bool:
+def row_passed(errors: dict[str, Any], processing: dict[str, Any] | None, control: bool) -> bool:
     for q in QUANTITIES:
         e = errors[q]
         if e["refused"]:
@@ -156,7 +156,7 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
                 if name.startswith("in-camera"):
                     _in_camera(dngs, folder)
                 elif "," in name:
-                    _without_software(root / "darktable" / "photos", folder)
+                    without_software(root / "darktable" / "photos", folder)
                 else:
                     _develop(name, program, dngs, folder, Path(tmp))
                 row["seconds_develop"] = time.perf_counter() - t
@@ -188,7 +188,7 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
             row["errors"] = _compare(results)
             row["processing"] = results.get("processing")
             row["chi2_reduced"] = results.get("diagnostics", {}).get("chi2_reduced")
-            row["passed"] = _passed(row["errors"], row["processing"], control=tool is None)
+            row["passed"] = row_passed(row["errors"], row["processing"], control=tool is None)
             rows.append(row)
     ran = [r for r in rows if "missing" not in r]
     return {"benchmark": "developed", "date": datetime.now(UTC).strftime("%Y-%m-%d"),

@@ -34,11 +34,11 @@ LABELS = {"focal_length_mm": "f", "f_number": "N", "focus_distance_mm": "focus d
 
 def make_record(doc: dict[str, Any]) -> dict[str, Any]:
     """A suite's record from a ``lensfit bench`` results document (its ``results.json``)."""
-    from lensfit.bench.report import _rows
+    from lensfit.bench.report import report_rows
 
     try:
         suite, prov, cases, coverage = doc["suite"], doc["provenance"], doc["cases"], doc["coverage"]
-        rows = _rows(cases, suite["tolerances"])
+        rows = report_rows(cases, suite["tolerances"])
     except (KeyError, TypeError) as exc:
         raise InputError("results", "a bench results document", "one written by lensfit bench",
                          f"missing {exc}") from exc

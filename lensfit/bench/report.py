@@ -29,7 +29,7 @@ from lensfit.outputs import write_text
 CONFIG_KEYS = ("scene", "render", "effects", "noise", "estimator", "solver")
 
 
-def _rows(records: list[dict[str, Any]], tolerances: dict[str, float]) -> list[dict[str, Any]]:
+def report_rows(records: list[dict[str, Any]], tolerances: dict[str, float]) -> list[dict[str, Any]]:
     """One row per case x setting x quantity."""
     rows = []
     for r in records:
@@ -66,7 +66,7 @@ def summarise(records: list[dict[str, Any]], suite: Suite) -> dict[str, Any]:
     """Per-configuration figures (over seeds and settings) and the Pareto fronts."""
     for r in records:
         r.setdefault("effects", "scene")  # case files from before the effects axis
-    rows = _rows(records, suite.tolerances)
+    rows = report_rows(records, suite.tolerances)
     configs: dict[tuple, dict[str, Any]] = {}
     for r in records:
         key = tuple(r[k] for k in CONFIG_KEYS)

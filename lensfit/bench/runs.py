@@ -34,7 +34,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from lensfit.bench.suites import Suite, _key, _render_key, render_label, scene_with_effects, solver_label
+from lensfit.bench.suites import Suite, digest_key, render_key, render_label, scene_with_effects, solver_label
 from lensfit.errors import InputError, SpecError
 from lensfit.outputs import write_text
 
@@ -93,7 +93,7 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
     if not todo:
         return []
     scene_path = Path(task["scene"])
-    stack = cache_dir / "stacks" / _render_key(task)
+    stack = cache_dir / "stacks" / render_key(task)
     fx = task.get("effects", {"name": "scene"})
     meta_path = stack / "bench_render.json"
     if not meta_path.is_file():
@@ -111,7 +111,7 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
         if shared is not None:
             for entry in shared.entries.values():  # those rendered in this call: their seconds, warm
                 if "seconds" not in entry:
-                    entry["seconds"] = _warm_seconds(entry["window"], spans)
+                    entry["seconds"] = warm_seconds(entry["window"], spans)
             shared_s = sum(shared.entries[k]["seconds"] for k in shared.hits[hits:])
         write_stack(result, stack)
         meta_path.write_text(json.dumps({"seconds": seconds + shared_s, "seconds_compiling": compiling,
@@ -129,7 +129,7 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
         with tempfile.TemporaryDirectory(prefix="lensfit-bench-", dir=cache_dir) as tmp:
             path = stack
             if "full_well_e" in noise:
-                rng = np.random.default_rng([task["seed"], int(_key(noise["name"]), 16) % 2**32])
+                rng = np.random.default_rng([task["seed"], int(digest_key(noise["name"]), 16) % 2**32])
                 levels = (float(noise["full_well_e"]), float(noise.get("read_noise_e", 0.0)),
                           float(noise.get("exposure", 1.0)))
                 # held in memory (the pixels the copy's files would hold), the clean images decoded
@@ -230,7 +230,7 @@ def _overlap(window: tuple[float, float], spans: list[tuple[float, float]]) -> f
     return total
 
 
-def _warm_seconds(window: tuple[float, float], spans: list[tuple[float, float]]) -> float:
+def warm_seconds(window: tuple[float, float], spans: list[tuple[float, float]]) -> float:
     """The seconds of a render that ran in ``window``, less JAX's compilation within it."""
     return max(window[1] - window[0] - _overlap(window, sorted(spans)), 0.0)
 

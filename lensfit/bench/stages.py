@@ -109,7 +109,7 @@ def _run_measured(*argv: str) -> tuple[float, float]:
     return ran.seconds, ran.peak_bytes / 2**20
 
 
-def _subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
+def subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
     """A copy of the stack with its first ``count`` images (more than it has: its images again,
     in turn, under new names), enlarged ``scale`` times."""
     import cv2
@@ -176,7 +176,7 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
         for k, (count, scale) in enumerate(configs):
             if progress:
                 progress(f"{count} images x{scale:g}", k, len(configs))
-            folder = _subset(stack, Path(tmp) / f"s{k}", count, scale)
+            folder = subset(stack, Path(tmp) / f"s{k}", count, scale)
             _, out = _run(_CHILD, str(folder), str(max(warm_runs, 1)))
             child = json.loads(out.strip().splitlines()[-1])
             h, w = _shape(folder)

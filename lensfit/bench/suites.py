@@ -138,7 +138,7 @@ def solver_label(solver: dict[str, Any]) -> str:
             + (" diffraction off" if solver.get("diffraction") == "off" else ""))
 
 
-def _key(*parts: Any) -> str:
+def digest_key(*parts: Any) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -162,12 +162,12 @@ def _render_parts(task: dict[str, Any]) -> tuple:
     return parts if fx == {"name": "scene"} else parts + (fx,)  # runs without effects keep their ids
 
 
-def _render_key(task: dict[str, Any]) -> str:
-    return _key(*_render_parts(task))
+def render_key(task: dict[str, Any]) -> str:
+    return digest_key(*_render_parts(task))
 
 
 def case_id(task: dict[str, Any], case: dict[str, Any]) -> str:
-    return _key(*_render_parts(task), case["noise"], case["estimator"], case["solver"], code_digest())
+    return digest_key(*_render_parts(task), case["noise"], case["estimator"], case["solver"], code_digest())
 
 
 @functools.cache

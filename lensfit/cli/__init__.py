@@ -13,14 +13,14 @@ from typing import Sequence
 
 from lensfit import __version__
 from lensfit.errors import InputError
-from lensfit.cli.bench import (_bench_command, _bench_fit_command, _bench_lenses_command, _bench_measure_command,
-                               _bench_stages_command, _bench_api_command, _bench_hostile_command,
-                               _bench_developed_command)
-from lensfit.cli.capture import _init_command, _plan_command, _target_command
-from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, _FIT_OPTIONS, CliError,
-                                _diffraction, _input_options, _jobs, _number, _pupil)
-from lensfit.cli.dof import _dof_command
-from lensfit.cli.fit import _fit_command, _measure_command
+from lensfit.cli.bench import (bench_command, bench_fit_command, bench_lenses_command, bench_measure_command,
+                               bench_stages_command, bench_api_command, bench_hostile_command,
+                               bench_developed_command)
+from lensfit.cli.capture import init_command, plan_command, target_command
+from lensfit.cli.common import (EXIT_BENCH_FAILED, EXIT_NOT_IDENTIFIABLE, EXIT_OK, EXIT_USAGE, FIT_OPTIONS, CliError,
+                                diffraction_arg, input_options, jobs_arg, number_arg, pupil_arg)
+from lensfit.cli.dof import dof_command
+from lensfit.cli.fit import fit_command, measure_command
 
 __all__ = ["main", "build_parser", "CliError", "EXIT_OK", "EXIT_USAGE", "EXIT_NOT_IDENTIFIABLE", "EXIT_BENCH_FAILED"]
 
@@ -38,20 +38,20 @@ def build_parser() -> argparse.ArgumentParser:
         "dof", help="depth-of-field calculator (thin lens)",
         description="Depth of field of a thin lens: near and far limits, total DOF, hyperfocal "
                     "distance. Distances are from the lens plane, in mm.")
-    dof.add_argument("--focal-length", type=_number, required=True, metavar="MM",
+    dof.add_argument("--focal-length", type=number_arg, required=True, metavar="MM",
                      help="focal length f, mm (> 0)")
-    dof.add_argument("--f-number", type=_number, required=True, metavar="N",
+    dof.add_argument("--f-number", type=number_arg, required=True, metavar="N",
                      help="f-number N (> 0)")
-    dof.add_argument("--focus-distance", type=_number, required=True, metavar="MM",
+    dof.add_argument("--focus-distance", type=number_arg, required=True, metavar="MM",
                      help="focus distance D_s from the lens plane, mm (> focal length; 'inf' allowed)")
-    dof.add_argument("--coc", type=_number, metavar="MM",
+    dof.add_argument("--coc", type=number_arg, metavar="MM",
                      help="acceptable circle-of-confusion diameter, mm (default: sensor diagonal / 1500)")
     dof.add_argument("--sensor", metavar="NAME",
                      help="sensor format, e.g. full-frame, aps-c, micro-four-thirds (data_specs/sensor_formats.toml)")
-    dof.add_argument("--pixel-pitch", type=_number, metavar="MM",
+    dof.add_argument("--pixel-pitch", type=number_arg, metavar="MM",
                      help="pixel pitch, mm, to express the CoC in pixels (default: from --sensor when known)")
     dof.add_argument("--json", action="store_true", help="print a JSON object instead of a table")
-    dof.set_defaults(func=_dof_command, prog="lensfit dof")
+    dof.set_defaults(func=dof_command, prog="lensfit dof")
 
     tg = sub.add_parser("target", help="write a printable ChArUco board (PDF/SVG/PNG) and its stack.toml entry",
                         description="Lay out a ChArUco board at its true size on a sheet of paper (vector PDF or "
@@ -64,17 +64,17 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a4, a3, a2, letter, tabloid (+ -landscape) or WxH in mm (default a4-landscape)")
     tg.add_argument("--squares", type=int, nargs=2, default=(9, 6), metavar=("COLS", "ROWS"),
                     help="squares across and down (default 9 6)")
-    tg.add_argument("--square-mm", type=_number, metavar="MM", help="square side (default: the largest that fits)")
-    tg.add_argument("--marker-mm", type=_number, metavar="MM", help="marker side (default 0.75 x the square)")
+    tg.add_argument("--square-mm", type=number_arg, metavar="MM", help="square side (default: the largest that fits)")
+    tg.add_argument("--marker-mm", type=number_arg, metavar="MM", help="marker side (default 0.75 x the square)")
     tg.add_argument("--dictionary", default="DICT_5X5_100", metavar="NAME",
                     help="OpenCV ArUco dictionary (default DICT_5X5_100)")
-    tg.add_argument("--dpi", type=_number, default=300.0,
+    tg.add_argument("--dpi", type=number_arg, default=300.0,
                     help="a PNG's resolution, at least this (default 300; PDF and SVG are vector)")
     tg.add_argument("--id", default="board", help="the target's id in stack.toml (default board)")
     tg.add_argument("--entry", metavar="FILE.toml",
                     help="also write the [[target]] entry to this file (for lensfit init --target)")
     tg.add_argument("--force", action="store_true", help="replace an existing board this program wrote")
-    tg.set_defaults(func=_target_command, prog="lensfit target")
+    tg.set_defaults(func=target_command, prog="lensfit target")
 
     it = sub.add_parser("init", help="write stack.toml for a folder of photos from their EXIF",
                         description="Draft PHOTOS_DIR/stack.toml from the photos' EXIF: the images (RAW preferred "
@@ -86,11 +86,11 @@ def build_parser() -> argparse.ArgumentParser:
     it.add_argument("--target", metavar="FILE.toml",
                     help="[[target]] entry of the printed board (lensfit target --entry FILE; or a stack.toml); "
                          "default: the board lensfit target draws by default, noted as assumed")
-    it.add_argument("--measured-square-mm", type=_number, metavar="MM",
+    it.add_argument("--measured-square-mm", type=number_arg, metavar="MM",
                     help="a printed square's side as measured with a ruler: the target's square_mm and marker_mm "
                          "are scaled by it over the square_mm it was drawn with (printers scale by a few per cent)")
-    it.add_argument("--pixel-pitch", type=_number, metavar="MM", help="sensor pixel pitch, mm (overrides the EXIF)")
-    it.add_argument("--sensor-width", type=_number, metavar="MM",
+    it.add_argument("--pixel-pitch", type=number_arg, metavar="MM", help="sensor pixel pitch, mm (overrides the EXIF)")
+    it.add_argument("--sensor-width", type=number_arg, metavar="MM",
                     help="sensor active width, mm (the pitch is this / image width)")
     it.add_argument("--sensor", metavar="NAME", help="a sensor format of data_specs/sensor_formats.toml")
     it.add_argument("--settings", default="exif", choices=["exif", "per-image", "one"],
@@ -99,39 +99,39 @@ def build_parser() -> argparse.ArgumentParser:
                     help="which file of a RAW + JPEG pair to list (default raw: linear, no tone curve)")
     it.add_argument("--out", metavar="FILE", help="manifest to write (default PHOTOS_DIR/stack.toml)")
     it.add_argument("--force", action="store_true", help="replace a stack.toml lensfit init wrote")
-    _input_options(it, outside=False, jobs=False)
-    it.set_defaults(func=_init_command, prog="lensfit init")
+    input_options(it, outside=False, jobs=False)
+    it.set_defaults(func=init_command, prog="lensfit init")
 
     pl = sub.add_parser("plan", help="where to put the target and how many shots for a requested accuracy",
                         description="Plan a capture for a lens guess: the usable target distances (the board fits, "
                                     "its squares are detectable, the blur leaves them readable), shots spread evenly in "
                                     "inverse distance over them, and the Cramer-Rao bound of f, N and the focus "
                                     "distance against the number of shots; the smallest number reaching --goal.")
-    pl.add_argument("--focal-length", type=_number, required=True, metavar="MM", help="focal length guess, mm")
-    pl.add_argument("--f-number", type=_number, required=True, metavar="N", help="f-number of the capture")
-    pl.add_argument("--focus-distance", type=_number, required=True, metavar="MM",
+    pl.add_argument("--focal-length", type=number_arg, required=True, metavar="MM", help="focal length guess, mm")
+    pl.add_argument("--f-number", type=number_arg, required=True, metavar="N", help="f-number of the capture")
+    pl.add_argument("--focus-distance", type=number_arg, required=True, metavar="MM",
                     help="focus distance from the lens, mm ('inf' allowed)")
     pl.add_argument("--sensor", metavar="NAME", help="sensor format with a pixel grid (data_specs/sensor_formats.toml)")
-    pl.add_argument("--pixel-pitch", type=_number, metavar="MM", help="pixel pitch, mm")
+    pl.add_argument("--pixel-pitch", type=number_arg, metavar="MM", help="pixel pitch, mm")
     pl.add_argument("--width-px", type=int, metavar="PX", help="image width, px")
     pl.add_argument("--height-px", type=int, metavar="PX", help="image height, px")
     pl.add_argument("--target", metavar="FILE.toml",
                     help="the board's [[target]] entry (lensfit target --entry); default: lensfit target's default board")
-    pl.add_argument("--goal", type=_number, default=1.0, metavar="PCT",
+    pl.add_argument("--goal", type=number_arg, default=1.0, metavar="PCT",
                     help="95%% half-interval to reach on f, N and focus distance, per cent (default 1)")
     pl.add_argument("--max-shots", type=int, default=48, metavar="N", help="largest capture considered (default 48)")
-    pl.add_argument("--edge-sigma-px", type=_number, default=0.05, metavar="PX",
+    pl.add_argument("--edge-sigma-px", type=number_arg, default=0.05, metavar="PX",
                     help="blur measurement noise per edge, px (default 0.05)")
-    pl.add_argument("--edge-sigma-rel", type=_number, default=2.0, metavar="PCT",
+    pl.add_argument("--edge-sigma-rel", type=number_arg, default=2.0, metavar="PCT",
                     help="and its part proportional to the blur, per cent (default 2)")
-    pl.add_argument("--calibration-sigma", type=_number, default=0.1, metavar="PCT",
+    pl.add_argument("--calibration-sigma", type=number_arg, default=0.1, metavar="PCT",
                     help="1-sigma of the calibrated focal length in px, per cent (default 0.1)")
     pl.add_argument("--shot-list", metavar="FILE", help="also write the plan as a one-page shot list to print "
                                                         "(.pdf, .svg or .png): distances, how to turn the board, "
                                                         "boxes to tick, the checklist")
     pl.add_argument("--force", action="store_true", help="replace a --shot-list this program wrote")
     pl.add_argument("--json", action="store_true", help="print the plan as JSON")
-    pl.set_defaults(func=_plan_command, prog="lensfit plan")
+    pl.set_defaults(func=plan_command, prog="lensfit plan")
 
     m = sub.add_parser(
         "measure", help="measure blur diameter versus distance on the targets of an image stack",
@@ -143,9 +143,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="blur estimator: edge (fast; second-moment blur diameter), edge-disk (uniform-disk reading) "
                         "or target (analysis by synthesis)")
     m.add_argument("--force", action="store_true", help="replace an existing --out file that lensfit wrote")
-    _input_options(m)
+    input_options(m)
     m.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
-    m.set_defaults(func=_measure_command, prog="lensfit measure")
+    m.set_defaults(func=measure_command, prog="lensfit measure")
 
     ft = sub.add_parser(
         "fit", help="measure a stack and fit focal length, f-number and focus distance",
@@ -166,9 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "and measured edges coloured by blur and by residual")
     ft.add_argument("--loss", default="huber", choices=["huber", "cauchy", "linear"],
                     help="robust loss (default huber; cauchy for many outliers)")
-    ft.add_argument("--blur-floor", type=_number, metavar="PX",
+    ft.add_argument("--blur-floor", type=number_arg, metavar="PX",
                     help="fix the blur floor (px) instead of fitting it per setting")
-    ft.add_argument("--pupil-magnification", type=_pupil, metavar="P|LO:HI",
+    ft.add_argument("--pupil-magnification", type=pupil_arg, metavar="P|LO:HI",
                     help="pupil magnification P (exit / entrance pupil diameter) of a thick lens: a value to assume, "
                          "or a range LO:HI (a prior whose 95%% interval it is; widens f and N honestly). Default: "
                          "stack.toml's [lens] pupil_magnification, else fitted from two or more focus settings, else "
@@ -195,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "moment through the spot's shape: a real lens's rims and cores), disk (the uniform disk's), "
                          "or auto (default): shaped, unless the Airy pattern would reach 0.5 px and the images were "
                          "not tested for it")
-    ft.add_argument("--diffraction", type=_diffraction, nargs="?", const=550.0, default="auto",
+    ft.add_argument("--diffraction", type=diffraction_arg, nargs="?", const=550.0, default="auto",
                     metavar="NM|auto|off",
                     help="diffraction in the blur readings (the Airy pattern of each setting's working f-number): "
                          "NM models it at this effective wavelength (bare: 550 nm); auto (default) models it at "
@@ -203,15 +203,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "and the small blurs' edges fit better with it (a photograph, not a geometric render); "
                          "off never. Modelling measures again once to three times (about 3-5x the measuring "
                          "time); where the auto test runs it reads up to 16 edges again through the Airy model")
-    ft.add_argument("--pixel-pitch", type=_number, metavar="MM",
+    ft.add_argument("--pixel-pitch", type=number_arg, metavar="MM",
                     help="pixel pitch, mm (for samples without it, e.g. a CSV of your own)")
-    ft.add_argument("--focal-length-px", type=_number, metavar="PX",
+    ft.add_argument("--focal-length-px", type=number_arg, metavar="PX",
                     help="calibrated focal length in px (overrides the samples file's; for samples without one)")
     ft.add_argument("--json", action="store_true", help="print the results JSON instead of tables")
     ft.add_argument("--force", action="store_true", help="replace existing output files that lensfit wrote")
-    _input_options(ft)
+    input_options(ft)
     ft.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
-    ft.set_defaults(func=_fit_command, prog="lensfit fit")
+    ft.set_defaults(func=fit_command, prog="lensfit fit")
 
     bs = sub.add_parser("bench", help="run a benchmark suite and write its report",
                         description="Run a suite of data_specs/bench/ (scenes x render quality x noise x "
@@ -235,18 +235,18 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also write the suite's record (DIR/SUITE.json: headline figures, date, command) that the "
                          "documentation's validation page and the README's accuracy table are made from, replacing "
                          "the suite's earlier record there (e.g. docs/validation/records)")
-    bs.set_defaults(func=_bench_command, prog="lensfit bench")
+    bs.set_defaults(func=bench_command, prog="lensfit bench")
 
     bf = sub.add_parser("bench-fit", help="accuracy of f, N, focus distance and honesty of sigma under noise",
                         description="Measure and fit a rendered STACK (with truth.json) clean and with seeded "
                                     "photon + read noise; report errors, observed scatter and stated sigma.")
     bf.add_argument("--stack", required=True, metavar="DIR", help="a stack rendered by synth (linear PNGs)")
     bf.add_argument("--seeds", type=int, default=5, help="noise draws (default 5)")
-    bf.add_argument("--full-well", type=_number, default=20000.0, metavar="E", help="electrons at white (20000)")
-    bf.add_argument("--read-noise", type=_number, default=5.0, metavar="E", help="read noise, electrons (5)")
+    bf.add_argument("--full-well", type=number_arg, default=20000.0, metavar="E", help="electrons at white (20000)")
+    bf.add_argument("--read-noise", type=number_arg, default=5.0, metavar="E", help="read noise, electrons (5)")
     bf.add_argument("--estimator", default="edge", metavar="NAME", help="blur estimator (edge)")
     bf.add_argument("--json", action="store_true", help="print JSON")
-    bf.set_defaults(func=_bench_fit_command, prog="lensfit bench-fit")
+    bf.set_defaults(func=bench_fit_command, prog="lensfit bench-fit")
 
     bl = sub.add_parser("bench-lenses", help="thin- and thick-lens fits on stacks ray traced through real lenses",
                         description="Render the demo calibration stack through every shipped compound lens "
@@ -254,12 +254,12 @@ def build_parser() -> argparse.ArgumentParser:
                                     "as a thick lens with P given, and as a thick lens with P fitted from the bracket.")
     bl.add_argument("--lens", action="append", metavar="NAME", help="only this design (repeatable)")
     bl.add_argument("--spp", type=int, default=64, help="ray-tracing samples per pixel (default 64)")
-    bl.add_argument("--f-number", type=_number, default=11.0, metavar="N",
+    bl.add_argument("--f-number", type=number_arg, default=11.0, metavar="N",
                     help="f-number of every shot (default 11; faster than a design opens to is refused)")
-    bl.add_argument("--wavelengths", type=_number, nargs="+", metavar="NM",
+    bl.add_argument("--wavelengths", type=number_arg, nargs="+", metavar="NM",
                     help="render grey through these wavelengths (glass dispersion: longitudinal and lateral colour); "
                          "only the designs whose glasses are known (default: the d line alone)")
-    bl.add_argument("--scale", type=_number, default=1.0, metavar="K",
+    bl.add_argument("--scale", type=number_arg, default=1.0, metavar="K",
                     help="image size as a fraction of the demo's 1200 x 800 px (default 1; 0.5 renders 4x faster, "
                          "with calibrations and so P about half as precise)")
     bl.add_argument("--designs", choices=("shipped", "optiland"), default="shipped",
@@ -271,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--json", action="store_true", help="print JSON")
-    bl.set_defaults(func=_bench_lenses_command, prog="lensfit bench-lenses")
+    bl.set_defaults(func=bench_lenses_command, prog="lensfit bench-lenses")
 
     bm = sub.add_parser("bench-measure", help="accuracy and time per edge of the blur estimators",
                         description="Benchmark: slanted edges rendered by synth at several CoC diameters and "
@@ -281,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     bm.add_argument("--stack", metavar="DIR", help="also run every estimator on this rendered stack")
     bm.add_argument("--draws", type=int, default=3, help="noise draws per case (default 3)")
     bm.add_argument("--json", action="store_true", help="print JSON")
-    bm.set_defaults(func=_bench_measure_command, prog="lensfit bench-measure")
+    bm.set_defaults(func=bench_measure_command, prog="lensfit bench-measure")
 
     bs = sub.add_parser("bench-stages", help="seconds per stage of measure + fit, cold and warm, by size",
                         description="Benchmark: seconds per stage (read, detect, calibrate, measure, fit, "
@@ -291,13 +291,13 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("stack", metavar="STACK", help="a stack folder (stack.toml) with ChArUco targets")
     bs.add_argument("--images", type=int, nargs="+", default=[3, 6], metavar="K",
                     help="also time the first K images (default 3 6; the whole stack always)")
-    bs.add_argument("--scale", type=_number, nargs="+", default=[1.0, 2.0], metavar="X",
+    bs.add_argument("--scale", type=number_arg, nargs="+", default=[1.0, 2.0], metavar="X",
                     help="enlargements of the whole stack (bilinear, pitch / X; default 1 2)")
     bs.add_argument("--repeat", type=int, default=3, metavar="K",
                     help="whole-process pairs (lensfit fit, OpenCV) run back to back; medians (default 3)")
     bs.add_argument("--warm-runs", type=int, default=3, metavar="K",
                     help="warm calls per configuration after the cold one; each stage's median (default 3)")
-    bs.add_argument("--jobs", type=_jobs, nargs="+", default=[1], metavar="N",
+    bs.add_argument("--jobs", type=jobs_arg, nargs="+", default=[1], metavar="N",
                     help="also run the whole `lensfit fit` at each --jobs N (e.g. 1 2) and report the speed-up and "
                          "whether the results are identical (default 1)")
     bs.add_argument("--shots", type=int, metavar="N",
@@ -306,7 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--record", metavar="DIR", help="also write the record DIR/stages.json the validation page "
                                                    "shows (docs/validation/records)")
     bs.add_argument("--json", action="store_true", help="print JSON")
-    bs.set_defaults(func=_bench_stages_command, prog="lensfit bench-stages")
+    bs.set_defaults(func=bench_stages_command, prog="lensfit bench-stages")
 
     ba = sub.add_parser("bench-api", help="the README's Python example against lensfit fit, fresh processes",
                         description="Benchmark: a fresh `lensfit fit STACK` process against a fresh Python process "
@@ -318,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also write the figures to DIR/api_vs_cli.json for the documentation's validation page "
                          "(e.g. docs/validation/records)")
     ba.add_argument("--json", action="store_true", help="print JSON")
-    ba.set_defaults(func=_bench_api_command, prog="lensfit bench-api")
+    ba.set_defaults(func=bench_api_command, prog="lensfit bench-api")
 
     bh = sub.add_parser("bench-hostile", help="hostile inputs at scale: exit status, time and peak memory of each",
                         description="Benchmark: inputs a hostile or careless user could give, with large counts "
@@ -331,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also write the table to DIR/hostile.json for the documentation's validation page "
                          "(e.g. docs/validation/records)")
     bh.add_argument("--json", action="store_true", help="print JSON")
-    bh.set_defaults(func=_bench_hostile_command, prog="lensfit bench-hostile")
+    bh.set_defaults(func=bench_hostile_command, prog="lensfit bench-hostile")
 
     bd = sub.add_parser("bench-developed", help="developed JPEGs from raw developers: f, N, focus against the truth",
                         description="Benchmark: the camera-raw scene's DNGs developed by RawTherapee and darktable "
@@ -345,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also write the table to DIR/developed.json for the documentation's validation page "
                          "(e.g. docs/validation/records)")
     bd.add_argument("--json", action="store_true", help="print JSON")
-    bd.set_defaults(func=_bench_developed_command, prog="lensfit bench-developed")
+    bd.set_defaults(func=bench_developed_command, prog="lensfit bench-developed")
     return parser
 
 
@@ -361,7 +361,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(exc, CliError):
             return str(exc), exc.code
         if isinstance(exc, InputError):  # input errors the command did not map itself
-            return exc.describe(_FIT_OPTIONS), EXIT_USAGE
+            return exc.describe(FIT_OPTIONS), EXIT_USAGE
         return None
 
     return run_guarded(args.prog, lambda: args.func(args), known)

@@ -10,9 +10,9 @@ import time
 from pathlib import Path
 
 from lensfit.errors import InputError
-from lensfit.cli.common import EXIT_BENCH_FAILED, EXIT_OK, CliError, _fail_input, _progress_bar
+from lensfit.cli.common import EXIT_BENCH_FAILED, EXIT_OK, CliError, fail_input, progress_bar
 
-def _bench_stages_command(args: argparse.Namespace) -> int:
+def bench_stages_command(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from lensfit.bench.stages import run, table
@@ -50,7 +50,7 @@ def _check_record_folder(record: str | None) -> None:
         raise CliError(f"--record {record} is a file; give the records' folder (e.g. docs/validation/records)")
 
 
-def _bench_api_command(args: argparse.Namespace) -> int:
+def bench_api_command(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from lensfit.bench.api import run
@@ -78,7 +78,7 @@ def _bench_api_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _bench_measure_command(args: argparse.Namespace) -> int:
+def bench_measure_command(args: argparse.Namespace) -> int:
     import json
 
     from rich.console import Console
@@ -122,7 +122,7 @@ def _bench_measure_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _bench_fit_command(args: argparse.Namespace) -> int:
+def bench_fit_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
@@ -158,7 +158,7 @@ def _bench_fit_command(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _bench_lenses_command(args: argparse.Namespace) -> int:
+def bench_lenses_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
@@ -178,7 +178,7 @@ def _bench_lenses_command(args: argparse.Namespace) -> int:
                          wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep, reuse=args.reuse,
                          designs=args.designs)
     except InputError as exc:
-        raise _fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
+        raise fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK
@@ -243,7 +243,7 @@ def p_fitted_text(how: str, fit_row: dict) -> str:
     return f"{fit_row['pupil_magnification']:.3f} ± {fit_row['pupil_magnification_sigma']:.3f}"
 
 
-def _bench_command(args: argparse.Namespace) -> int:
+def bench_command(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from lensfit.bench.runs import provenance, run_suite
@@ -272,7 +272,7 @@ def _bench_command(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     n_cases = sum(len(t["cases"]) for t in suite.tasks())
     out.parent.mkdir(parents=True, exist_ok=True)
-    with OutputLock([("--out", out)]), _progress_bar(console, args.progress) as bar:
+    with OutputLock([("--out", out)]), progress_bar(console, args.progress) as bar:
         task = bar.add_task(f"suite {suite.name}", total=n_cases)
         started = time.perf_counter()
         records = run_suite(suite, out, jobs=args.jobs, resume=args.resume, executor=args.executor,
@@ -347,7 +347,7 @@ def _interval_lines(coverage: dict) -> list[str]:
     return lines
 
 
-def _bench_hostile_command(args: argparse.Namespace) -> int:
+def bench_hostile_command(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from lensfit.bench.hostile import CASES, markdown, run
@@ -367,7 +367,7 @@ def _bench_hostile_command(args: argparse.Namespace) -> int:
     return EXIT_OK if doc["passed"] == doc["total"] else EXIT_BENCH_FAILED
 
 
-def _bench_developed_command(args: argparse.Namespace) -> int:
+def bench_developed_command(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from lensfit.bench.developed import markdown, run

@@ -10,13 +10,13 @@ import sys
 from pathlib import Path
 
 from lensfit.errors import InputError
-from lensfit.cli.common import EXIT_OK, CliError, _fail_input, _fmt_mm
+from lensfit.cli.common import EXIT_OK, CliError, fail_input, fmt_mm
 
 _TARGET_OPTIONS = {"paper": "--paper", "squares": "--squares", "square_mm": "--square-mm",
                    "marker_mm": "--marker-mm", "dictionary": "--dictionary", "dpi": "--dpi"}
 
 
-def _target_command(args: argparse.Namespace) -> int:
+def target_command(args: argparse.Namespace) -> int:
     from lensfit.outputs import claimed, write_all
     from lensfit.printable import PAGE_SUFFIXES, charuco_page, target_toml, write_page
     from lensfit.shotlist import CHECKLIST
@@ -28,7 +28,7 @@ def _target_command(args: argparse.Namespace) -> int:
         board = charuco_page(args.paper, tuple(args.squares), args.square_mm, args.marker_mm, args.dictionary,
                              args.dpi, args.id)
     except InputError as exc:
-        raise _fail_input(exc, _TARGET_OPTIONS) from None
+        raise fail_input(exc, _TARGET_OPTIONS) from None
     outputs = [("--out", out)] + ([("--entry", Path(args.entry))] if args.entry else [])
     if args.entry and Path(args.entry).suffix.lower() != ".toml":
         raise CliError(f"--entry {args.entry}: give a .toml file name (e.g. board.toml)")
@@ -60,7 +60,7 @@ _INIT_OPTIONS = {"measured_square_mm": "--measured-square-mm", "pixel_pitch_mm":
                  "settings": "--settings", "prefer": "--prefer", "photos": "PHOTOS_DIR"}
 
 
-def _init_command(args: argparse.Namespace) -> int:
+def init_command(args: argparse.Namespace) -> int:
     from lensfit.manifest import draft_manifest, shown
     from lensfit.outputs import claimed, write_text
 
@@ -81,7 +81,7 @@ def _init_command(args: argparse.Namespace) -> int:
                                    measured_square_mm=args.measured_square_mm)
             write_text(out, draft.text, force=args.force)
     except InputError as exc:
-        raise _fail_input(exc, _INIT_OPTIONS) from None
+        raise fail_input(exc, _INIT_OPTIONS) from None
     print(f"wrote {out}: {len(draft.rows)} image(s), {len({r['setting'] for r in draft.rows})} setting(s)")
     print(f"{'file':<28} {'setting':>7} {'f (mm)':>8} {'N':>6} {'focus (mm)':>11}")
     for r in draft.rows:
@@ -103,7 +103,7 @@ _PLAN_OPTIONS = {"focal_length_mm": "--focal-length", "f_number": "--f-number", 
                  "width_px": "--width-px", "target": "--target", "target.kind": "--target's kind"}
 
 
-def _plan_command(args: argparse.Namespace) -> int:
+def plan_command(args: argparse.Namespace) -> int:
     from lensfit.plan import QUANTITIES, Board, blur_at, plan_capture
     from lensfit.sensors import sensor_format
 
@@ -131,13 +131,13 @@ def _plan_command(args: argparse.Namespace) -> int:
                             edge_sigma_rel=args.edge_sigma_rel / 100,
                             calibration_sigma_rel=args.calibration_sigma / 100)
     except InputError as exc:
-        raise _fail_input(exc, _PLAN_OPTIONS) from None
+        raise fail_input(exc, _PLAN_OPTIONS) from None
     if args.shot_list:
         _write_shot_list(args, plan, board, pitch, width_px, height_px)
     if args.json:
         print(json.dumps(plan.to_json_dict(), indent=1))
         return EXIT_OK
-    print(f"lens guess f {args.focal_length:g} mm, f/{args.f_number:g}, focus {_fmt_mm(args.focus_distance)}; "
+    print(f"lens guess f {args.focal_length:g} mm, f/{args.f_number:g}, focus {fmt_mm(args.focus_distance)}; "
           f"board {board.width_mm:g} x {board.height_mm:g} mm ({board.edges} edges per shot); sensor "
           f"{width_px} x {height_px} px of {pitch * 1000:.3g} um")
     print(f"usable target distances: {plan.usable_mm[0]:.0f} to {plan.usable_mm[1]:.0f} mm from the lens")
@@ -172,7 +172,7 @@ def _write_shot_list(args: argparse.Namespace, plan, board, pitch: float, width_
         raise CliError(f"--shot-list {out}: give a .pdf, .svg or .png file name")
     rows = shot_rows(plan.distances_mm, [blur_at(args.focal_length, args.f_number, args.focus_distance, d, pitch)
                                          for d in plan.distances_mm])
-    lines = [f"Lens: {args.focal_length:g} mm at f/{args.f_number:g}, focused at {_fmt_mm(args.focus_distance)} "
+    lines = [f"Lens: {args.focal_length:g} mm at f/{args.f_number:g}, focused at {fmt_mm(args.focus_distance)} "
              "(set once, then leave it).",
              f"Board: {board.width_mm:g} x {board.height_mm:g} mm, squares of {board.square_mm:g} mm; sensor "
              f"{width_px} x {height_px} px of {pitch * 1000:.3g} um.",

@@ -15,7 +15,7 @@ EXIT_BENCH_FAILED = 4  # a benchmark ran, but some case missed its tolerance (le
 
 # Library argument names -> the options a user typed, so that errors name what they wrote.
 _MEASURE_OPTIONS = {"estimator": "--estimator", "setting": "setting"}
-_FIT_OPTIONS = {**_MEASURE_OPTIONS, "pixel_pitch_mm": "--pixel-pitch", "focal_length_px": "--focal-length-px",
+FIT_OPTIONS = {**_MEASURE_OPTIONS, "pixel_pitch_mm": "--pixel-pitch", "focal_length_px": "--focal-length-px",
                 "loss": "--loss", "blur_floor_px": "--blur-floor", "pupil_magnification": "--pupil-magnification",
                 "field_curvature": "--field-curvature", "spot_shape": "--spot-shape"}
 
@@ -27,12 +27,12 @@ class CliError(Exception):
         self.code = code
 
 
-def _fail_input(exc, options: dict[str, str]) -> CliError:
+def fail_input(exc, options: dict[str, str]) -> CliError:
     """Turn a library InputError into a CLI error naming the option."""
     return CliError(exc.describe(options))
 
 
-def _fmt_mm(x: float | None) -> str:
+def fmt_mm(x: float | None) -> str:
     if x is None or math.isinf(x):
         return "infinity"
     if abs(x) >= 1000:
@@ -40,28 +40,28 @@ def _fmt_mm(x: float | None) -> str:
     return f"{x:.3f} mm" if abs(x) < 100 else f"{x:.1f} mm"
 
 
-def _max_pixels(args: argparse.Namespace) -> int:
+def max_pixels_arg(args: argparse.Namespace) -> int:
     mp = args.max_megapixels
     if not (math.isfinite(mp) and mp > 0):
         raise CliError(f"--max-megapixels must be a positive number, got {mp:g}")
     return int(mp * 1e6)
 
 
-def _progress_bar(console, enabled: bool):
+def progress_bar(console, enabled: bool):
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                     TimeElapsedColumn(), console=console, disable=not console.is_terminal and not enabled)
 
 
-def _number(text: str) -> float:
+def number_arg(text: str) -> float:
     try:
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
 
 
-def _diffraction(text: str) -> float | str:
+def diffraction_arg(text: str) -> float | str:
     """``--diffraction``: a wavelength in nm, ``auto`` or ``off``."""
     if text in ("auto", "off"):
         return text
@@ -71,7 +71,7 @@ def _diffraction(text: str) -> float | str:
         raise argparse.ArgumentTypeError(f"expected a wavelength in nm (e.g. 550), auto or off, got {text!r}") from None
 
 
-def _pupil(text: str) -> float | tuple[float, float]:
+def pupil_arg(text: str) -> float | tuple[float, float]:
     """``--pupil-magnification``: a number, or ``LO:HI``."""
     try:
         if ":" in text:
@@ -82,7 +82,7 @@ def _pupil(text: str) -> float | tuple[float, float]:
         raise argparse.ArgumentTypeError(f"expected a number or LO:HI, got {text!r}") from None
 
 
-def _jobs(text: str) -> int:
+def jobs_arg(text: str) -> int:
     """--jobs: a whole number of threads, 1 to ``lensfit.parallel.MAX_JOBS``."""
     from lensfit.parallel import MAX_JOBS
 
@@ -95,15 +95,15 @@ def _jobs(text: str) -> int:
     return value
 
 
-def _input_options(p: argparse.ArgumentParser, outside: bool = True, jobs: bool = True) -> None:
+def input_options(p: argparse.ArgumentParser, outside: bool = True, jobs: bool = True) -> None:
     """Options on reading a stack: the pixel budget and reading outside the stack folder."""
     from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
 
-    p.add_argument("--max-megapixels", type=_number, default=DEFAULT_MAX_MEGAPIXELS, metavar="MP",
+    p.add_argument("--max-megapixels", type=number_arg, default=DEFAULT_MAX_MEGAPIXELS, metavar="MP",
                    help=f"refuse images larger than this, checked from the file header before decoding "
                         f"(default {DEFAULT_MAX_MEGAPIXELS:g})")
     if jobs:
-        p.add_argument("--jobs", type=_jobs, default=None, metavar="N",
+        p.add_argument("--jobs", type=jobs_arg, default=None, metavar="N",
                        help="images read and searched for targets at once, in threads (default: the cores; the "
                             "results are the same whatever N is)")
     if outside:

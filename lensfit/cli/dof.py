@@ -7,7 +7,7 @@ import json
 import math
 
 from lensfit.errors import InputError
-from lensfit.cli.common import EXIT_OK, CliError, _fail_input, _fmt_mm
+from lensfit.cli.common import EXIT_OK, CliError, fail_input, fmt_mm
 
 _DOF_OPTIONS = {
     "focal_length_mm": "--focal-length",
@@ -24,7 +24,7 @@ _DOF_OPTIONS = {
 MAX_COC_MM = 1.0
 
 
-def _dof_command(args: argparse.Namespace) -> int:
+def dof_command(args: argparse.Namespace) -> int:
     from lensfit import optics
     from lensfit.sensors import sensor_format
 
@@ -56,7 +56,7 @@ def _dof_command(args: argparse.Namespace) -> int:
         aperture = float(optics.aperture_diameter(f, N))
         mag = float(optics.magnification(f, D))
     except InputError as exc:
-        raise _fail_input(exc, _DOF_OPTIONS) from None
+        raise fail_input(exc, _DOF_OPTIONS) from None
 
     result = {
         "focal_length_mm": f,
@@ -92,22 +92,22 @@ def _dof_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=f"Depth of field: {f:g} mm f/{N:g} focused at {_fmt_mm(D)} from the lens",
+    table = Table(title=f"Depth of field: {f:g} mm f/{N:g} focused at {fmt_mm(D)} from the lens",
                   show_header=True, header_style="bold")
     table.add_column("quantity")
     table.add_column("value", justify="right")
-    table.add_row("near limit", _fmt_mm(near))
-    table.add_row("far limit", _fmt_mm(far) + ("  (focus beyond hyperfocal)" if not math.isfinite(far) else ""))
-    table.add_row("depth of field (exact)", _fmt_mm(dof))
+    table.add_row("near limit", fmt_mm(near))
+    table.add_row("far limit", fmt_mm(far) + ("  (focus beyond hyperfocal)" if not math.isfinite(far) else ""))
+    table.add_row("depth of field (exact)", fmt_mm(dof))
     if dof_approx is not None:
-        table.add_row("depth of field (2NCD²/f²)", _fmt_mm(dof_approx))
-    table.add_row("hyperfocal distance", _fmt_mm(hyper))
+        table.add_row("depth of field (2NCD²/f²)", fmt_mm(dof_approx))
+    table.add_row("hyperfocal distance", fmt_mm(hyper))
     coc_px = f" = {coc / pitch:.2f} px at {pitch * 1000:g} µm pitch" if pitch else ""
     table.add_row("acceptable CoC diameter", f"{coc * 1000:.1f} µm{coc_px}")
     table.add_row("  from", coc_source)
-    table.add_row("aperture diameter", _fmt_mm(aperture))
-    table.add_row("sensor distance (lens to sensor)", _fmt_mm(s))
-    table.add_row("focus distance from sensor plane", _fmt_mm(from_sensor))
+    table.add_row("aperture diameter", fmt_mm(aperture))
+    table.add_row("sensor distance (lens to sensor)", fmt_mm(s))
+    table.add_row("focus distance from sensor plane", fmt_mm(from_sensor))
     table.add_row("magnification at focus", f"{mag:.4g}")
     if fmt is not None:
         fov = result["field_of_view_deg"]

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from lensfit.errors import InputError
-from lensfit.cli.common import (EXIT_NOT_IDENTIFIABLE, EXIT_OK, CliError, _max_pixels, _progress_bar)
+from lensfit.cli.common import (EXIT_NOT_IDENTIFIABLE, EXIT_OK, CliError, max_pixels_arg, progress_bar)
 
 def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | None = None):
     """``lensfit.measure.measure`` with a progress bar on stderr; with ``fit_options`` measure and
@@ -23,7 +23,7 @@ def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | 
 
     enable_compilation_cache()
     console = Console(stderr=True)
-    with _progress_bar(console, args.progress) as bar:
+    with progress_bar(console, args.progress) as bar:
         task = bar.add_task("measuring", total=None)
 
         def progress(stage, done, total):
@@ -37,7 +37,7 @@ def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | 
                                processed=getattr(args, "processed", "refuse"), jobs=args.jobs)
 
 
-def _measure_command(args: argparse.Namespace) -> int:
+def measure_command(args: argparse.Namespace) -> int:
     from lensfit.estimators import ESTIMATORS
     from lensfit.stack import load_stack
 
@@ -49,7 +49,7 @@ def _measure_command(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in (".csv", ".json"):
         raise CliError(f"--out must end in .csv or .json, got {args.out!r}")
     with claimed([("--out", out)], force=args.force):
-        stack = load_stack(args.stack, max_pixels=_max_pixels(args), allow_outside=args.allow_outside_stack)
+        stack = load_stack(args.stack, max_pixels=max_pixels_arg(args), allow_outside=args.allow_outside_stack)
         table = _measure_with_progress(stack, args)
         write_all([(out, table.write)], force=args.force)
     valid = table.valid()
@@ -84,7 +84,7 @@ def _write_fit_outputs(args, source: Path, table, result, document, stack=None) 
     return write_all(files, force=args.force)
 
 
-def _print_fit(result, document) -> None:
+def print_fit(result, document) -> None:
     """Per setting a table of estimates (and truth, when known); diagnostics; reasons."""
     from rich.console import Console
     from rich.table import Table
@@ -172,7 +172,7 @@ def _fit_outputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
     return outputs
 
 
-def _fit_command(args: argparse.Namespace) -> int:
+def fit_command(args: argparse.Namespace) -> int:
     from lensfit.estimators import ESTIMATORS
     from lensfit.outputs import claimed
 
@@ -220,7 +220,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     else:
         from lensfit.stack import load_stack
 
-        stack = load_stack(source, max_pixels=_max_pixels(args), allow_outside=args.allow_outside_stack)
+        stack = load_stack(source, max_pixels=max_pixels_arg(args), allow_outside=args.allow_outside_stack)
         if forced or (args.diffraction == "auto" and args.estimator in ("edge", "edge-disk")):
             table, result, rounds = _measure_with_progress(stack, args, options)
         else:
@@ -250,7 +250,7 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     if args.json:
         print(json.dumps(document, indent=1))
     else:
-        _print_fit(result, document)
+        print_fit(result, document)
         if rounds:
             scales = ", ".join(f"{k} {v:.2f} px" for k, v in rounds[-1].items())
             print(f"diffraction modelled at {wavelength:g} nm: Airy scale lambda N_w / p {scales} "

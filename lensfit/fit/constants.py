@@ -29,7 +29,7 @@ MIN_USEFUL_BLUR_PX = 1.0
 #: (chi-square 0), under which their sigmas shrink at most 100-fold.
 BLUR_SCALE2_MIN = 1e-4
 #: Images needed for the images' cluster-robust spread in the covariance
-#: (``lensfit.fit.uncertainty._image_spread``), and the most it takes (one small
+#: (``lensfit.fit.uncertainty.image_spread``), and the most it takes (one small
 #: eigendecomposition each).
 MIN_CLUSTERS = 6
 MAX_CLUSTERS = 400
@@ -86,7 +86,7 @@ BLUR_SCALE_SIGMA_SHAPED = 0.01
 #: moment (0.3 covers them); the rings' erred by 0-2.8 times it, RMS 1.2 (on the axis 0.3-0.5;
 #: the Petzval's near-side spots off the axis, whose comatic tail to one side no symmetric
 #: profile holds, 1.3-2.8).
-#: Shared by an arm of the V (``lensfit.fit.uncertainty._arms_part``).
+#: Shared by an arm of the V (``lensfit.fit.uncertainty.arms_part``).
 SHAPE_ERROR_SHARE = 0.3
 SHAPE_ERROR_SHARE_RADIAL = 1.2
 #: Shaped readings a setting needs, nearest in inverse distance on each side, before its spots'
@@ -107,12 +107,12 @@ LOSSES = ("linear", "huber", "cauchy")
 BLUR_POWER_MEAN = 1.3
 EDGE_NODES = 16
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(EDGE_NODES)
-_NODES_T = (_GL_X + 1.0) / 2.0  # positions along the edge, 0..1
-_NODES_W = _GL_W / 2.0  # weights summing to 1
-_HUBER_K = 1.345
-_CAUCHY_C = 2.385
-_EPS_PX = 1e-4  # keeps sqrt differentiable exactly at the focus plane with a zero floor
-_Z95 = 1.959963984540054
+NODES_T = (_GL_X + 1.0) / 2.0  # positions along the edge, 0..1
+NODES_W = _GL_W / 2.0  # weights summing to 1
+HUBER_K = 1.345
+CAUCHY_C = 2.385
+EPS_PX = 1e-4  # keeps sqrt differentiable exactly at the focus plane with a zero floor
+Z95 = 1.959963984540054
 
 #: The ranges of physically meaningful inputs; anything outside is refused naming the field.
 PIXEL_PITCH_RANGE_MM = (1e-4, 1.0)

@@ -18,13 +18,13 @@ from lensfit.fit import nominal, stages
 from lensfit.fit.curvature import curvature_estimate, field_spread
 from lensfit.fit.floor_choice import floor_sensitive, widen
 from lensfit.fit.focusing import merge, one_setting, subset, with_lens
-from lensfit.fit.identifiability import _capture_problems, _one_sided, _pupil_mode, _second_vertex
-from lensfit.fit.model import Layout, _size
-from lensfit.fit.result import Estimate, FitResult, Outcome, _parameter_names
-from lensfit.fit.solve import _image_scatter, _padded_size, _predict_all
+from lensfit.fit.identifiability import capture_problems, one_sided, pupil_mode, second_vertex
+from lensfit.fit.model import Layout, vector_size
+from lensfit.fit.result import Estimate, FitResult, Outcome, parameter_labels
+from lensfit.fit.solve import image_scatter, padded_size, predict_all
 from lensfit.fit.spots import SPOT_SHAPE_MODES, disk_instead
-from lensfit.fit.uncertainty import (StrataDof, _arms_part, _budget_parts, _correlation, _covariance, _derive,
-                                     _images_part, _image_spread, _null_direction, _positive, _shares, student_z)
+from lensfit.fit.uncertainty import (StrataDof, arms_part, budget_parts, correlation, svd_covariance, derive_quantities,
+                                     images_part, image_spread, null_direction, positive_estimate, shares_of, student_z)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
@@ -121,7 +121,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
         raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
     samples, pupil_magnification, focusing, ideal_lens = with_lens(samples, pupil_magnification, focusing, ideal_lens)
-    pupil = _pupil_mode(pupil_magnification)
+    pupil = pupil_mode(pupil_magnification)
     if field_curvature not in FIELD_CURVATURE_MODES:
         raise InputError("field_curvature", field_curvature, "one of: " + ", ".join(FIELD_CURVATURE_MODES))
     if spot_shape not in SPOT_SHAPE_MODES:
@@ -136,12 +136,12 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         except InputError:
             raise
         except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
-            return _refused(data, loss, f"the fit failed numerically ({type(exc).__name__}: {exc}); the samples "
+            return refused_result(data, loss, f"the fit failed numerically ({type(exc).__name__}: {exc}); the samples "
                             "span magnitudes no lens produces: check their units (mm, px) and the pixel pitch")
         try:
             json.dumps(result.to_json_dict(), allow_nan=False)
         except ValueError:
-            return _refused(data, loss, "the fit produced non-finite numbers; the samples span magnitudes no lens "
+            return refused_result(data, loss, "the fit produced non-finite numbers; the samples span magnitudes no lens "
                             "produces: check their units (mm, px) and the pixel pitch")
         return result
 
@@ -168,18 +168,18 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
 
 def _full_size(c: np.ndarray, free_idx: np.ndarray, m: int) -> np.ndarray:
     """A covariance of the free parameters as one of all parameters (zeros where held)."""
-    out = np.zeros((_size(m), _size(m)))
+    out = np.zeros((vector_size(m), vector_size(m)))
     out[np.ix_(free_idx, free_idx)] = c
     return out
 
 
-def _refused(data: FitData, loss: str, reason: str) -> FitResult:
+def refused_result(data: FitData, loss: str, reason: str) -> FitResult:
     """A result that states ``reason`` for every quantity (value None; never NaN)."""
     n, m = len(data.coc_px), len(data.labels)
     none = Estimate(None, reason=reason)
     return FitResult({label: {q: none for q in QUANTITIES} for label in data.labels}, none, Outcome.NOT_IDENTIFIABLE,
                      [reason], [], np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)), math.inf, n, 0, math.nan,
-                     math.nan, loss, [], data, np.zeros(n), np.ones(n), np.zeros(_size(m)))
+                     math.nan, loss, [], data, np.zeros(n), np.ones(n), np.zeros(vector_size(m)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,47 +208,47 @@ def _uncertainty(solved: stages.Solution, resid: np.ndarray, used: np.ndarray, f
     """The covariance of a solution and its error budget (see the notes inside)."""
     pb, theta, weights, jac, res = solved.problem, solved.theta, solved.weights, solved.jacobian, solved.residuals
     data, m, free_idx, row_on, fpx_w = pb.data, pb.m, pb.free_idx, pb.row_on, pb.fpx_w
-    chi2_red, npad = solved.chi2_reduced, _padded_size(len(data.coc_px))
+    chi2_red, npad = solved.chi2_reduced, padded_size(len(data.coc_px))
     # The blur rows' variance is scaled by their own reduced chi-square, up where they scatter more
     # than their sigmas say and down where less (a Type A evaluation from some hundred degrees of
     # freedom: their stated sigmas carry the estimator's model floor, which on clean stacks is
     # twice their scatter); the calibration's rows and the priors keep their own sigmas.
     # Where the images scatter along the blur's slope beyond what their readings explain (an error
     # of each image's pose: tau > 0), that scatter is a term of its own, shared by each image's
-    # edges (_images_part, pooled over the images; the images' spread is then not taken), and
+    # edges (images_part, pooled over the images; the images' spread is then not taken), and
     # the readings' chi-square is taken about each image's shared error. Pooled over all the
     # images, it does not rest on the few near the focus plane that set the focus distance.
     named = bool(free_idx.size) and bool(np.all(data.group[used] >= 0))
-    cov_fit, cond = _covariance(jac, 1.0)  # (J'J)^-1 of the fit as weighted: the images' terms' H^-1
-    scatter = _image_scatter(theta, m, data, weights * row_on, jac, cov_fit) if named else None
+    cov_fit, cond = svd_covariance(jac, 1.0)  # (J'J)^-1 of the fit as weighted: the images' terms' H^-1
+    scatter = image_scatter(theta, m, data, weights * row_on, jac, cov_fit) if named else None
     shared = scatter is not None and scatter.tau > 0  # the images' term is in the budget
     blur_dof = max(float(np.sum(weights[used])) - len(free_idx) - (scatter.images if shared else 0), 1.0)
     chi2_cov = (float(np.sum((weights * row_on * ((resid - scatter.shared) / data.sigma_px) ** 2)[used])) / blur_dof
                 if shared else chi2_red)
     jac_w = jac.copy()
     jac_w[:npad] /= math.sqrt(max(chi2_cov, BLUR_SCALE2_MIN))
-    cov, _ = _covariance(jac_w, 1.0)
-    parts_free = _budget_parts(jac_w, cov, npad, m)
+    cov, _ = svd_covariance(jac_w, 1.0)
+    parts_free = budget_parts(jac_w, cov, npad, m)
     # each setting's calibration part whose sigma a jackknife over few views estimated (its views
     # less one degrees of freedom: Welch-Satterthwaite with the rest, effective_z)
     calibration_terms = [(_full_size(cov @ np.outer(jac_w[npad + k], jac_w[npad + k]) @ cov, free_idx, m),
                           float(data.focal_length_dof[k])) for k in range(m)
                          if math.isfinite(data.focal_length_dof[k]) and fpx_w[k] > 0 and free_idx.size]
-    images = _images_part(jac, cov_fit, data, weights * row_on, scatter)
+    images = images_part(jac, cov_fit, data, weights * row_on, scatter)
     if np.any(images):
         parts_free["images"] = images
         cov = cov + images
-    arms = _arms_part(jac, cov_fit, data, weights * row_on, theta, m)
+    arms = arms_part(jac, cov_fit, data, weights * row_on, theta, m)
     if np.any(arms):
         parts_free["spot_shape"] = arms
         cov = cov + arms
     parts = {src: _full_size(c, free_idx, m) for src, c in parts_free.items()}
     strata = None
     if not np.any(np.diag(images) > 0):  # else the images' shared errors are a term of their own
-        cov, strata = _image_spread(cov, parts_free.get("blur", cov), jac, res, cov_fit, free_idx, data, used)
+        cov, strata = image_spread(cov, parts_free.get("blur", cov), jac, res, cov_fit, free_idx, data, used)
     dof = (StrataDof([_full_size(c, free_idx, m) for c, _ in strata], [d for _, d in strata])
            if strata else math.inf)
-    corr = _correlation(cov)
+    corr = correlation(cov)
     z = student_z(dof.total if strata else dof)  # for the field curvature and P (each quantity: effective_z)
     full_cov = _full_size(cov, free_idx, m)
 
@@ -256,7 +256,7 @@ def _uncertainty(solved: stages.Solution, resid: np.ndarray, used: np.ndarray, f
     weak: set[str] = set()
     if degenerate and len(free_idx):
         # The parameters in the near-null direction are the ones that cannot be told apart.
-        js = _null_direction(jac)
+        js = null_direction(jac)
         weak = {fnames[i] for i in range(len(fnames)) if abs(js[i]) > 0.3}
 
     return _Uncertainty(cov, cond, corr, full_cov, parts, calibration_terms, dof, z, scatter, shared, blur_dof, weak)
@@ -282,7 +282,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
                             "of their blur as a model error")
 
     # ---- what cannot be determined before fitting (per setting)
-    blocked = _capture_problems(data)
+    blocked = capture_problems(data)
     has_fpx = ~np.isnan(data.focal_length_px)
     no_fpx_reason = ("no focal length in px for this setting (calibration or stack.toml [[intrinsics]]): blur fixes "
                      "only the slope A*s and the focus distance; calibrate on tilted target views to separate f and N")
@@ -305,7 +305,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     if not converged:
         warnings.append("Levenberg-Marquardt stopped before its tolerance; estimates may be imprecise")
 
-    pred = _predict_all(theta, m, data)
+    pred = predict_all(theta, m, data)
     resid = data.coc_px - pred
     used = row_on > 0
     u = resid / data.sigma_px
@@ -315,7 +315,7 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
 
     # ---- covariance, condition, correlations
     t_solved = time.perf_counter()
-    names = _parameter_names(labels)
+    names = parameter_labels(labels)
     fnames = [names[i] for i in free_idx]
     unc = _uncertainty(solved, resid, used, fnames)
     cov, cond, corr, full_cov, parts, dof, z = unc.cov, unc.cond, unc.corr, unc.full_cov, unc.parts, unc.dof, unc.z
@@ -323,27 +323,27 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     calibration_terms = unc.calibration_terms
 
     # ---- a second, distinct V that fits about as well (discrete ambiguity the covariance misses)
-    _second_vertex(data, theta, full_cov, weights, blocked, fixed_floor, blur_floor_px, scale2)
+    second_vertex(data, theta, full_cov, weights, blocked, fixed_floor, blur_floor_px, scale2)
 
     # ---- derived quantities
     thin = p_source == "assumed" and theta[i_p] == 0.0
     scale_sigma = data.blur_scale_sigma(weights * row_on)
-    settings, reasons, f_est = _derive(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
+    settings, reasons, f_est = derive_quantities(theta, full_cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                                        dof, thin, parts, scale_sigma**2, blur_dof,
                                        max(scatter.images - 1, 1) if shared else math.inf, calibration_terms)
     for k, label in enumerate(labels):
         settings[label]["field_curvature_per_m"] = curvature_estimate(theta, full_cov, at.curvature(k), k in curved,
                                                                        field_curvature, field_spread(data, k), z)
-        warnings.extend(_one_sided(label, settings[label]["focus_distance_mm"],
+        warnings.extend(one_sided(label, settings[label]["focus_distance_mm"],
                                    data.w_mean[data.setting == k] * 1000.0, float(theta[at.inv_focus_per_m(k)])))
     if p_source == "assumed":
         p_est = Estimate(P0, 0.0, (P0, P0), (P0, P0),
                          "assumed (a thin lens)" if thin else "assumed (given as pupil_magnification)")
     else:
         sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
-        p_est = dataclasses.replace(_positive(math.exp(theta[i_p]), sd_p, z), reason=p_note)
+        p_est = dataclasses.replace(positive_estimate(math.exp(theta[i_p]), sd_p, z), reason=p_note)
         if parts:
-            p_est = dataclasses.replace(p_est, shares=_shares({src: max(float(c[i_p, i_p]), 0.0)
+            p_est = dataclasses.replace(p_est, shares=shares_of({src: max(float(c[i_p, i_p]), 0.0)
                                                                for src, c in parts.items()}, sd_p**2))
         if p_source == "fitted" and ("log_P" in weak or sd_p > MAX_RELATIVE_SIGMA):
             p_est = Estimate(None, reason=f"the pupil magnification is poorly constrained (relative 1 sigma "

@@ -12,7 +12,7 @@ import numpy as np
 from lensfit.errors import InputError
 from lensfit.fit.constants import (BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX,
                                    MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, SHAPE_ERROR_SHARE, SHAPE_ERROR_SHARE_RADIAL,
-                                   SHAPE_SCALE_SHARE, UNREAD_SHAPE_MIN, _NODES_T, disk_scale_sigma)
+                                   SHAPE_SCALE_SHARE, UNREAD_SHAPE_MIN, NODES_T, disk_scale_sigma)
 
 
 @dataclass
@@ -57,7 +57,7 @@ class FitData:
     airy_checked: bool = False
     #: each kept shaped reading's relative model error (1 sigma), NaN where the reading is not
     #: shaped: a share of its relative difference from the uniform disk's reading of the same edge
-    #: (:func:`_shape_error`; lensfit.fit.uncertainty._arms_part)
+    #: (:func:`_shape_error`; lensfit.fit.uncertainty.arms_part)
     shape_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: per setting, the degrees of freedom of ``focal_length_sigma_px``: the views less one where a
     #: leave-one-view-out jackknife estimated it from few views; inf where its form is known (the
@@ -93,7 +93,7 @@ def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray
     return ratio / m, np.maximum(var, 0.0) / m**2
 
 
-def _rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+def rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Sample rows and context (pixel pitch, intrinsics) from any accepted input."""
     from lensfit.sample_table import SampleTable
 
@@ -143,7 +143,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     """Validate samples and turn them into :class:`FitData` (see :func:`fit`). ``disk_readings``:
     the settings (labels; True: all) whose samples read through the shaped-spot model are taken
     at the uniform disk's reading where they give it (``disk_diameter_px``, ``disk_sigma_px``)."""
-    rows, ctx = _rows_from(samples)
+    rows, ctx = rows_from(samples)
     shaped = [i for i, r in enumerate(rows) if "shaped_spot" in _flags(r) and r.get("disk_diameter_px") is not None
               and r.get("disk_sigma_px") is not None and r.get("coc_diameter_px") is not None]
     swap = [i for i in shaped if disk_readings is True or str(rows[i].get("setting")) in disk_readings]
@@ -204,7 +204,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     d0 = np.array([float(given_or(r.get("distance_start_mm"), r["distance_mm"])) for r in used])
     d1 = np.array([float(given_or(r.get("distance_end_mm"), r["distance_mm"])) for r in used])
     w_mean, _ = inverse_distance_moments(d0, d1)
-    w_nodes = 1.0 / (d0[:, None] + _NODES_T[None, :] * (d1 - d0)[:, None])
+    w_nodes = 1.0 / (d0[:, None] + NODES_T[None, :] * (d1 - d0)[:, None])
     fpx = _per_setting(focal_length_px if focal_length_px is not None else ctx.get("focal_length_px"),
                        labels, "focal_length_px", math.nan)
     fsg = _per_setting(focal_length_sigma_px if focal_length_sigma_px is not None

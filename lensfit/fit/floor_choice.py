@@ -28,7 +28,7 @@ from typing import Any
 from lensfit.fit.constants import FLOOR_SADDLE_PX
 from lensfit.fit.model import Layout
 from lensfit.fit.result import Estimate, Outcome
-from lensfit.fit.start import _one_side
+from lensfit.fit.start import one_side
 from lensfit.fit.uncertainty import focus_interval
 
 #: The setting's quantities the choice moves (the focal length is shared by every setting and
@@ -51,7 +51,7 @@ def floor_sensitive(result: Any) -> list[str]:
                 or floor is None or floor.value is None or floor.value <= FLOOR_SADDLE_PX):
             continue
         w = data.w_mean[data.setting == k] * 1000.0
-        if w.size and _one_side(w, float(result._full[at.inv_focus_per_m(k)])) is not None:
+        if w.size and one_side(w, float(result._full[at.inv_focus_per_m(k)])) is not None:
             out.append(label)
     return out
 

@@ -11,10 +11,10 @@ from lensfit.fit.constants import MIN_DISTANCE_SPREAD, MIN_USEFUL_BLUR_PX
 from lensfit.fit.data import FitData
 from lensfit.fit.model import Layout
 from lensfit.fit.result import Estimate
-from lensfit.fit.start import _one_side, _side_hint, _vertex_profile
+from lensfit.fit.start import one_side, side_hint, vertex_profile
 
 
-def _capture_problems(data: FitData) -> dict[int, str]:
+def capture_problems(data: FitData) -> dict[int, str]:
     """Settings whose capture cannot determine their V, with the reason and the fix."""
     blocked: dict[int, str] = {}
     for k, label in enumerate(data.labels):
@@ -45,7 +45,7 @@ def _capture_problems(data: FitData) -> dict[int, str]:
 PUPIL_MAGNIFICATION_RANGE = (0.1, 10.0)
 #: Width (1 sigma of log P) of the weak prior that keeps a fitted P in a sane range; a factor of
 #: e^3 = 20 either way, so it never matters where the data determine P.
-_P_PRIOR_SIGMA_LOG = 3.0
+P_PRIOR_SIGMA_LOG = 3.0
 #: A fitted P needs focus settings spread enough that its relative 1 sigma stays below this;
 #: up to it, P is fitted and its uncertainty widens the intervals of f and N (an assumed P = 1
 #: would leave them narrow and wrong by (f/X)(1/P - 1)).
@@ -78,7 +78,7 @@ def photographic_prior(why_not: str) -> tuple[float, tuple[float, float], str]:
         "a range, or add a second focus setting, to narrow them")
 
 
-def _pupil_mode(value) -> tuple:
+def pupil_mode(value) -> tuple:
     """("auto",), ("fixed", P) or ("prior", log mean, log sigma) from the ``pupil_magnification`` argument."""
     lo_ok, hi_ok = PUPIL_MAGNIFICATION_RANGE
     req = f"a number between {lo_ok:g} and {hi_ok:g}, a range (lo, hi) within it, or None"
@@ -100,7 +100,7 @@ def _pupil_mode(value) -> tuple:
     return ("fixed", number(value))
 
 
-def _p_identifiable(data: FitData, verts: np.ndarray, usable: list[int], fpx_sig: np.ndarray) -> tuple[bool, str]:
+def p_identifiable(data: FitData, verts: np.ndarray, usable: list[int], fpx_sig: np.ndarray) -> tuple[bool, str]:
     """Whether calibrated settings ``usable`` focus far enough apart to fit P (unit focusing:
     ``1/S_k = 1/f - (1/P)(1/X_k)`` is a line in ``1/X_k``), and if not, why."""
     if len(usable) < 2:
@@ -122,7 +122,7 @@ def _p_identifiable(data: FitData, verts: np.ndarray, usable: list[int], fpx_sig
     return True, ""
 
 
-def _p_start(data: FitData, verts: np.ndarray, usable: list[int]) -> float:
+def p_start(data: FitData, verts: np.ndarray, usable: list[int]) -> float:
     """Closed-form P from the line ``1/S_k = 1/f - (1/P) x_k`` through the calibrated settings."""
     x = verts[usable]
     y = 1.0 / (data.focal_length_px[usable] * data.pixel_pitch_mm)
@@ -131,7 +131,7 @@ def _p_start(data: FitData, verts: np.ndarray, usable: list[int]) -> float:
     return float(min(max(P, PUPIL_MAGNIFICATION_RANGE[0]), PUPIL_MAGNIFICATION_RANGE[1]))
 
 
-def _second_vertex(data, theta, full_cov, weights, blocked: dict, fixed_floor: bool, blur_floor_px, scale2: float):
+def second_vertex(data, theta, full_cov, weights, blocked: dict, fixed_floor: bool, blur_floor_px, scale2: float):
     """Block (in ``blocked``) every setting where a second, distinct V fits about as well as the
     solution (chi-square within 9 scale^2): a discrete ambiguity the covariance misses."""
     at = Layout(len(data.labels))
@@ -139,7 +139,7 @@ def _second_vertex(data, theta, full_cov, weights, blocked: dict, fixed_floor: b
         if k in blocked:
             continue
         sel = data.setting == k
-        grid, chi2, _, _ = _vertex_profile(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], weights[sel],
+        grid, chi2, _, _ = vertex_profile(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], weights[sel],
                                            not fixed_floor, blur_floor_px or 0.0)
         x_fit = theta[at.inv_focus_per_m(k)] / 1000.0
         sd_x = math.sqrt(max(full_cov[at.inv_focus_per_m(k), at.inv_focus_per_m(k)], 0.0)) / 1000.0
@@ -150,11 +150,11 @@ def _second_vertex(data, theta, full_cov, weights, blocked: dict, fixed_floor: b
             alt = grid[far][np.argmin(chi2[far])]
             alt_mm = f"{1 / alt:.0f} mm" if alt > 0 else "infinity"
             blocked[k] = (f"two focus distances fit setting {label!r} about equally well ({1 / x_fit:.0f} mm and "
-                          f"{alt_mm}){_side_hint(data.w_mean[sel], x_fit)}: add targets on both sides of the focus "
+                          f"{alt_mm}){side_hint(data.w_mean[sel], x_fit)}: add targets on both sides of the focus "
                           "and spread them over more distances")
 
 
-def _one_sided(label: str, focus: Estimate, w_per_m: np.ndarray, x_per_m: float) -> list[str]:
+def one_sided(label: str, focus: Estimate, w_per_m: np.ndarray, x_per_m: float) -> list[str]:
     """A warning where a reported focus distance has every sample on one side of it (and its 95 %
     interval stays finite: focus at infinity has none beyond it): the V's vertex is then
     extrapolated from its slope, which the blur floor and the readings of the smallest blurs bend
@@ -162,7 +162,7 @@ def _one_sided(label: str, focus: Estimate, w_per_m: np.ndarray, x_per_m: float)
     than the focus: its focus distance 8.7 % near at 7.6 sigma, its floor 0.81 px against 0)."""
     if focus.value is None or focus.ci95 is None or focus.ci95[1] is None:
         return []
-    side = _one_side(w_per_m, x_per_m)
+    side = one_side(w_per_m, x_per_m)
     if side is None:
         return []
     where = "beyond" if side == "nearer" else "nearer than"

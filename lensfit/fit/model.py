@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lensfit.fit.constants import BLUR_POWER_MEAN, _EPS_PX, _NODES_W
+from lensfit.fit.constants import BLUR_POWER_MEAN, EPS_PX, NODES_W
 
 
 class Layout(NamedTuple):
@@ -41,18 +41,18 @@ class Layout(NamedTuple):
         return 1 + 3 * self.m
 
 
-def _unpack(theta, m):
+def unpack(theta, m):
     """(log f, inverse focus distances in dioptres, log N, floors in px, log P) from the vector."""
     at = Layout(m)
     return theta[at.LOG_F], theta[at.inv_focus_per_m()], theta[at.log_n()], theta[at.floor()], theta[at.log_p]
 
 
-def _size(m: int) -> int:
+def vector_size(m: int) -> int:
     """Length of the parameter vector for ``m`` settings."""
     return Layout(m).size
 
 
-def _pinhole_distance(xp, f, x, P):
+def pinhole_distance(xp, f, x, P):
     """``S = 1 / (1/f - x/P)``: the distance a pinhole calibration centred on the entrance pupil
     measures (``f_px * p``), for focus at inverse distance ``x`` (1/mm) from the entrance pupil
     (paraxial thick lens, module notes; ``s`` of the thin lens at ``P = 1``). Focus
@@ -63,8 +63,8 @@ def _pinhole_distance(xp, f, x, P):
 def _edge_blur(xp, slope_px, x, w_nodes, floor):
     """Blur an edge estimate reports: the power mean (``BLUR_POWER_MEAN``) over the edge of
     the local blur ``sqrt((K/p)^2 (x - 1/d)^2 + b^2)``, by Gauss-Legendre quadrature."""
-    local = xp.sqrt(slope_px[:, None] ** 2 * (x[:, None] - w_nodes) ** 2 + floor[:, None] ** 2 + _EPS_PX**2)
-    return (local**BLUR_POWER_MEAN @ _NODES_W) ** (1.0 / BLUR_POWER_MEAN)
+    local = xp.sqrt(slope_px[:, None] ** 2 * (x[:, None] - w_nodes) ** 2 + floor[:, None] ** 2 + EPS_PX**2)
+    return (local**BLUR_POWER_MEAN @ NODES_W) ** (1.0 / BLUR_POWER_MEAN)
 
 
 def _distance_scale(xp, s, pitch, fpx_cal):
@@ -76,37 +76,37 @@ def _distance_scale(xp, s, pitch, fpx_cal):
     return xp.where(fpx_cal > 0, pitch * fpx_cal / s, 1.0)
 
 
-def _blur(xp, theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
+def blur_diameters_px(xp, theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
     """Blur diameter in px of each sample, and the pinhole distance S per setting, with the
     array module ``xp`` (jax.numpy in the solver, NumPy for predictions: one model). ``setting``
     is each sample's setting index; ``pose`` (0/1 per sample): its distances come from a target
     pose solved with the setting's calibrated ``fpx_cal`` (per setting; 0: none), and scale with
     it; ``field2`` its squared field (0 where unknown): field curvature moves its in-focus
     inverse distance to ``x + kappa field2``."""
-    log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(theta, m)
+    log_f, inv_focus_per_m, log_n, floor, log_p = unpack(theta, m)
     kappa = theta[Layout(m).curvature()] / 1000.0  # 1/mm
     f = xp.exp(log_f)
     x = inv_focus_per_m / 1000.0  # 1/mm
-    s = _pinhole_distance(xp, f, x, xp.exp(log_p))
+    s = pinhole_distance(xp, f, x, xp.exp(log_p))
     slope_px = f * s / xp.exp(log_n) / pitch  # K/p = A S / p
     mu = 1.0 + pose * (_distance_scale(xp, s, pitch, fpx_cal)[setting] - 1.0)
     w = w_nodes * mu[:, None] - (kappa[setting] * field2)[:, None]
     return _edge_blur(xp, slope_px[setting], x[setting], w, floor[setting]), s
 
 
-def _model(theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
-    """:func:`_blur` in JAX (the solver's)."""
+def jax_blur(theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):
+    """:func:`blur_diameters_px` in JAX (the solver's)."""
     import jax.numpy as jnp
 
-    return _blur(jnp, theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2)
+    return blur_diameters_px(jnp, theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2)
 
 
-def _model_np(theta, m, k, w_nodes, pitch, fpx_cal=0.0, pose=0.0, field2=0.0):
-    """:func:`_blur` in NumPy for samples of setting ``k`` alone; ``fpx_cal`` that setting's
+def model_np(theta, m, k, w_nodes, pitch, fpx_cal=0.0, pose=0.0, field2=0.0):
+    """:func:`blur_diameters_px` in NumPy for samples of setting ``k`` alone; ``fpx_cal`` that setting's
     calibrated focal length in px (0: none), ``pose`` 0/1 and ``field2`` per sample or one for all."""
     n = len(w_nodes)
     fpx = np.zeros(m)
     fpx[k] = fpx_cal
-    return _blur(np, np.asarray(theta, np.float64), m, np.full(n, k), np.asarray(w_nodes, np.float64), pitch, fpx,
+    return blur_diameters_px(np, np.asarray(theta, np.float64), m, np.full(n, k), np.asarray(w_nodes, np.float64), pitch, fpx,
                  np.broadcast_to(np.asarray(pose, float), (n,)),
                  np.broadcast_to(np.nan_to_num(np.asarray(field2, float)), (n,)))[0]

@@ -14,7 +14,7 @@ import numpy as np
 
 from lensfit.fit.constants import EDGE_NODES
 from lensfit.fit.data import FitData
-from lensfit.fit.model import _model_np
+from lensfit.fit.model import model_np
 
 
 class Outcome(enum.StrEnum):
@@ -167,7 +167,7 @@ class FitResult:
         w = 1.0 / np.asarray(distance_mm, np.float64).reshape(-1)
         nodes = np.repeat(w[:, None], EDGE_NODES, axis=1)
         fpx = float(np.nan_to_num(self.samples.focal_length_px[k], nan=0.0))
-        return _model_np(self._full, len(self.samples.labels), k, nodes, self.samples.pixel_pitch_mm, fpx,
+        return model_np(self._full, len(self.samples.labels), k, nodes, self.samples.pixel_pitch_mm, fpx,
                          float(pose))
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -202,7 +202,7 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _parameter_names(labels: list[str]) -> list[str]:
+def parameter_labels(labels: list[str]) -> list[str]:
     return (["log_f"] + [f"inv_focus_per_m[{k}]" for k in labels] + [f"log_N[{k}]" for k in labels]
             + [f"floor_px[{k}]" for k in labels] + ["log_P"] + [f"field_curvature_per_m[{k}]" for k in labels])
 

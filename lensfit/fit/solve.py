@@ -7,9 +7,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lensfit.fit.constants import FLOOR_SADDLE_PX, FLOOR_START_PX, _CAUCHY_C, _HUBER_K
+from lensfit.fit.constants import FLOOR_SADDLE_PX, FLOOR_START_PX, CAUCHY_C, HUBER_K
 from lensfit.fit.data import FitData
-from lensfit.fit.model import Layout, _blur, _model, _pinhole_distance, _unpack
+from lensfit.fit.model import Layout, blur_diameters_px, jax_blur, pinhole_distance, unpack
 
 
 def _residuals(theta_free, args):
@@ -19,7 +19,7 @@ def _residuals(theta_free, args):
     (theta_fixed, free_idx, m, setting, w_nodes, pose, field2, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w, floor_w,
      p_prior) = args
     theta = jnp.asarray(theta_fixed).at[free_idx].set(theta_free)  # numpy where called eagerly
-    c, s = _model(theta, m, setting, w_nodes, pitch, fpx, pose, field2)
+    c, s = jax_blur(theta, m, setting, w_nodes, pitch, fpx, pose, field2)
     r_blur = (c - coc) * sqrt_w_over_sigma
     r_fpx = (s / pitch - fpx) * fpx_w
     at = Layout(m)
@@ -54,24 +54,24 @@ def _levenberg_marquardt(fn, theta0, args, rtol: float = SOLVE_RTOL, atol: float
 
 
 def _optx_solve(theta0, args, m: int, rtol: float = SOLVE_RTOL, atol: float = SOLVE_ATOL):
-    return _levenberg_marquardt(_solver_residual_fn(m), theta0, args, rtol, atol)
+    return _levenberg_marquardt(solver_residual_fn(m), theta0, args, rtol, atol)
 
 
 def _robust_rows(r, q, loss: str):
     """Blur residuals ``r`` (in their sigmas) under the robust loss: ``sign(r) sqrt(2 rho_q(r))``
     with ``rho_q(r) = q^2 rho(r / q)`` (``q``: each row's scale, in its sigmas), so that their
     sum of squares is the robust objective and its stationary point is the reweighting's fixed
-    point (weights ``psi(u) / u``, :func:`_robust_weights`). Huber: ``r`` within ``k q``, beyond
+    point (weights ``psi(u) / u``, :func:`robust_weights`). Huber: ``r`` within ``k q``, beyond
     it ``sqrt(2 t |r| - t^2)``, ``t = k q``; Cauchy: ``a sqrt(log(1 + (r / a)^2))``, ``a = c q``.
     Both branches kept finite, so that the unused one's derivative is no NaN."""
     import jax.numpy as jnp
 
     if loss == "huber":
-        t = _HUBER_K * q
+        t = HUBER_K * q
         inside = jnp.abs(r) <= t
         a = jnp.where(inside, t, jnp.abs(r))
         return jnp.where(inside, r, jnp.sign(r) * jnp.sqrt(2.0 * t * a - t * t))
-    a = _CAUCHY_C * q
+    a = CAUCHY_C * q
     x = r / a
     small = jnp.abs(x) < 1e-4
     xs = jnp.where(small, 1.0, x)
@@ -90,15 +90,15 @@ def _optx_solve_robust(theta0, args, q, m: int, loss: str):
 def _evaluate(theta, args, m: int):
     from lensfit.lm import residuals_and_jacobian
 
-    return residuals_and_jacobian(_solver_residual_fn(m), theta, args)
+    return residuals_and_jacobian(solver_residual_fn(m), theta, args)
 
 
 def _quantities(t, m: int):
     import jax.numpy as jnp
 
-    log_f, inv_focus_per_m, log_n, floor, log_p = _unpack(t, m)
+    log_f, inv_focus_per_m, log_n, floor, log_p = unpack(t, m)
     f = jnp.exp(log_f)
-    s = _pinhole_distance(jnp, f, inv_focus_per_m / 1000.0, jnp.exp(log_p))
+    s = pinhole_distance(jnp, f, inv_focus_per_m / 1000.0, jnp.exp(log_p))
     return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
             "log_K": log_f + jnp.log(s) - log_n, "inv_focus_per_m": inv_focus_per_m, "floor": floor, "s": s,
             "N": jnp.exp(log_n),
@@ -144,12 +144,12 @@ class _Solver:
         return (self.solve, self.evaluate, self.derived)[k]
 
 
-def _solver(m: int) -> _Solver:
+def solver_for(m: int) -> _Solver:
     """The compiled solver functions for ``m`` settings (see :class:`_Solver`)."""
     return _Solver(m)
 
 
-def _floor_escape(sol, free_idx, args, m: int):
+def floor_escape(sol, free_idx, args, m: int):
     """The free parameters solved again with every free floor of ``sol`` that lies within
     ``FLOOR_SADDLE_PX`` of 0 started at ``FLOOR_START_PX``, where that fits better (a lower cost
     by more than a billionth); else None. The model takes each floor squared, so a floor at 0 is
@@ -161,10 +161,10 @@ def _floor_escape(sol, free_idx, args, m: int):
         return None
     start = np.array(sol, np.float64)
     start[near] = FLOOR_START_PX
-    alt = np.asarray(_solver(m)[0](start, args)[0])
+    alt = np.asarray(solver_for(m)[0](start, args)[0])
     if not np.all(np.isfinite(alt)):
         return None
-    cost = [float(np.sum(np.asarray(_solver(m)[1](t, args)[0]) ** 2)) for t in (sol, alt)]
+    cost = [float(np.sum(np.asarray(solver_for(m)[1](t, args)[0]) ** 2)) for t in (sol, alt)]
     return alt if cost[1] < cost[0] * (1.0 - 1e-9) else None
 
 
@@ -190,7 +190,7 @@ def prewarm(m: int, n: int) -> None:
     import jax
 
     from lensfit.fit.constants import EDGE_NODES
-    from lensfit.fit.model import _size
+    from lensfit.fit.model import vector_size
 
     # n samples with zero weights, through the fit's own argument builder (the same dtypes and
     # padding as the fit's): the solver meets a zero residual and stops at once
@@ -198,25 +198,25 @@ def prewarm(m: int, n: int) -> None:
                    w_mean=np.full(n, 1e-3), w_nodes=np.full((n, EDGE_NODES), 1e-3), coc_px=np.ones(n),
                    sigma_px=np.ones(n), pixel_pitch_mm=1.0, focal_length_px=np.zeros(m),
                    focal_length_sigma_px=np.zeros(m), pose=np.zeros(n, bool), field2=np.zeros(n))
-    theta = np.zeros(_size(m))
-    solver = _solver(m)
+    theta = np.zeros(vector_size(m))
+    solver = solver_for(m)
     with jax.enable_x64(True):
         for k in likely_free_counts(m):
             free_idx = np.arange(min(k, theta.size), dtype=np.int64)
-            full = _solver_args(theta, free_idx, data, np.zeros(n), np.zeros(m), np.zeros(m), np.zeros(m))
+            full = solver_args(theta, free_idx, data, np.zeros(n), np.zeros(m), np.zeros(m), np.zeros(m))
             jax.block_until_ready(solver.solve(theta[free_idx], full))
-            jax.block_until_ready(solver.solve_robust(theta[free_idx], full, np.ones(_padded_size(n)), "huber"))
+            jax.block_until_ready(solver.solve_robust(theta[free_idx], full, np.ones(padded_size(n)), "huber"))
             jax.block_until_ready(solver.evaluate(theta[free_idx], full))
         jax.block_until_ready(solver.derived(theta))
     import scipy.special  # noqa: F401 - the intervals' Student-t quantiles (0.07 s of a fresh fit)
 
 
-def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
+def robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
     a = np.abs(u)
     if loss == "huber":
-        return np.where(a <= _HUBER_K, 1.0, _HUBER_K / np.maximum(a, 1e-300))
+        return np.where(a <= HUBER_K, 1.0, HUBER_K / np.maximum(a, 1e-300))
     if loss == "cauchy":
-        return 1.0 / (1.0 + (a / _CAUCHY_C) ** 2)
+        return 1.0 / (1.0 + (a / CAUCHY_C) ** 2)
     return np.ones_like(a)
 
 
@@ -224,14 +224,14 @@ def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
 _NORMAL_MAD = 0.6745
 
 
-def _robust_scale(u: np.ndarray) -> float:
+def robust_scale(u: np.ndarray) -> float:
     """Scale of standardised residuals: 1 when the stated sigmas are honest, more when not
     (median absolute residual / 0.6745, never below 1)."""
     return max(1.0, float(np.median(np.abs(u))) / _NORMAL_MAD) if u.size else 1.0
 
 
 class ImageScatter(NamedTuple):
-    """The images' shared distance errors (:func:`_image_scatter`): per sample, the blur's slope
+    """The images' shared distance errors (:func:`image_scatter`): per sample, the blur's slope
     in log inverse distance ``slope`` (px) and ``shared``, the part of its residual its image's
     fitted shared error explains (``slope * delta_i``; 0 where the sample names no image); ``tau``
     the scatter of the images' shared errors (relative) beyond what their readings' sigmas
@@ -245,7 +245,7 @@ class ImageScatter(NamedTuple):
     gain: np.ndarray | None = None
 
 
-def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray, jac=None, cov_fit=None) -> ImageScatter:
+def image_scatter(theta, m: int, data: FitData, rows: np.ndarray, jac=None, cov_fit=None) -> ImageScatter:
     """The images' shared distance errors: an error of an image's pose moves all of its
     distances by one factor ``exp(delta_i)``, its blur by ``delta_i g``, ``g = dc / d ln w``. Per
     image the weighted least-squares ``delta_i`` of its residuals (``rows``: the samples'
@@ -258,8 +258,8 @@ def _image_scatter(theta, m: int, data: FitData, rows: np.ndarray, jac=None, cov
     import dataclasses
 
     h = 1e-4
-    up = _predict_all(theta, m, dataclasses.replace(data, w_nodes=data.w_nodes * (1 + h)))
-    down = _predict_all(theta, m, dataclasses.replace(data, w_nodes=data.w_nodes * (1 - h)))
+    up = predict_all(theta, m, dataclasses.replace(data, w_nodes=data.w_nodes * (1 + h)))
+    down = predict_all(theta, m, dataclasses.replace(data, w_nodes=data.w_nodes * (1 - h)))
     slope = (up - down) / (2 * h)
     shared = np.zeros(len(slope))
     named = (data.group >= 0) & (rows > 0)
@@ -304,11 +304,11 @@ def _shift_response(through: np.ndarray, ses: np.ndarray, cov_fit: np.ndarray):
     return np.sum(resid**2, axis=1), np.clip(np.diag(resid), 0.0, 1.0)
 
 
-def _shared_sigma(theta, m: int, data: FitData, rows: np.ndarray) -> np.ndarray:
+def shared_sigma(theta, m: int, data: FitData, rows: np.ndarray) -> np.ndarray:
     """Each sample's blur sigma in px with its image's shared distance error added: ``sqrt(sigma^2
-    + (g tau)^2)`` (:func:`_image_scatter`); the stated sigma where ``tau`` is 0 or the samples
+    + (g tau)^2)`` (:func:`image_scatter`); the stated sigma where ``tau`` is 0 or the samples
     name no image."""
-    sc = _image_scatter(theta, m, data, rows)
+    sc = image_scatter(theta, m, data, rows)
     return np.sqrt(data.sigma_px**2 + np.where(data.group >= 0, sc.slope * sc.tau, 0.0) ** 2)
 
 
@@ -350,17 +350,17 @@ def _between_scale(deltas: np.ndarray, ses: np.ndarray, gain=None, noise=None) -
     return hi
 
 
-def _padded_size(n: int) -> int:
+def padded_size(n: int) -> int:
     """Samples are padded to a power of two (zero weight), so that stacks of similar size share
     one compiled solver."""
     return max(64, 1 << int(math.ceil(math.log2(max(n, 1)))))
 
 
-def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w, p_prior=(0.0, 0.0)):
-    """The solver's ``args``, samples padded to :func:`_padded_size`. numpy arrays, which the
+def solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w, p_prior=(0.0, 0.0)):
+    """The solver's ``args``, samples padded to :func:`padded_size`. numpy arrays, which the
     compiled functions take as they are (``jnp.asarray`` compiles a small conversion per new
     shape in every process: about 0.1 s of a cold fit)."""
-    pad = _padded_size(len(data.coc_px)) - len(data.coc_px)
+    pad = padded_size(len(data.coc_px)) - len(data.coc_px)
 
     def padded(a, fill):
         return np.concatenate([a, np.full((pad, *np.shape(a)[1:]), fill)])
@@ -373,15 +373,15 @@ def _solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, 
             np.asarray(floor_w, np.float64), np.asarray(p_prior, dtype=np.float64))
 
 
-def _solver_residual_fn(m):
+def solver_residual_fn(m):
     def fn(theta_free, args):
         return _residuals(theta_free, (*args[:2], m, *args[2:]))
 
     return fn
 
 
-def _predict_all(theta: np.ndarray, m: int, data: FitData) -> np.ndarray:
+def predict_all(theta: np.ndarray, m: int, data: FitData) -> np.ndarray:
     """The model's blur of every sample (NumPy), all settings at once."""
-    return _blur(np, np.asarray(theta, np.float64), m, data.setting, data.w_nodes, data.pixel_pitch_mm,
+    return blur_diameters_px(np, np.asarray(theta, np.float64), m, data.setting, data.w_nodes, data.pixel_pitch_mm,
                  np.nan_to_num(data.focal_length_px, nan=0.0), np.asarray(data.pose, float),
                  np.nan_to_num(np.asarray(data.field2, float)))[0]

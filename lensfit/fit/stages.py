@@ -23,13 +23,13 @@ import numpy as np
 from lensfit.fit.constants import FLOOR_START_PX
 from lensfit.fit.curvature import field_spread, significant_curvature
 from lensfit.fit.data import FitData
-from lensfit.fit.identifiability import (_P_PRIOR_SIGMA_LOG, _p_identifiable, _p_start, PHOTOGRAPHIC_P_NOTE,
+from lensfit.fit.identifiability import (P_PRIOR_SIGMA_LOG, p_identifiable, p_start, PHOTOGRAPHIC_P_NOTE,
                                          photographic_prior)
-from lensfit.fit.model import Layout, _size
-from lensfit.fit.solve import (_floor_escape, _padded_size, _predict_all, _robust_scale, _robust_weights,
-                               _shared_sigma, _solver, _solver_args, _solver_residual_fn)
-from lensfit.fit.start import _vertex_search
-from lensfit.fit.uncertainty import _covariance
+from lensfit.fit.model import Layout, vector_size
+from lensfit.fit.solve import (floor_escape, padded_size, predict_all, robust_scale, robust_weights,
+                               shared_sigma, solver_for, solver_args, solver_residual_fn)
+from lensfit.fit.start import vertex_search
+from lensfit.fit.uncertainty import svd_covariance
 
 
 @dataclass(frozen=True)
@@ -56,12 +56,12 @@ def start(data: FitData, blocked: dict, has_fpx: np.ndarray, blur_floor_px: floa
     pupil magnification fitted, given a prior, or assumed (never silently)."""
     m, p = len(data.labels), data.pixel_pitch_mm
     fixed_floor = blur_floor_px is not None
-    theta = np.zeros(_size(m))
+    theta = np.zeros(vector_size(m))
     at = Layout(m)
     verts, slopes = np.zeros(m), np.ones(m)
     for k in range(m):
         sel = data.setting == k
-        x, slope, b = _vertex_search(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], np.ones(sel.sum()),
+        x, slope, b = vertex_search(data.w_mean[sel], data.coc_px[sel], data.sigma_px[sel], np.ones(sel.sum()),
                                      not fixed_floor, blur_floor_px or 0.0)
         verts[k], slopes[k] = x, max(slope, 1e-6)
         theta[at.floor(k)] = blur_floor_px if fixed_floor else max(b, FLOOR_START_PX)
@@ -75,9 +75,9 @@ def start(data: FitData, blocked: dict, has_fpx: np.ndarray, blur_floor_px: floa
     elif pupil[0] == "prior":
         P0, p_source, p_prior = math.exp(pupil[1]), "prior", (pupil[1], 1.0 / pupil[2])
     else:
-        fit_p, why_not = _p_identifiable(data, verts, usable, fpx_sig)
+        fit_p, why_not = p_identifiable(data, verts, usable, fpx_sig)
         if fit_p:
-            P0, p_source, p_prior = _p_start(data, verts, usable), "fitted", (0.0, 1.0 / _P_PRIOR_SIGMA_LOG)
+            P0, p_source, p_prior = p_start(data, verts, usable), "fitted", (0.0, 1.0 / P_PRIOR_SIGMA_LOG)
         elif has_fpx.any():
             P0, p_prior, why = photographic_prior(why_not)
             p_source, p_note = "prior", PHOTOGRAPHIC_P_NOTE
@@ -102,7 +102,7 @@ def start(data: FitData, blocked: dict, has_fpx: np.ndarray, blur_floor_px: floa
 def free_parameters(m: int, p_source: str, has_fpx: np.ndarray, blocked: dict, fixed_floor: bool) -> np.ndarray:
     """Which parameters the solve moves, field curvature held (see :meth:`Problem.with_curvature`)."""
     at = Layout(m)
-    free = np.ones(_size(m), bool)
+    free = np.ones(vector_size(m), bool)
     free[at.log_p] = p_source != "assumed"
     if not any(has_fpx[k] and k not in blocked for k in range(m)):
         # Without a calibrated setting whose V is determined, f only scales N: held at a
@@ -154,7 +154,7 @@ class Problem:
 
     def args(self, theta: np.ndarray, sqrt_w_over_sigma: np.ndarray):
         """The solver's arguments with the blur rows weighted by ``sqrt_w_over_sigma``."""
-        return _solver_args(theta, self.free_idx, self.data, sqrt_w_over_sigma, self.fpx, self.fpx_w, self.floor_w,
+        return solver_args(theta, self.free_idx, self.data, sqrt_w_over_sigma, self.fpx, self.fpx_w, self.floor_w,
                             self.p_prior)
 
 
@@ -187,14 +187,14 @@ def irls(pb: Problem, theta: np.ndarray, rows: np.ndarray, weights: np.ndarray):
     squares, reached in a few solves instead of a dozen: reweighting alone converges by a factor
     of about 7 a round and ran out its 12 rounds on the standard suite's stacks."""
     data, m, free_idx = pb.data, pb.m, pb.free_idx
-    n, npad = len(data.coc_px), _padded_size(len(data.coc_px))
+    n, npad = len(data.coc_px), padded_size(len(data.coc_px))
     theta, converged, q = theta.copy(), True, None
     base = rows / data.sigma_px
     for it in range(pb.rounds):
         if q is None:
-            sol, ok = _solver(m)[0](theta[free_idx], pb.args(theta, np.sqrt(weights) * base))
+            sol, ok = solver_for(m)[0](theta[free_idx], pb.args(theta, np.sqrt(weights) * base))
         else:
-            sol, ok = _solver(m).solve_robust(theta[free_idx], pb.args(theta, base),
+            sol, ok = solver_for(m).solve_robust(theta[free_idx], pb.args(theta, base),
                                               np.concatenate([q, np.ones(npad - n)]), pb.loss)
         sol = np.asarray(sol)
         if not np.all(np.isfinite(sol)):
@@ -211,10 +211,10 @@ def irls(pb: Problem, theta: np.ndarray, rows: np.ndarray, weights: np.ndarray):
         # down-weighted as outliers while the image jackknife (then the images' spread), holding
         # the weights, missed the cost
         # (1 % pose errors: 95 % intervals held the focus distance in 77 % of captures).
-        shared = _shared_sigma(theta, m, data, rows)
-        u = (data.coc_px - _predict_all(theta, m, data)) / shared
-        scale = _robust_scale(u[rows > 0])
-        new = _robust_weights(u / scale, pb.loss)
+        shared = shared_sigma(theta, m, data, rows)
+        u = (data.coc_px - predict_all(theta, m, data)) / shared
+        scale = robust_scale(u[rows > 0])
+        new = robust_weights(u / scale, pb.loss)
         if it and change < 1e-9 and np.max(np.abs(new - weights)) < 1e-6:
             break
         weights, q = new, shared * scale / data.sigma_px
@@ -228,7 +228,7 @@ def floor_retried(pb: Problem, theta: np.ndarray, rows: np.ndarray, weights: np.
     solves may settle there beside a fit with a floor. Where the floor fits better, they go on
     from there (:func:`irls`)."""
     free_idx = pb.free_idx
-    better = _floor_escape(theta[free_idx], free_idx, pb.args(theta, np.sqrt(weights) * rows / pb.data.sigma_px),
+    better = floor_escape(theta[free_idx], free_idx, pb.args(theta, np.sqrt(weights) * rows / pb.data.sigma_px),
                            pb.m)
     if better is None:
         return theta, weights, converged
@@ -240,12 +240,12 @@ def floor_retried(pb: Problem, theta: np.ndarray, rows: np.ndarray, weights: np.
 def evaluate(pb: Problem, theta: np.ndarray, weights: np.ndarray):
     """Residuals and Jacobian with ``weights``, and the reduced chi-square of the blur rows."""
     data, free_idx, row_on = pb.data, pb.free_idx, pb.row_on
-    npad = _padded_size(len(data.coc_px))
+    npad = padded_size(len(data.coc_px))
     args = pb.args(theta, np.sqrt(weights) * row_on / data.sigma_px)
     if free_idx.size:
-        res, jac = (np.asarray(a) for a in _solver(pb.m)[1](theta[free_idx], args))
+        res, jac = (np.asarray(a) for a in solver_for(pb.m)[1](theta[free_idx], args))
     else:
-        res = np.asarray(_solver_residual_fn(pb.m)(theta[free_idx], args))
+        res = np.asarray(solver_residual_fn(pb.m)(theta[free_idx], args))
         jac = np.zeros((len(res), 0))
     dof = max(float(np.sum(weights[row_on > 0])) - len(free_idx), 1.0)
     return res, jac, float(np.sum(res[:npad] ** 2) / dof) if row_on.any() else 1.0
@@ -277,7 +277,7 @@ def solve(pb: Problem, theta0: np.ndarray, field_curvature: str) -> Solution:
         theta, weights, converged = irls(pb, theta0, pb.row_on, np.ones(n))
         res, jac, chi2_red = evaluate(pb, theta, weights)
         if pb.curved and field_curvature == "auto":
-            kept = significant_curvature(theta, pb.free_idx, _covariance(jac, max(1.0, chi2_red))[0], pb.m,
+            kept = significant_curvature(theta, pb.free_idx, svd_covariance(jac, max(1.0, chi2_red))[0], pb.m,
                                          list(pb.curved))
             if kept != list(pb.curved):
                 pb = pb.with_curvature(kept)

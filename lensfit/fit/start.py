@@ -7,15 +7,15 @@ import numpy as np
 
 
 
-def _vertex_search(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray, fit_floor: bool,
+def vertex_search(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray, fit_floor: bool,
                    floor_px: float) -> tuple[float, float, float]:
     """Closed-form start for one setting: (vertex 1/mm, slope px*mm, floor px)."""
-    grid, chi2, k, b = _vertex_profile(w, c, sig, wt, fit_floor, floor_px)
+    grid, chi2, k, b = vertex_profile(w, c, sig, wt, fit_floor, floor_px)
     best = int(np.argmin(chi2))
     return float(grid[best]), float(k[best]), float(b[best])
 
 
-def _vertex_profile(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray, fit_floor: bool,
+def vertex_profile(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarray, fit_floor: bool,
                     floor_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Chi-square of the best V for each candidate vertex: (vertices 1/mm, chi2, slope, floor).
 
@@ -56,7 +56,7 @@ def _vertex_profile(w: np.ndarray, c: np.ndarray, sig: np.ndarray, wt: np.ndarra
     return grid, chi2, np.sqrt(k2), np.sqrt(b2)
 
 
-def _one_side(w: np.ndarray, x: float) -> str | None:
+def one_side(w: np.ndarray, x: float) -> str | None:
     """"nearer" or "farther" when all inverse distances ``w`` lie on one side of the vertex ``x``
     (same units), else None."""
     if np.all(w > x):
@@ -66,8 +66,8 @@ def _one_side(w: np.ndarray, x: float) -> str | None:
     return None
 
 
-def _side_hint(w: np.ndarray, x: float) -> str:
+def side_hint(w: np.ndarray, x: float) -> str:
     """"; every sample is nearer/farther than the focus" when all inverse distances ``w`` lie on
     one side of the vertex ``x`` (same units), else ""."""
-    side = _one_side(w, x)
+    side = one_side(w, x)
     return f"; every sample is {side} than the focus" if side else ""

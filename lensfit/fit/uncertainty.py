@@ -6,14 +6,14 @@ import math
 
 import numpy as np
 
-from lensfit.fit.constants import MAX_CLUSTERS, MAX_RELATIVE_SIGMA, MIN_CLUSTERS, QUANTITIES, _Z95
-from lensfit.fit.model import Layout, _size
+from lensfit.fit.constants import MAX_CLUSTERS, MAX_RELATIVE_SIGMA, MIN_CLUSTERS, QUANTITIES, Z95
+from lensfit.fit.model import Layout, vector_size
 from lensfit.fit.result import Estimate, FitResult
-from lensfit.fit.solve import _solver, _solver_args
-from lensfit.fit.start import _side_hint
+from lensfit.fit.solve import solver_for, solver_args
+from lensfit.fit.start import side_hint
 
 
-def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float]:
+def svd_covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float]:
     """Covariance by SVD of the column-equilibrated Jacobian; its condition number."""
     if jac.shape[1] == 0:
         return np.zeros((0, 0)), 1.0
@@ -28,7 +28,7 @@ def _covariance(jac: np.ndarray, scale2: float) -> tuple[np.ndarray, float]:
     return scale2 * cov_scaled / np.outer(norms, norms), cond
 
 
-def _correlation(cov: np.ndarray) -> np.ndarray:
+def correlation(cov: np.ndarray) -> np.ndarray:
     """Correlations of a covariance (0 in the rows of a parameter without variance)."""
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sd = np.where(sd > 0, sd, 1.0)
@@ -38,16 +38,16 @@ def _correlation(cov: np.ndarray) -> np.ndarray:
 #: The sources a reported variance is split into (results.json ``variance_shares``): the
 #: blur readings' own scatter ("blur"); the calibrated focal length in px and with it the scale
 #: of every pose distance ("calibration"); what the edges of one image share beyond that (its
-#: pose, its noise: :func:`_images_part`, and the excess of the images' spread, :func:`_image_spread`;
+#: pose, its noise: :func:`images_part`, and the excess of the images' spread, :func:`image_spread`;
 #: "images"); the blur
 #: estimator's shared scale error ("estimator_scale", ``BLUR_SCALE_SIGMA``); the spot-shape
-#: model's error on each side of the focus (:func:`_arms_part`, "spot_shape"); the priors on the
+#: model's error on each side of the focus (:func:`arms_part`, "spot_shape"); the priors on the
 #: blur floor and the pupil magnification ("priors"). (A one-sided setting's "floor_choice" is
 #: added after the fit: lensfit.fit.floor_choice.)
 BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "spot_shape", "priors")
 
 
-def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int) -> dict[str, np.ndarray]:
+def budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int) -> dict[str, np.ndarray]:
     """The model covariance of the free parameters split by the rows that carry it:
     ``H^-1 J_g^T J_g H^-1`` for each row group ``g`` (``H = J^T J``, ``cov = H^-1``), which sum
     to ``H^-1``. Rows (``jac`` as weighted for the covariance): blur samples (``npad``), the focal
@@ -58,7 +58,7 @@ def _budget_parts(jac: np.ndarray, cov: np.ndarray, npad: int, m: int) -> dict[s
     return {name: cov @ jac[sl].T @ jac[sl] @ cov for name, sl in groups.items()}
 
 
-def _images_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, scatter) -> np.ndarray:
+def images_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, scatter) -> np.ndarray:
     """The free parameters' covariance from the images' shared distance errors:
     ``sum_i b_i b_i'``, ``b_i = H^-1 J_i' (g_i sqrt(w_i) / sigma_i) tau`` (``jac`` the weighted
     Jacobian of the fit, blur rows first in sample order, ``H = J' J``, ``cov_u`` its ``H^-1``;
@@ -78,11 +78,11 @@ def _images_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, sca
     return out
 
 
-def _arms_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, theta: np.ndarray,
+def arms_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, theta: np.ndarray,
                m: int) -> np.ndarray:
     """The free parameters' covariance from the spot-shape model's error on each side of each
     setting's focus: ``sum b b'``, ``b = H^-1 J_arm' (c sqrt(w) / sigma) kappa`` over the samples
-    of one arm (``jac``, ``cov_u``, ``rows`` as in :func:`_images_part`).
+    of one arm (``jac``, ``cov_u``, ``rows`` as in :func:`images_part`).
 
     A real lens's spots differ in kind on the two sides of its focus (a bright rim on one, a core
     in a halo on the other, coma off the axis), and a symmetric spot model misreads one kind more
@@ -119,7 +119,7 @@ def _arms_part(jac: np.ndarray, cov_u: np.ndarray, data, rows: np.ndarray, theta
     return out
 
 
-def _shares(model: dict[str, float], reported_var: float) -> dict[str, float] | None:
+def shares_of(model: dict[str, float], reported_var: float) -> dict[str, float] | None:
     """Shares of a reported variance: ``model`` the parts the model covariance carries (and the
     estimator's scale term), the rest of ``reported_var``, the images' spread's excess, added to
     ``images``."""
@@ -129,7 +129,7 @@ def _shares(model: dict[str, float], reported_var: float) -> dict[str, float] | 
     return {src: v.get(src, 0.0) / total for src in BUDGET_SOURCES} if total > 0 else None
 
 
-def _null_direction(jac: np.ndarray) -> np.ndarray:
+def null_direction(jac: np.ndarray) -> np.ndarray:
     norms = np.linalg.norm(jac, axis=0)
     norms = np.where(norms > 0, norms, 1.0)
     _, _, vt = np.linalg.svd(jac / norms, full_matrices=False)
@@ -141,7 +141,7 @@ def focus_interval(lo_per_m: float, hi_per_m: float) -> tuple[float | None, floa
     return (1000.0 / hi_per_m if hi_per_m > 0 else None, 1000.0 / lo_per_m if lo_per_m > 0 else None)
 
 
-def _positive(value: float, sigma_log: float, z: tuple[float, float] = (1.0, _Z95)) -> Estimate:
+def positive_estimate(value: float, sigma_log: float, z: tuple[float, float] = (1.0, Z95)) -> Estimate:
     """A positive quantity with its log-space sigma: intervals ``value * exp(+-z sigma_log)``."""
     z1 = math.exp(z[0] * sigma_log)
     z2 = math.exp(z[1] * sigma_log)
@@ -164,7 +164,7 @@ class StrataDof:
         return sum(v) ** 2 / den if den > 0 else math.inf
 
 
-def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used):
+def image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used):
     """The images' spread: the edges of one image share its pose (distance errors of ~0.05 %
     move all of them together) and its noise pattern, so they are not independent samples and
     the model-based covariance understates the spread (seen: focus-distance intervals holding the
@@ -180,7 +180,7 @@ def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used):
     are, so the spread is that of the blur readings alone: a parameter's blur variance is the
     larger of the model's (``blur_cov``, the blur rows' part of ``cov``) and this spread, and the
     calibration's and the priors' parts are added to it. Not called where the model carries the
-    images' shared distance errors (:func:`_images_part`, from their scatter pooled over all the
+    images' shared distance errors (:func:`images_part`, from their scatter pooled over all the
     images; ``lensfit.fit.core``), whose covariance is left as it is: that term reads
     the same variance with far fewer degrees of freedom lost to the few images that carry a
     parameter. In Monte Carlo captures with per-image pose errors (10 images of 0.3 % pose errors,
@@ -218,7 +218,7 @@ def _image_spread(cov, blur_cov, jac, res, cov_fit, free_idx, data, used):
     if not strata or not np.all(np.isfinite(spread_cov)):
         return cov, None
     model, spread = np.maximum(np.diag(blur_cov), 0.0), np.diag(spread_cov)
-    corr = _correlation(blur_cov)
+    corr = correlation(blur_cov)
     np.fill_diagonal(corr, 1.0)
     sd = np.sqrt(np.maximum(model, spread))
     cov = cov - blur_cov + corr * np.outer(sd, sd)
@@ -229,7 +229,7 @@ def student_z(dof: float) -> tuple[float, float]:
     """The multiples of sigma for 68.27 % and 95 % intervals, Student's t with ``dof`` degrees of
     freedom (normal where infinite)."""
     if not math.isfinite(dof):
-        return (1.0, _Z95)
+        return (1.0, Z95)
     from scipy.special import stdtrit  # Student-t quantiles (scipy.stats takes 0.6-1.2 s to import)
 
     return (float(stdtrit(dof, 0.8413447460685429)), float(stdtrit(dof, 0.975)))
@@ -246,7 +246,7 @@ def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = m
     images less one, or for a quantity of a bracket's setting, :class:`StrataDof`); elsewhere it is
     ``blur``, whose size the readings' own scatter about the fit sets (the reduced chi-square,
     ``nu_0 = blur_dof``: samples less free parameters), with the images' modelled share
-    (:func:`_images_part`) at ``images_dof``, the images less one. A calibration's part whose
+    (:func:`images_part`) at ``images_dof``, the images less one. A calibration's part whose
     sigma a jackknife over few views estimated adds ``calibration_den``, the sum of its settings'
     ``r_k^2 / nu_k`` (views less one), to the denominator ``sum r^2 / nu``; other calibrations
     count as known, so a focal length known mostly from the calibration is not given the images'
@@ -257,7 +257,7 @@ def effective_z(shares: dict[str, float] | None, dof: float, blur_dof: float = m
         den = (shares.get("blur", 0.0) + shares.get("images", 0.0)) ** 2 / dof + calibration_den
     else:
         den = shares.get("blur", 0.0) ** 2 / blur_dof + shares.get("images", 0.0) ** 2 / images_dof + calibration_den
-    return student_z(1.0 / den) if den > 0 else (1.0, _Z95)
+    return student_z(1.0 / den) if den > 0 else (1.0, Z95)
 
 
 _FROM_SENSOR_UNKNOWN = ("not determined for a thick lens: it needs the distance from the entrance pupil to the "
@@ -303,27 +303,27 @@ class _Variance:
         g = self._grad(name, k)
         v = {src: max(float(g @ c @ g), 0.0) for src, c in self.parts.items()}
         v["estimator_scale"] = self._scale_term(name, k)
-        return _shares(v, self.var(name, k))
+        return shares_of(v, self.var(name, k))
 
 
-def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
+def derive_quantities(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
             dof: float | StrataDof = math.inf, thin: bool = True, parts=None, scale_var: float = 0.0,
             blur_dof: float = math.inf, images_dof: float = math.inf, calibration_terms=()
             ) -> tuple[dict[str, dict[str, Estimate]], list[str], Estimate]:
     """Every reported quantity: (per setting its estimates, the reasons of what is refused, the
     shared focal length). ``dof``: the images' spread's degrees of freedom where it took over
-    (:func:`_image_spread`; per quantity from its strata, :class:`StrataDof`), from which each
+    (:func:`image_spread`; per quantity from its strata, :class:`StrataDof`), from which each
     quantity's multiples of sigma for its 68 % and 95 % intervals (:func:`effective_z`).
     ``thin``: the lens is taken as thin (P = 1 assumed), so the entrance pupil is the lens plane
     and the focus distance from the sensor plane is known; otherwise that distance is not
-    determined. ``parts``: the model covariance split by source (:func:`_budget_parts`, full
+    determined. ``parts``: the model covariance split by source (:func:`budget_parts`, full
     size); ``scale_var``: the variance of the estimator's shared relative scale error;
     ``blur_dof``: the degrees of freedom of the blur readings' scatter (samples less free
     parameters), which sets their part of the variance."""
     import jax
 
     with jax.enable_x64(True):
-        values, grads = _solver(m)[2](np.asarray(theta, np.float64))
+        values, grads = solver_for(m)[2](np.asarray(theta, np.float64))
         q = {k: np.asarray(v) for k, v in values.items()}
         jacs = {k: np.asarray(v) for k, v in grads.items()}
     variance = _Variance(q, jacs, cov, parts or {}, scale_var)
@@ -346,7 +346,7 @@ def _derive(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_reason, weak,
                     "the focus distance of the calibrated setting(s) is not located by the blur")
     elif all(k in blocked for k in range(m) if has_fpx[k]):
         f_reason = "the focal length needs the focus distance of a calibrated setting, which is not determined"
-    f_est = Estimate(None, reason=f_reason) if f_reason else _positive(float(q["f"]), sd("log_f"), zs("log_f"))
+    f_est = Estimate(None, reason=f_reason) if f_reason else positive_estimate(float(q["f"]), sd("log_f"), zs("log_f"))
     f_est = _with_shares(f_est, variance.shares("log_f"))
     settings: dict[str, dict[str, Estimate]] = {}
     reasons = [f"focal_length_mm: {f_reason}"] if f_reason else []
@@ -387,7 +387,7 @@ def _setting_estimates(k: int, label: str, q: dict, sd, zs, data, blocked: dict,
         elif s_inv > 0.25 * max(w_span, 1e-12) and s_inv > MAX_RELATIVE_SIGMA * abs(inv_focus_per_m):
             why = (f"the focus distance of setting {label!r} is poorly located (inverse distance 1 sigma "
                    f"{s_inv:.3g} /m against a sample span of {w_span:.3g} /m)"
-                   f"{_side_hint(w, inv_focus_per_m)}: add targets "
+                   f"{side_hint(w, inv_focus_per_m)}: add targets "
                    "on the other side of the focus distance, or spread them over a wider range of distances")
     # Focus distance (lens plane) and the inverse distance.
     if why:
@@ -422,7 +422,7 @@ def _setting_estimates(k: int, label: str, q: dict, sd, zs, data, blocked: dict,
     z = zs("floor", k)
     out["blur_floor_px"] = Estimate(abs(fl), s_fl, (max(abs(fl) - z[0] * s_fl, 0.0), abs(fl) + z[0] * s_fl),
                                     (max(abs(fl) - z[1] * s_fl, 0.0), abs(fl) + z[1] * s_fl))
-    out["blur_slope_mm2"] = _positive(float(np.exp(q["log_K"][k])), sd("log_K", k), zs("log_K", k))
+    out["blur_slope_mm2"] = positive_estimate(float(np.exp(q["log_K"][k])), sd("log_K", k), zs("log_K", k))
     if lens_reason:
         for qn in ("f_number", "aperture_diameter_mm", "sensor_distance_mm"):
             out[qn] = Estimate(None, reason=lens_reason)
@@ -430,9 +430,9 @@ def _setting_estimates(k: int, label: str, q: dict, sd, zs, data, blocked: dict,
             out["focus_distance_from_sensor_mm"] = Estimate(None, reason=lens_reason)
         reasons.append(f"settings.{label}.f_number: {lens_reason}")
     else:
-        out["f_number"] = _positive(float(q["N"][k]), sd("log_N", k), zs("log_N", k))
-        out["aperture_diameter_mm"] = _positive(float(np.exp(q["log_A"][k])), sd("log_A", k), zs("log_A", k))
-        out["sensor_distance_mm"] = _positive(float(np.exp(q["log_sx"][k])), sd("log_sx", k), zs("log_sx", k))
+        out["f_number"] = positive_estimate(float(q["N"][k]), sd("log_N", k), zs("log_N", k))
+        out["aperture_diameter_mm"] = positive_estimate(float(np.exp(q["log_A"][k])), sd("log_A", k), zs("log_A", k))
+        out["sensor_distance_mm"] = positive_estimate(float(np.exp(q["log_sx"][k])), sd("log_sx", k), zs("log_sx", k))
     return out, reasons
 
 
@@ -459,7 +459,7 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
 
     data, setup = result.samples, result._setup
     m = len(data.labels)
-    theta = np.zeros(_size(m))
+    theta = np.zeros(vector_size(m))
     at = Layout(m)
     theta[at.log_p] = result._full[at.log_p]  # P as the fit had it
     theta[at.LOG_F] = math.log(focal_length_mm)
@@ -469,12 +469,12 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
         theta[at.log_n(k)] = math.log(n_true)
     free_idx = setup["free_idx"]
     with jax.enable_x64(True):
-        args = _solver_args(theta, free_idx, data, setup["row_on"] / data.sigma_px, setup["fpx"], setup["fpx_w"],
+        args = solver_args(theta, free_idx, data, setup["row_on"] / data.sigma_px, setup["fpx"], setup["fpx_w"],
                             setup["floor_w"], setup.get("p_prior", (0.0, 0.0)))
-        _, jac = _solver(m)[1](theta[free_idx], args)
-        values, grads = _solver(m)[2](np.asarray(theta, np.float64))
-    cov_free, _ = _covariance(np.asarray(jac), 1.0)
-    cov = np.zeros((_size(m), _size(m)))
+        _, jac = solver_for(m)[1](theta[free_idx], args)
+        values, grads = solver_for(m)[2](np.asarray(theta, np.float64))
+    cov_free, _ = svd_covariance(np.asarray(jac), 1.0)
+    cov = np.zeros((vector_size(m), vector_size(m)))
     cov[np.ix_(free_idx, free_idx)] = cov_free
 
     def sd(name, k=None):

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from synth.lens.prescription import Prescription, _ynu, paraxial, reverse, trace
+from synth.lens.prescription import Prescription, ynu, paraxial, reverse, trace
 
 
 
@@ -16,9 +16,9 @@ def image_z(rx: Prescription, object_z_mm: float) -> float:
     """z of the paraxial image of the axial point at ``object_z_mm`` (lens coordinates; -inf:
     an object at infinity, whose image is the rear focal point)."""
     if math.isinf(object_z_mm):
-        y, nu = _ynu(rx, 1.0, 0.0)
+        y, nu = ynu(rx, 1.0, 0.0)
     else:
-        y, nu = _ynu(rx, -object_z_mm, 1.0)  # unit angle from the object point to the first vertex
+        y, nu = ynu(rx, -object_z_mm, 1.0)  # unit angle from the object point to the first vertex
     return float(rx.vertices_mm()[-1] - y / nu)
 
 
@@ -27,7 +27,7 @@ def object_z(rx: Prescription, image_z_mm: float) -> float:
     :func:`image_z`; -inf when that is the rear focal point)."""
     last = float(rx.vertices_mm()[-1])
     rev = reverse(rx)
-    y, nu = _ynu(rev, -(last - image_z_mm), 1.0)
+    y, nu = ynu(rev, -(last - image_z_mm), 1.0)
     if nu == 0.0:
         return -math.inf
     return last - float(rev.vertices_mm()[-1] - y / nu)

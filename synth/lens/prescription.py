@@ -173,7 +173,7 @@ class Paraxial:
         return out
 
 
-def _ynu(rx: Prescription, y: float, nu: float, start: int = 0, stop: int | None = None) -> tuple[float, float]:
+def ynu(rx: Prescription, y: float, nu: float, start: int = 0, stop: int | None = None) -> tuple[float, float]:
     """Paraxial ray (height ``y`` at surface ``start``, reduced angle ``n u`` before it) through
     surfaces ``start`` .. ``stop - 1``; returns (y, n u) just after the last refraction, at its vertex."""
     surfaces = rx.surfaces
@@ -192,14 +192,14 @@ def paraxial(rx: Prescription) -> Paraxial:
     z = rx.vertices_mm()
     last = len(rx.surfaces) - 1
     # Rear: a ray parallel to the axis from the object side.
-    y, nu = _ynu(rx, 1.0, 0.0)
+    y, nu = ynu(rx, 1.0, 0.0)
     efl = -1.0 / nu  # image space is air
     bfl = -y / nu
     rear_focal = z[last] + bfl
     rear_principal = rear_focal - efl
     # Front: the reversed system (a ray parallel to the axis from the sensor side).
     rev = reverse(rx)
-    yb, nub = _ynu(rev, 1.0, 0.0)
+    yb, nub = ynu(rev, 1.0, 0.0)
     ffl = -yb / nub  # first vertex to the front focal point, measured towards the object
     front_focal = -ffl
     front_principal = front_focal + efl
@@ -209,7 +209,7 @@ def paraxial(rx: Prescription) -> Paraxial:
     z_stop = z[k]
 
     def at_stop(y0, u0):
-        y1, nu1 = _ynu(rx, y0, u0, 0, k) if k > 0 else (y0, u0)
+        y1, nu1 = ynu(rx, y0, u0, 0, k) if k > 0 else (y0, u0)
         n_k = rx.indices_before()[k]
         return y1 + (z_stop - z[k - 1]) * nu1 / n_k if k > 0 else y0
 
@@ -220,7 +220,7 @@ def paraxial(rx: Prescription) -> Paraxial:
     stop_radius = rx.surfaces[k].semi_aperture_mm
     epd = 2.0 * stop_radius / abs(a)  # marginal ray from infinity: height h at z = 0 reaches a*h at the stop
     # Exit pupil: the same chief ray in image space.
-    yc, nuc = _ynu(rx, y0, 1.0)
+    yc, nuc = ynu(rx, y0, 1.0)
     exit_z = z[last] - yc / nuc
     p_mag = 1.0 / nuc  # angular magnification of the pupils is u'/u = nuc; P = u / u'
     return Paraxial(efl, bfl, front_focal, rear_focal, front_principal, rear_principal, entrance_z, epd, exit_z,
