@@ -192,7 +192,8 @@ def test_code_speaks_the_house_words():
 #: stages are functions with names (lensfit.fit.stages, lensfit.measure._Run), not one body of
 #: closures.
 FIT_FUNCTION_LINES = 100
-MEASURE_PATH = ("measure.py", "pipeline.py", "edge_geometry.py", "estimators/*.py")
+MEASURE_PATH = ("measure.py", "pipeline.py", "edge_geometry.py", "calibration.py", "calibration_sigma.py",
+                "estimators/*.py")
 
 
 def test_the_fit_and_measure_functions_are_short():
