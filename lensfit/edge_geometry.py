@@ -34,7 +34,8 @@ def edge_tasks(target: Target, det: Detection, pose: TargetPose, intr: Intrinsic
         task = EdgeTask(px[0], px[2], seg.clear_left_mm * scale, seg.clear_right_mm * scale,
                         context={"segment": seg, "target": target, "pose": pose, "intrinsics": intr,
                                  "end_depths_mm": (float(ends_cam[0, 2]), float(ends_cam[2, 2])),
-                                 "distortion_scale": distortion_scale(intr, ends_cam[1], ends_cam[2] - ends_cam[0])})
+                                 "distortion_scale": distortion_scale(intr, ends_cam[1], ends_cam[2] - ends_cam[0])},
+                        border_left_px=seg.border_left_mm * scale, border_right_px=seg.border_right_mm * scale)
         out.append((seg, task, ends_cam[:, 2]))
     return out
 

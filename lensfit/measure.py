@@ -474,4 +474,5 @@ class _Run:
             table.fit_rms.append(est.rms_residual)
             table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
                                              read_task.clear_right_px, {k: v for k, v in read_task.context.items()
-                                                                        if k in EDGE_CONTEXT}))
+                                                                        if k in EDGE_CONTEXT},
+                                             read_task.border_left_px, read_task.border_right_px))

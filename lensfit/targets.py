@@ -91,6 +91,8 @@ class EdgeSegment:
 
     ``clear_left_mm``/``clear_right_mm``: distance from the edge, on each side (left = the side
     of the normal (-dy, dx) of start->end), over which the target is uniform.
+    ``border_left_mm``/``border_right_mm``: beyond that clean room, a dark band this wide before
+    the target's pattern goes on (a ChArUco marker's black border; 0 where nothing is known).
     """
 
     id: str
@@ -99,6 +101,8 @@ class EdgeSegment:
     clear_left_mm: float
     clear_right_mm: float
     corner_ids: tuple[int, int] = (-1, -1)
+    border_left_mm: float = 0.0
+    border_right_mm: float = 0.0
 
 
 #: The gammas of the detectors' 8-bit copies (linear, and encoded as a display would).
@@ -234,10 +238,17 @@ class Target:
             dark = self.square_is_dark()
             # Light squares of a ChArUco board hold a marker: clear room is the white border.
             light_clear = sq if self.kind == "checkerboard" else 0.5 * (sq - float(self.spec["marker_mm"]))
+            # ... and beyond it the marker's black border, one of its cells (bits across and a
+            # border cell on either side).
+            light_border = 0.0 if self.kind == "checkerboard" else float(self.spec["marker_mm"]) / (
+                aruco_dictionary(self.spec["dictionary"]).markerSize + 2)
             cols = nx - 1
 
             def clear(r, c):
                 return sq if dark[r, c] else light_clear
+
+            def border(r, c):
+                return 0.0 if dark[r, c] else light_border
 
             for r in range(1, ny):
                 for c in range(1, nx - 1):  # horizontal: corners (r, c) -> (r, c+1), squares above/below
@@ -245,14 +256,16 @@ class Target:
                     # start->end is +x; its left normal (-dy, dx) = +y points to row r (below).
                     out.append(EdgeSegment(f"h{r}_{c}", (c * sq, r * sq), ((c + 1) * sq, r * sq),
                                            clear_left_mm=clear(r, c), clear_right_mm=clear(r - 1, c),
-                                           corner_ids=(a, a + 1)))
+                                           corner_ids=(a, a + 1), border_left_mm=border(r, c),
+                                           border_right_mm=border(r - 1, c)))
             for c in range(1, nx):
                 for r in range(1, ny - 1):  # vertical: corners (r, c) -> (r+1, c), squares left/right
                     a = (r - 1) * cols + (c - 1)
                     # start->end is +y; its left normal (-dy, dx) = -x points to column c - 1.
                     out.append(EdgeSegment(f"v{c}_{r}", (c * sq, r * sq), (c * sq, (r + 1) * sq),
                                            clear_left_mm=clear(r, c - 1), clear_right_mm=clear(r, c),
-                                           corner_ids=(a, a + cols)))
+                                           corner_ids=(a, a + cols), border_left_mm=border(r, c - 1),
+                                           border_right_mm=border(r, c)))
         elif self.kind == "slanted-edge":
             e = float(self.spec["edge_mm"])
             pts = [(0.0, 0.0), (e, 0.0), (e, e), (0.0, e)]

@@ -19,6 +19,8 @@ class EdgeTask:
     clear_left_px, clear_right_px : clean room on each side of the edge, in px (left = the side
         of the normal (-dy, dx) of start->end, in image coordinates)
     context : estimator-specific extras (the target, its pose and intrinsics)
+    border_left_px, border_right_px : beyond the clean room, a dark band this wide (px) before the
+        target's pattern goes on (a ChArUco marker's black border); 0 where nothing is known
     """
 
     start_px: np.ndarray
@@ -26,6 +28,8 @@ class EdgeTask:
     clear_left_px: float
     clear_right_px: float
     context: dict[str, Any] = field(default_factory=dict, compare=False)
+    border_left_px: float = 0.0
+    border_right_px: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -106,6 +106,9 @@ from lensfit.estimators.edge_fit import FitQueue, fit_profiles
 from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
 from lensfit.estimators.profile import line_end_covariance, select as _select, window_wanted, windows
 from lensfit.estimators.radial import radial_reading
+from lensfit.estimators.stripe import DIFFER_Z as STRIPE_DIFFER_Z, MAX_SIGMA_SHARE as STRIPE_MAX_SIGMA_SHARE
+from lensfit.estimators.stripe import MIN_DIFFERENCE_SHARE as STRIPE_MIN_SHARE
+from lensfit.estimators.stripe import stripe_reading, stripe_window
 from lensfit.parallel import in_threads
 
 SUB_PIXEL_PX = 0.5
@@ -234,11 +237,11 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
             raise ValueError(f"airy_px: one scale per image, each between 0 and {MAX_AIRY_PX} px")
     owner = [k for k, (_, ts) in enumerate(items) for _ in ts]
     tasks = [t for _, ts in items for t in ts]
-    # per edge: its reading, the last pass's radius, its line, the first pass's (offset, radius)
-    # for the second's weights, the profile with the two-disk fit's weights; flags, pixels, and
-    # whether the second pass's window is narrower than the spot asks for
+    # per edge: its reading, the last pass's radius, its line, the first pass's (offset, radius),
+    # the profile with the two-disk fit's weights; flags, pixels, whether the second pass's window
+    # is narrower than the spot asks for, the profile across a marker's stripe (beside one)
     results, radius, lines, expected, banded = ([None] * len(tasks) for _ in range(5))
-    flags, npixels, cramped = [[] for _ in tasks], [0] * len(tasks), [False] * len(tasks)
+    flags, npixels, cramped, stripes = [[] for _ in tasks], [0] * len(tasks), [False] * len(tasks), {}
     key = [(k, tuple(float(x) for x in t.start_px), tuple(float(x) for x in t.end_px), float(t.clear_left_px),
             float(t.clear_right_px)) for k, t in zip(owner, tasks)]
     reuse = profiles if profiles is not None and profiles.get("key") == key else None
@@ -292,6 +295,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                     profile, banded[i], lines[i], f, npixels[i], narrowed = got
                     if attempt:
                         flags[i], cramped[i] = f, narrowed
+                        stripes[i] = _stripe_profile(images[owner[i]], task, radius[i]) if second_moment else None
                     batch.append(profile)
                     index.append(i)
                     enqueue(i, profile)
@@ -308,14 +312,14 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
         fits = queue.results()
         if with_airy and reuse is not None:  # for the next round's start
             reuse["airy_theta"] = {i: np.asarray(fits[j][0][:5], np.float64) for j, i in enumerate(index) if fits[j][3]}
-        shaped, disk, radial, halo_cut = set(), {}, {}, set()
+        shaped, disk, radial, halo_cut, across = set(), {}, {}, set(), {}
         if second_moment and attempt == 1 and airy is None:
-            fits, shaped, disk, radial, halo_cut = _read_shapes(fits, [tasks[i] for i in index], batch,
-                                                                [banded[i] for i in index], [flags[i] for i in index],
-                                                                [cramped[i] for i in index])
+            fits, shaped, disk, radial, halo_cut, across = _read_shapes(
+                fits, [tasks[i] for i in index], batch, [banded[i] for i in index], [flags[i] for i in index],
+                [cramped[i] for i in index], [stripes.get(i) for i in index])
         for j, (i, fitted) in enumerate(zip(index, fits)):
             results[i], reach, where = _reading(fitted, flags[i], npixels[i], lines[i], batch[j], j in shaped,
-                                                disk.get(j), radial.get(j), j in halo_cut)
+                                                disk.get(j), radial.get(j), j in halo_cut, across.get(j))
             radius[i] = reach  # None where the fit failed
             if reach is not None:
                 expected[i] = where
@@ -346,13 +350,15 @@ def _profile_of(image: np.ndarray, task: EdgeTask, radius: float | None, expecte
 
 
 def _read_shapes(fits: list, tasks: list[EdgeTask], batch: list, banded: list, flags: list[list[str]],
-                 cramped: list[bool]) -> tuple[list, set[int], dict, dict, set[int]]:
+                 cramped: list[bool], stripes: list) -> tuple[list, set[int], dict, dict, set[int], dict]:
     """The spot's shape read wherever it can be (see the module docstring), the uniform disk's
     reading kept beside it (their difference sizes the shape's model error): the fits with the
     shaped ones in place, which were shaped, each one's disk (diameter, RMS, sigma), the radial
-    profile's (diameter, sigma) where two disks could not hold the spot, and the spots whose halo
-    goes on past a window the clean room narrowed. Per fit: its task, profile, profile with the
-    two-disk weights, flags and whether the clean room narrowed its window."""
+    profile's (diameter, sigma) where two disks could not hold the spot, the spots whose halo
+    goes on past a window the clean room narrowed, and beside a marker the reading across its
+    stripe (diameter, sigma, or None). Per fit: its task, profile, profile with the two-disk
+    weights, flags, whether the clean room narrowed its window, and its profile across a marker's
+    stripe (``_stripe_profile``, or None)."""
     fits = list(fits)
     diameter = [2.0 * math.sqrt(squared_radius(np, float(theta[1]))) for theta, *_ in fits]
     readable = [j for j, (_, _, _, ok, _) in enumerate(fits) if ok and diameter[j] >= SHAPE_MIN_PX]
@@ -372,12 +378,37 @@ def _read_shapes(fits: list, tasks: list[EdgeTask], batch: list, banded: list, f
                 halo_cut.add(j)
             elif got is not None:
                 radial[j] = got[:2]
-    return fits, set(shaped), disk, radial, halo_cut
+    striped = {j: _across_stripe(stripes[j], fits[j], tasks[j]) for j in shaped}
+    return fits, set(shaped), disk, radial, halo_cut, striped
+
+
+def _stripe_profile(image: np.ndarray, task: EdgeTask, radius: float) -> tuple | None:
+    """The profile across the marker's stripe beside ``task`` (``lensfit.estimators.stripe``) for
+    a spot of first-pass radius ``radius``, with the histogram's reach; None where there is none."""
+    window = None if radius is None else stripe_window(task, radius)
+    if window is None:
+        return None
+    half, margin, support = window
+    sel = _select(image, task, half, margin, None)
+    if sel is None or len(sel[0]) < 8:
+        return None
+    d, s_along, v, se, *_, boxes = sel
+    return (d, s_along, v, se, boxes), support
+
+
+def _across_stripe(stripe: tuple | None, fitted: tuple, task: EdgeTask) -> tuple[float, float] | None:
+    """The stripe's reading of an edge (diameter, 1 sigma) from its profile and the edge's
+    two-disk fit ``fitted``; None where there is none."""
+    if stripe is None or not fitted[3]:
+        return None
+    profile, support = stripe
+    return stripe_reading(profile, np.asarray(fitted[0], np.float64), task, support)
 
 
 def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile: tuple, shaped: bool,
              disk: tuple[float, float, float] | None, radial: tuple[float, float] | None,
-             halo_cut: bool) -> tuple[BlurEstimate, float | None, tuple[float, float] | None]:
+             halo_cut: bool, stripe: tuple[float, float] | None = None
+             ) -> tuple[BlurEstimate, float | None, tuple[float, float] | None]:
     """One edge's reading from its fit ``(theta, cov, rms, ok, probe)``: the estimate, the outer
     disk's radius (the spot's reach, for the next pass's window) and where the next pass's
     noise model puts the edge (offset, radius); None for both where the fit failed. ``disk``,
@@ -415,6 +446,13 @@ def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile
         # covariance overstates it (a pure disk's scatter: +0-15 %; sigma: +30 %).
         noise = (disk[2] if abs(a) < SHAPE_SIGNIFICANT_Z * math.sqrt(max(float(cov[5, 5]), 0.0))
                  else sigma_c / max(rms, 1.0))
+        sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[0]))
+    if stripe is not None and shaped and stripe[1] < STRIPE_MAX_SIGMA_SHARE * stripe[0] and (
+            abs(stripe[0] - c) > max(STRIPE_DIFFER_Z * math.hypot(stripe[1], noise), STRIPE_MIN_SHARE * c)):
+        # the marker's stripe shows more of the spot than the symmetric profile's window, which
+        # the marker may have cut short of the spot's reach: its window holds the reach
+        c, noise = stripe
+        f = [flag for flag in f if flag != "window_truncated"] + ["marker_stripe"]
         sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[0]))
     sigma = with_model_floor(sigma_c, c)
     if c < SUB_PIXEL_PX:
