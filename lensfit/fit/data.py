@@ -150,7 +150,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     kept = set(shaped) - set(swap)  # shaped readings that stay so
     for i in swap:
         rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
-                   "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot", "radial_profile"}))}
+                   "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot", "radial_profile", "marker_stripe"}))}
     pitch = _pixel_pitch(pixel_pitch_mm, ctx.get("pixel_pitch_mm"))
     used, used_rows, dropped, truncated = [], [], 0, 0
     for i, r in enumerate(rows):
@@ -335,10 +335,11 @@ def _pixel_pitch(given: float | None, stated: Any) -> float:
 
 def _shape_error(row: dict[str, Any]) -> float:
     """A shaped reading's relative model error (1 sigma): ``SHAPE_ERROR_SHARE`` (two disks) or
-    ``SHAPE_ERROR_SHARE_RADIAL`` (flag ``radial_profile``: the data rejected two disks) of its
-    relative difference from the uniform disk's reading of the same edge."""
+    ``SHAPE_ERROR_SHARE_RADIAL`` (flag ``radial_profile``: the data rejected two disks; or
+    ``marker_stripe``: read across a marker's stripe, where the symmetric profiles missed the
+    spot's reach) of its relative difference from the uniform disk's reading of the same edge."""
     departure = _departure(row)
-    share = SHAPE_ERROR_SHARE_RADIAL if "radial_profile" in _flags(row) else SHAPE_ERROR_SHARE
+    share = SHAPE_ERROR_SHARE_RADIAL if _flags(row) & {"radial_profile", "marker_stripe"} else SHAPE_ERROR_SHARE
     return math.nan if departure is None else share * departure
 
 
