@@ -47,7 +47,11 @@ Method
     distance 0.28 % long.) The window across the edge
     widens with the blur (radius + max(4 px, radius)) up to the clean room the target leaves on
     each side, and the ends of the segment are skipped by the window plus the blur, so that
-    neither truncates the PSF nor lets neighbouring squares in. The profile has 1/8 px bins, or
+    neither truncates the PSF nor lets neighbouring squares in. Beside a ChArUco marker, where
+    that window ends short of a fast lens's halo or comatic tail, the spot is also read across
+    the marker's light stripe into its black border (``lensfit.estimators.stripe``, flag
+    ``marker_stripe``), and that reading replaces the symmetric one where they part by more than
+    its noise and 5 %. The profile has 1/8 px bins, or
     128 across a wider window; a bin's value is the profile averaged over its pixels' positions,
     so the model's pixel footprint is widened by their spread (``profile.footprint``: left out,
     it read exact edges 0.9 % / c^2 wide). Every edge of a stack is fitted in one batched solve per pass
