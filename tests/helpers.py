@@ -67,3 +67,78 @@ def read_in_browser(page: Path, tmp_path: Path, width_px: int = 800) -> dict:
                           "--dump-dom", probe_page.as_uri()], capture_output=True, text=True, timeout=120,
                          check=True).stdout
     return json.loads(html.unescape(re.search(r'data-probe="([^"]*)"', dom).group(1)))
+
+
+def axial_spot_hits(rx, focus_over_efl: float, shares) -> list:
+    """Real-ray spots of the lens ``rx`` (a ``synth.lens.prescription`` Prescription) focused at
+    ``focus_over_efl`` focal lengths (its sensor at the real best focus): for each share of that
+    distance, the hits' positions (mm) across an edge on the sensor, of rays that fill the
+    entrance pupil and more (the stop cuts the beam)."""
+    from synth.lens.focus import axial_rays, best_focus_image_z, disk_grid
+    from synth.lens.prescription import paraxial, trace
+
+    para = paraxial(rx)
+    z_ep = para.entrance_pupil_z_mm
+    focus = focus_over_efl * para.efl_mm
+    z_sensor = best_focus_image_z(rx, z_ep - focus)
+    u, v = disk_grid(301)
+    reach = 0.75 * para.entrance_pupil_diameter_mm
+    out = []
+    for share in shares:
+        origin, direction = axial_rays(z_ep, z_ep - share * focus, u * reach, v * reach)
+        (px, _, pz), (dx, _, dz), passed, _ = trace(rx, origin, direction)
+        out.append((px + (z_sensor - pz) / dz * dx)[passed])
+    return out
+
+
+def optiland_petzval():
+    """optiland's f/1.4 Petzval (its sample library) as a prescription at its own f-number."""
+    import warnings
+
+    from lensfit.bench.designs import from_optiland
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import optiland.samples.objectives as objectives
+
+        rx, f_number = from_optiland(objectives.PetzvalLens())
+    return rx.with_f_number(f_number)
+
+
+def exact_edge(across_px, noise: float, seed: int, size=(120, 160), angle_deg: float = 4.0, marker=None):
+    """An edge image (0.1 dark to 0.8 light) blurred by the spot whose hits lie at ``across_px``
+    across it, averaged over 8 x 8 points of each pixel, with Gaussian noise: (image, its normal
+    towards the light side, its centre). ``marker``: (gap, width) px of a dark band that far
+    beyond the edge on the light side (a ChArUco marker's border), light again beyond it."""
+    import math
+
+    import numpy as np
+
+    hits = np.sort(np.asarray(across_px) - np.mean(across_px))
+    h, w = size
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    a = math.radians(angle_deg)
+    normal = np.array([math.cos(a), -math.sin(a)])
+    centre = np.array([w / 2, h / 2])
+    light = np.zeros((h, w))
+    k = 8
+
+    def spread(t):
+        return np.searchsorted(hits, t.ravel()).reshape(h, w) / len(hits)
+
+    for i in range(k):
+        for j in range(k):
+            t = (xx + (i + 0.5) / k - 0.5 - centre[0]) * normal[0] + (yy + (j + 0.5) / k - 0.5 - centre[1]) * normal[1]
+            light += spread(t)
+            if marker is not None:
+                light += spread(t - marker[0] - marker[1]) - spread(t - marker[0])
+    image = 0.1 + 0.7 * light / k**2 + noise * np.random.default_rng(seed).standard_normal((h, w))
+    return image, normal, centre
+
+
+def disk_hits(radius_px: float, rng, n: int = 200_000):
+    """Hits across an edge (px) of a uniform disk of ``radius_px``: a thin lens's spot."""
+    import numpy as np
+
+    r = radius_px * np.sqrt(rng.random(n))
+    return r * np.cos(2 * np.pi * rng.random(r.size))

@@ -18,6 +18,7 @@ import pytest
 from lensfit.estimators.base import EdgeTask
 from lensfit.estimators.edge import measure
 from lensfit.estimators.profile import window_wanted, windows
+from helpers import axial_spot_hits
 
 
 def board_edge(hits: np.ndarray, marker_px: float, noise: float, angle_deg: float = 0.5, size=(120, 160)):
@@ -46,19 +47,8 @@ def board_edge(hits: np.ndarray, marker_px: float, noise: float, angle_deg: floa
 def halo_spot():
     """Hits across the edge (px) of the retrofocus's spot 1.6 x beyond its focus, scaled to 4 px."""
     from synth.lens.files import load_prescription
-    from synth.lens.focus import axial_rays, best_focus_image_z, disk_grid
-    from synth.lens.prescription import paraxial, trace
 
-    rx = load_prescription("retrofocus-24").with_f_number(4.0)
-    para = paraxial(rx)
-    z_ep = para.entrance_pupil_z_mm
-    focus = 25.0 * para.efl_mm
-    z_sensor = best_focus_image_z(rx, z_ep - focus)
-    u, v = disk_grid(301)
-    reach = 0.75 * para.entrance_pupil_diameter_mm
-    origin, direction = axial_rays(z_ep, z_ep - 1.6 * focus, u * reach, v * reach)
-    (px, _, pz), (dx, _, dz), passed, _ = trace(rx, origin, direction)
-    x = (px + (z_sensor - pz) / dz * dx)[passed]
+    x, = axial_spot_hits(load_prescription("retrofocus-24").with_f_number(4.0), 25.0, (1.6,))
     return x / (np.std(x))  # 4 sigma = 4 px
 
 

@@ -10,13 +10,12 @@ the spot's own second-moment diameter, 4 sigma of the hits across the edge.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
 from lensfit.estimators.base import EdgeTask
 from lensfit.estimators.edge import measure
+from helpers import axial_spot_hits, disk_hits, exact_edge, optiland_petzval
 
 pytest.importorskip("optiland")
 
@@ -28,26 +27,10 @@ def marker_edge(across_px: np.ndarray, noise: float, seed: int, angle_deg: float
     """An edge (0.1 dark to 0.8 light) blurred by the spot whose hits lie at ``across_px`` across
     it, with a marker's black border GAP_PX beyond it on the light side, BORDER_PX wide; the task
     says where the border is (or, ``border=False``, only the clean room)."""
-    hits = np.sort(across_px - across_px.mean())
-    h, w = size
-    yy, xx = np.mgrid[0:h, 0:w].astype(float)
-    a = math.radians(angle_deg)
-    normal = np.array([math.cos(a), -math.sin(a)])
-    centre = (w / 2, h / 2)
-    light = np.zeros((h, w))
-    k = 8
-
-    def spread(t):
-        return np.searchsorted(hits, t.ravel()).reshape(h, w) / len(hits)
-
-    for i in range(k):
-        for j in range(k):
-            t = (xx + (i + 0.5) / k - 0.5 - centre[0]) * normal[0] + (yy + (j + 0.5) / k - 0.5 - centre[1]) * normal[1]
-            light += spread(t) - spread(t - GAP_PX) + spread(t - GAP_PX - BORDER_PX)
-    image = 0.1 + 0.7 * light / k**2 + noise * np.random.default_rng(seed).standard_normal((h, w))
+    image, normal, centre = exact_edge(across_px, noise, seed, size, angle_deg, marker=(GAP_PX, BORDER_PX))
     along = np.array([-normal[1], normal[0]])
     # the light side is +normal, the task's right (its normal (-dy, dx) of start->end is -normal)
-    task = EdgeTask(np.array(centre) - 50 * along, np.array(centre) + 50 * along, 60.0, GAP_PX,
+    task = EdgeTask(centre - 50 * along, centre + 50 * along, 60.0, GAP_PX,
                     border_right_px=BORDER_PX if border else 0.0)
     return image, task
 
@@ -56,29 +39,8 @@ def marker_edge(across_px: np.ndarray, noise: float, seed: int, angle_deg: float
 def near_spots():
     """(distance share of the focus distance, hits across the edge in px, exact 4 sigma in px):
     the near side of focus, the largest spot 20 px across."""
-    import warnings
-
-    from lensfit.bench.designs import from_optiland
-    from synth.lens.focus import axial_rays, best_focus_image_z, disk_grid
-    from synth.lens.prescription import paraxial, trace
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        import optiland.samples.objectives as objectives
-
-        rx, f_number = from_optiland(objectives.PetzvalLens())
-    rx = rx.with_f_number(f_number)
-    para = paraxial(rx)
-    z_ep = para.entrance_pupil_z_mm
-    focus = 35.0 * para.efl_mm
-    z_sensor = best_focus_image_z(rx, z_ep - focus)
-    u, v = disk_grid(301)
-    reach = 0.75 * para.entrance_pupil_diameter_mm
-    out = []
-    for share in (0.8, 0.85, 0.9):
-        origin, direction = axial_rays(z_ep, z_ep - share * focus, u * reach, v * reach)
-        (px, _, pz), (dx, _, dz), passed, _ = trace(rx, origin, direction)
-        out.append((share, (px + (z_sensor - pz) / dz * dx)[passed]))
+    shares = (0.8, 0.85, 0.9)
+    out = list(zip(shares, axial_spot_hits(optiland_petzval(), 35.0, shares)))
     pitch = max(4.0 * np.std(x) for _, x in out) / 20.0
     return [(share, x / pitch, 4.0 * np.std(x) / pitch) for share, x in out]
 
@@ -107,8 +69,7 @@ def test_uniform_disks_beside_a_marker_keep_the_two_disk_reading():
     within what the histogram can tell, and the less noisy two-disk reading stays."""
     rng = np.random.default_rng(5)
     for k, radius in enumerate((2.5, 5.0, 7.0)):
-        r = radius * np.sqrt(rng.random(200_000))
-        hits = r * np.cos(2 * np.pi * rng.random(r.size))
+        hits = disk_hits(radius, rng)
         for noise in (0.002, 0.01):
             image, task = marker_edge(hits, noise, seed=k)
             est = measure(image, [task])[0]

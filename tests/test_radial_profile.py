@@ -10,63 +10,29 @@ model stands between it and the rays.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
 from lensfit.estimators.base import EdgeTask
 from lensfit.estimators.edge import measure
+from helpers import axial_spot_hits, disk_hits, exact_edge, optiland_petzval
 
 pytest.importorskip("optiland")
 
 
 def edge_image(across_px: np.ndarray, noise: float, seed: int, size=(120, 160), angle_deg=4.0, clear_px=70.0):
     """A half-plane (0.1 to 0.8) blurred by the spot whose hits lie at ``across_px`` across the edge."""
-    hits = np.sort(across_px - across_px.mean())
-    h, w = size
-    yy, xx = np.mgrid[0:h, 0:w].astype(float)
-    a = math.radians(angle_deg)
-    normal = np.array([math.cos(a), -math.sin(a)])
-    centre = (w / 2, h / 2)
-    light = np.zeros((h, w))
-    k = 8
-    for i in range(k):
-        for j in range(k):
-            t = (xx + (i + 0.5) / k - 0.5 - centre[0]) * normal[0] + (yy + (j + 0.5) / k - 0.5 - centre[1]) * normal[1]
-            light += np.searchsorted(hits, t.ravel()).reshape(h, w) / len(hits)
-    image = 0.1 + 0.7 * light / k**2 + noise * np.random.default_rng(seed).standard_normal((h, w))
+    image, normal, centre = exact_edge(across_px, noise, seed, size, angle_deg)
     along = np.array([-normal[1], normal[0]])
-    task = EdgeTask(np.array(centre) - 45 * along, np.array(centre) + 45 * along, clear_px, clear_px)
+    task = EdgeTask(centre - 45 * along, centre + 45 * along, clear_px, clear_px)
     return image, task
 
 
 @pytest.fixture(scope="module")
 def petzval_spots():
     """(distance share of the focus distance, hits across the edge in px, exact 4 sigma in px)."""
-    import warnings
-
-    from lensfit.bench.designs import from_optiland
-    from synth.lens.focus import axial_rays, best_focus_image_z, disk_grid
-    from synth.lens.prescription import paraxial, trace
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        import optiland.samples.objectives as objectives
-
-        rx, f_number = from_optiland(objectives.PetzvalLens())
-    rx = rx.with_f_number(f_number)
-    para = paraxial(rx)
-    z_ep = para.entrance_pupil_z_mm
-    focus = 35.0 * para.efl_mm
-    z_sensor = best_focus_image_z(rx, z_ep - focus)
-    u, v = disk_grid(301)
-    reach = 0.75 * para.entrance_pupil_diameter_mm  # overfills the pupil: the stop cuts the beam
-    out = []
-    for share in (0.8, 0.85, 0.9, 0.95, 1.1, 1.2):
-        origin, direction = axial_rays(z_ep, z_ep - share * focus, u * reach, v * reach)
-        (px, _, pz), (dx, _, dz), passed, _ = trace(rx, origin, direction)
-        out.append((share, (px + (z_sensor - pz) / dz * dx)[passed]))
+    shares = (0.8, 0.85, 0.9, 0.95, 1.1, 1.2)
+    out = list(zip(shares, axial_spot_hits(optiland_petzval(), 35.0, shares)))
     pitch = max(4.0 * np.std(x) for _, x in out) / 25.0  # the largest spot 25 px across
     return [(share, x / pitch, 4.0 * np.std(x) / pitch) for share, x in out]
 
@@ -93,8 +59,7 @@ def test_uniform_disks_keep_the_two_disk_reading():
     """A spot two disks hold (a thin lens's uniform disk) never takes the noisier radial reading."""
     rng = np.random.default_rng(3)
     for k, radius in enumerate((1.5, 4.0, 10.0)):
-        r = radius * np.sqrt(rng.random(200_000))
-        hits = r * np.cos(2 * np.pi * rng.random(r.size))
+        hits = disk_hits(radius, rng)
         for noise in (0.002, 0.01):
             image, task = edge_image(hits, noise, seed=k)
             est = measure(image, [task])[0]
