@@ -122,8 +122,6 @@ def pixel_edge_profiles_np(d, radii, boxes) -> np.ndarray:
     that evaluate a few profiles per edge outside a compiled fit, where JAX's dispatch would cost
     more than the arithmetic."""
     R = np.maximum(np.asarray(radii, np.float64), 1e-6)[None, :]
-    d = np.asarray(d, np.float64)[:, None]
-    a, b = max(abs(boxes[0]), abs(boxes[1])), max(min(abs(boxes[0]), abs(boxes[1])), 1e-3)
 
     def H(t):
         x = t / R
@@ -131,6 +129,14 @@ def pixel_edge_profiles_np(d, radii, boxes) -> np.ndarray:
         core = _disk_h(np.where(inside, x, 0.0), np)
         return R * R * np.where(inside, core, np.where(x >= 1.0, 0.5 * x * x + 0.125, 0.0))
 
+    return over_pixel_boxes(H, np.asarray(d, np.float64)[:, None], boxes)
+
+
+def over_pixel_boxes(H, d, boxes) -> np.ndarray:
+    """The mean over the pixel footprint ``boxes`` (two box widths, the narrower held at 1e-3 or
+    more) at ``d`` of a profile whose second antiderivative is ``H``: the two boxes' convolution
+    in closed form, from H at the footprint's four corners."""
+    a, b = max(abs(boxes[0]), abs(boxes[1])), max(min(abs(boxes[0]), abs(boxes[1])), 1e-3)
     return (H(d + 0.5 * (a + b)) - H(d + 0.5 * (a - b)) - H(d - 0.5 * (a - b)) + H(d - 0.5 * (a + b))) / (a * b)
 
 

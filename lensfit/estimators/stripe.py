@@ -33,6 +33,8 @@ import math
 
 import numpy as np
 
+from lensfit.psf import over_pixel_boxes
+
 #: Bins of the line-spread histogram across ``[-support, support]``: at most BINS, no finer than
 #: the profile's sampling, and at least MIN_BINS (else no reading).
 BINS = 16
@@ -56,21 +58,14 @@ MIN_DIFFERENCE_SHARE = 0.05
 MAX_REDUCED_CHI2 = 3.0
 
 
-def _ramp_over_boxes(t: np.ndarray, a: float, b: float) -> np.ndarray:
-    """``max(t, 0)`` convolved with boxes of widths ``a`` and ``b`` (the pixel's footprint)."""
-    def cube(u):
-        return np.maximum(u, 0.0) ** 3 / 6.0
-    return (cube(t + 0.5 * (a + b)) - cube(t + 0.5 * (a - b)) - cube(t - 0.5 * (a - b))
-            + cube(t - 0.5 * (a + b))) / (a * b)
-
-
 def bin_edge_profiles(x: np.ndarray, edges: np.ndarray, boxes) -> np.ndarray:
     """``(len(x), len(edges) - 1)``: the edge-spread function at ``x`` of a unit of light spread
     evenly over each bin ``[edges[k], edges[k + 1]]``, integrated over the pixel footprint
-    ``boxes`` (``lensfit.estimators.profile.footprint``)."""
-    a = max(abs(float(boxes[0])), abs(float(boxes[1])))
-    b = max(min(abs(float(boxes[0])), abs(float(boxes[1]))), 1e-3)
-    Q = _ramp_over_boxes(np.asarray(x, np.float64)[:, None] - np.asarray(edges, np.float64)[None, :], a, b)
+    ``boxes`` (``lensfit.estimators.profile.footprint``): a ramp from each bin edge, whose second
+    antiderivative is ``max(t, 0)^3 / 6``, differenced over the bin."""
+    def cube(t):
+        return np.maximum(t, 0.0) ** 3 / 6.0
+    Q = over_pixel_boxes(cube, np.asarray(x, np.float64)[:, None] - np.asarray(edges, np.float64)[None, :], boxes)
     return (Q[:, :-1] - Q[:, 1:]) / np.diff(edges)[None, :]
 
 
