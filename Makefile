@@ -28,7 +28,7 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q -n auto --maxprocesses 2 --dist loadfile
 
-# the documentation site into build/docs (strict: a warning fails); tests/test_docs.py builds it too
+# the documentation site into build/docs (strict: a warning fails); tests/docs/test_docs.py builds it too
 docs: setup
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --config-file docs/mkdocs.yml --site-dir ../build/docs
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lensfit.specs import specs_dir
+from lensfit.io.specs import specs_dir
 
 
 def _best(fn, repeats: int) -> float:
@@ -33,7 +33,7 @@ def _compile_times(scene_path: Path, shot_index: int) -> dict[str, float]:
     """Seconds of the first raytrace call in a fresh process: cold cache, then warm cache."""
     code = (
         "import sys, time\n"
-        "from lensfit.jaxcache import enable_compilation_cache\n"
+        "from lensfit.runtime.jaxcache import enable_compilation_cache\n"
         "enable_compilation_cache()\n"
         "from synth.scene import load_scene\n"
         "from synth.raytrace import render_raytrace\n"
@@ -82,7 +82,7 @@ def run_bench(repeats: int = 3, spp_list=(4, 16, 64, 256, 1024), include_compile
             progress(msg)
 
     # Reference: convolve with exact area sampling at 8 x 8 sub-pixels, which agrees with
-    # 4096-spp ray tracing to within the ray tracer's noise (tests/test_synth_render.py).
+    # 4096-spp ray tracing to within the ray tracer's noise (tests/synth/test_synth_render.py).
     step("reference (convolve, 8 x 8 sub-pixels)")
     reference = render_convolve(flat, bg, 8).astype(np.float64)
     rows_rt = []

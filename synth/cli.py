@@ -24,7 +24,7 @@ def _render_command(args: argparse.Namespace) -> int:
     from synth.scene import load_scene
     from synth.stack import check_out_dir
 
-    from lensfit.outputs import OutputLock, check_output
+    from lensfit.outputs.writers import OutputLock, check_output
 
     scene = load_scene(args.scene)
     check_out_dir(args.out, args.force)  # refuse before spending time on the render
@@ -47,9 +47,9 @@ def _render_locked(args: argparse.Namespace, scene) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from lensfit.jaxcache import enable_compilation_cache
-    from lensfit.outputs import check_output
-    from synth.render import check_overrides, render
+    from lensfit.runtime.jaxcache import enable_compilation_cache
+    from lensfit.outputs.writers import check_output
+    from synth.rendering import check_overrides, render
     from synth.stack import check_out_dir, write_stack
 
     check_out_dir(args.out, args.force)  # again, under the lock
@@ -93,7 +93,7 @@ def _plan_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from synth.render import check_overrides, plan
+    from synth.rendering import check_overrides, plan
     from synth.scene import load_scene
 
     check_overrides(samples_per_pixel=args.spp)
@@ -133,7 +133,7 @@ def _bench_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from lensfit.jaxcache import enable_compilation_cache
+    from lensfit.runtime.jaxcache import enable_compilation_cache
     from synth.bench import run_bench
 
     console = Console(stderr=True)
@@ -158,7 +158,7 @@ def _bench_command(args: argparse.Namespace) -> int:
         return EXIT_OK
     if args.against_mitsuba:
         from synth.bench import against_mitsuba
-        from synth.render import check_overrides
+        from synth.rendering import check_overrides
 
         check_overrides(samples_per_pixel=args.spp)
         if args.pairs < 1:
@@ -274,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from lensfit.running import run_guarded
+    from lensfit.runtime.running import run_guarded
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -289,8 +289,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run() -> None:
     """The ``synth`` program: :func:`main` on the command line's arguments, then the process ends
-    (``lensfit.running.exit_process``)."""
-    from lensfit.running import exit_process
+    (``lensfit.runtime.running.exit_process``)."""
+    from lensfit.runtime.running import exit_process
 
     exit_process(main())
 

@@ -32,17 +32,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit import psf
+from lensfit.measurement import psf
 from synth import area, textures
 from synth.scene import PlacedObject, Shot
 
 
 def disk_kernel(diameter: float, oversample: int = 8) -> np.ndarray:
-    """The area-weighted disk of ``lensfit.psf.disk_kernel``.
+    """The area-weighted disk of ``lensfit.measurement.psf.disk_kernel``.
 
     Convolving cell averages with it is accurate to O(cell^2) for blur of several cells; for a
     blur of about a pixel or less the error near sharp edges reaches 1e-3 to 1e-2 of the contrast
-    (measured in tests/test_synth_render.py), which is why ``auto`` ray traces such shots.
+    (measured in tests/synth/test_synth_render.py), which is why ``auto`` ray traces such shots.
     """
     return psf.disk_kernel(diameter, oversample)
 
@@ -80,7 +80,7 @@ def convolve_bytes(shot: Shot, supersampling: int, *, camera=None) -> float:
     peak = 0.0
     for obj in shot.objects:
         coc = float(cam.coc_diameter_px(float(obj.pose.t_cam_target[2])))
-        n = 2 * math.ceil(0.5 * coc * S + 0.5) + 1  # kernel side, sub-pixels (lensfit.psf.disk_kernel)
+        n = 2 * math.ceil(0.5 * coc * S + 0.5) + 1  # kernel side, sub-pixels (lensfit.measurement.psf.disk_kernel)
         reach_px = n // 2 // S + 1
         u0, v0, u1, v1 = footprint_px(obj, shot)
         cols = max(0, min(math.ceil(u1) + 1, W - 1 + reach_px) - max(math.floor(u0) - 1, -reach_px) + 1) * S

@@ -2,10 +2,10 @@
 
 One list of tags (:func:`exif_entries`) written two ways: into a DNG's first IFD by tifffile
 (:func:`tiff_extratags`), into a JPEG's APP1 block by Pillow (:func:`pillow_exif`). Values are a
-camera's nominal ones (``synth.render.RenderResult.exif``): focal length, f-number, the focus
+camera's nominal ones (``synth.rendering.RenderResult.exif``): focal length, f-number, the focus
 distance as ``SubjectDistance`` (metres), the pixel pitch as ``FocalPlaneXResolution`` (pixels
 per centimetre; EXIF 2.32, tag 0xA20E), exposure time and ISO where the exposure effect sets them.
-``lensfit init`` reads them back (``lensfit.exif``).
+``lensfit init`` reads them back (``lensfit.io.exif``).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ A stack rendered this way shares nothing with synth's own ray tracer or convolut
 scene (the targets' reflectance and their poses): the camera, the thin lens's defocus, the
 sampling of the aperture and the pixel, and the texture lookup are Mitsuba's. It is the
 independent check the fit's accuracy and intervals are judged by (``lensfit bench --suite
-independent``) and a cross-check of synth's ray tracer (``tests/test_mitsuba.py``).
+independent``) and a cross-check of synth's ray tracer (``tests/synth/test_mitsuba.py``).
 
 How the scene maps onto Mitsuba 3 (the ``scalar_rgb`` variant by default: CPU only, no LLVM
 needed; ``llvm_ad_rgb``, Mitsuba's vectorised CPU variant, where libLLVM is found, see

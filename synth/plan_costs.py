@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Callable
 
-from lensfit.specs import specs_dir
+from lensfit.io.specs import specs_dir
 
 #: (what, shipped scene, changes as dotted keys): thin lenses, the four shipped designs (6-13
 #: surfaces), more samples, several wavelengths.

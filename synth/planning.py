@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 
 from lensfit.errors import InputError
-from lensfit.limits import RENDER_MEMORY_BYTES, format_bytes
+from lensfit.io.limits import RENDER_MEMORY_BYTES, format_bytes
 from synth.convolve import blurred_footprint_px, convolve_bytes
 from synth.effects import Effects
 from synth.effects.stages import wanted_stages, working_f_number
@@ -51,7 +51,7 @@ def _overlap(a, b) -> bool:
 
 
 #: Below this CoC diameter (px) the sub-pixel convolution's error near sharp edges exceeds
-#: about 2e-3 of the contrast (tests/test_synth_render.py), so ``auto`` ray traces instead.
+#: about 2e-3 of the contrast (tests/synth/test_synth_render.py), so ``auto`` ray traces instead.
 CONVOLVE_MIN_COC_PX = 2.0
 
 
@@ -99,7 +99,7 @@ def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[fl
 def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *,
                   supersampling: int = 4) -> tuple[str, bool, str]:
     """(method, exact, reason) for one shot. ``auto`` picks the cheapest exact method that fits
-    the memory budget (``lensfit.limits.RENDER_MEMORY_BYTES``); a method that does not fit is
+    the memory budget (``lensfit.io.limits.RENDER_MEMORY_BYTES``); a method that does not fit is
     refused before anything is allocated."""
     if requested not in METHODS:
         raise InputError("method", requested, "one of " + ", ".join(METHODS))

@@ -56,7 +56,7 @@ def contact_sheet(images: dict[str, np.ndarray], *, max_tile_px: int = 400, gap_
 
 
 def recorded(result) -> dict[str, np.ndarray]:
-    """Per image of a ``synth.render.RenderResult``, the linear values its file records."""
+    """Per image of a ``synth.rendering.RenderResult``, the linear values its file records."""
     out = {}
     for name, img in result.images.items():
         raw = result.raw.get(name)
@@ -88,12 +88,12 @@ def _superpixels(cfa: np.ndarray, pattern: str) -> np.ndarray:
 
 def write_preview(path, images: dict[str, np.ndarray], *, force: bool = True, **kwargs) -> None:
     """Write the contact sheet as PNG (a temporary sibling, then renamed), tagged ``Software =
-    synth VERSION`` so that ``--force`` may replace it later (``lensfit.outputs.written_by``)."""
+    synth VERSION`` so that ``--force`` may replace it later (``lensfit.outputs.writers.written_by``)."""
     from pathlib import Path
 
     from PIL import Image, PngImagePlugin
 
-    from lensfit.outputs import software_tag, write_all
+    from lensfit.outputs.writers import software_tag, write_all
 
     sheet = contact_sheet(images, **kwargs)
     info = PngImagePlugin.PngInfo()

@@ -24,7 +24,7 @@ demo's fronto-parallel shot: RMS error 21-24 % lower at 4-256 spp, and 1.5x the 
 second (per-sample hashes would be most of the arithmetic, which XLA repeats in each fused
 loop). Computation runs in float32 (the geometry in pixel and millimetre units stays well within
 its precision); compiled once per scene structure (target kinds) and image width, and kept as
-an executable (``lensfit.aot``) where the command-line tools keep a store.
+an executable (``lensfit.runtime.aot``) where the command-line tools keep a store.
 
 Cost: proportional to the pixels traced x samples per pixel x objects. A pixel whose every ray
 meets one region of constant reflectance (inside a board's square, its margin, a uniform patch,
@@ -48,14 +48,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit import aot
+from lensfit.runtime import aot
 from synth import flat, textures
 from synth.effects.aperture import sample as aperture_sample
 from synth.scene import Shot
 
 TILE_SAMPLES = 1 << 20  # lens samples per compiled call: measured fastest on 2 cores (synth bench)
 #: The modules whose source defines the compiled tracer of a thin lens (a change traces it afresh;
-#: lensfit.aot keeps its executable where the command-line tools switched the store on: a new
+#: lensfit.runtime.aot keeps its executable where the command-line tools switched the store on: a new
 #: process then loads it instead of tracing and lowering it for JAX's persistent cache).
 AOT_MODULES = ("synth.raytrace", "synth.textures", "synth.effects.aperture")
 
@@ -402,7 +402,7 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         tile_warp = None if warp_flat is None else warp_flat[pixels]
         # numpy scalars: a jnp scalar is an operation of its own (0.2 ms each, three per tile)
         args = (pixels, cam_arr, planes, rasters, np.float32(background), np.uint32(seed), tile_warp)
-        if compound is None:  # kept compiled (lensfit.aot) where the command-line tools keep a store
+        if compound is None:  # kept compiled (lensfit.runtime.aot) where the command-line tools keep a store
             return aot.call("raytrace", _render_pixels, args, static, AOT_MODULES, kernels=False)
         return _render_pixels(*args, **static)  # (a lens prescription is no file name's part)
 

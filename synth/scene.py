@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from lensfit.errors import InputError, SpecError
-from lensfit.specs import load_toml, validate
+from lensfit.io.specs import load_toml, validate
 from synth.effects import Effects, parse as parse_effects
 from synth.geometry import CompoundLensCamera, Pose, ThinLensCamera
 
@@ -104,7 +104,7 @@ def _distance(value) -> float:
 
 
 def _pitch(camera: dict, path) -> float:
-    from lensfit.sensors import sensor_format
+    from lensfit.io.sensors import sensor_format
 
     sources = [k for k in ("pixel_pitch_mm", "sensor", "sensor_width_mm") if k in camera]
     if not sources:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from synth.render import RenderResult, quantise_16bit
+from synth.rendering import RenderResult, quantise_16bit
 
 
 def _write_image(path: Path, image: np.ndarray, image_format: str) -> None:
@@ -81,8 +81,8 @@ def manifest_toml(manifest: dict) -> str:
 
 def check_out_dir(out: str | Path, force: bool) -> Path:
     """Refuse, before any work, a file, a folder holding anything synth did not write, or (without
-    ``force``) a non-empty stack folder (``lensfit.outputs.check_output``)."""
-    from lensfit.outputs import check_output
+    ``force``) a non-empty stack folder (``lensfit.outputs.writers.check_output``)."""
+    from lensfit.outputs.writers import check_output
 
     return check_output(out, "--out", force=force, folder=True)
 
@@ -129,7 +129,7 @@ def write_stack(result: RenderResult, out: str | Path, *, force: bool = False) -
     >>> synth.write_stack(synth.render("data_specs/scenes/demo.toml"), "out/demo", force=True)  # doctest: +SKIP
     PosixPath('out/demo')
     """
-    from lensfit.outputs import write_folder
+    from lensfit.outputs.writers import write_folder
 
     image_format = result.image_format
 

@@ -4,7 +4,7 @@ Each target is a function ``value(x_mm, y_mm)`` in the target's own frame (origi
 centre, x along the width, y along the height, down). Boards, slanted edges and stars are
 evaluated analytically (their edges are exact lines); a ChArUco board is OpenCV's own
 rendering, held as a raster with a whole number of texels per square *and* per marker cell
-(``lensfit.targets.charuco_texels_per_square``) and looked up with nearest-neighbour, so the texture *is* a piecewise-constant function whose square edges are
+(``lensfit.calibration.targets.charuco_texels_per_square``) and looked up with nearest-neighbour, so the texture *is* a piecewise-constant function whose square edges are
 exactly where the board says; image files are looked up bilinearly. Anti-aliasing is not done
 here: both render methods integrate over the pixel footprint (and the aperture), which is the
 proper filter for a point-sampled texture.
@@ -37,7 +37,7 @@ class Texture:
 
 
 def _charuco_raster(p: dict) -> np.ndarray:
-    from lensfit.targets import charuco_board
+    from lensfit.calibration.targets import charuco_board
 
     board = charuco_board(p["squares"], p["square_mm"], p["marker_mm"], p["dictionary"],
                           bool(p.get("legacy_pattern", False)))
@@ -48,7 +48,7 @@ def _charuco_raster(p: dict) -> np.ndarray:
 
 def charuco_texels(p: dict) -> int:
     """Texels per square at which OpenCV draws the board exactly (whole-texel marker cells)."""
-    from lensfit.targets import charuco_texels_per_square
+    from lensfit.calibration.targets import charuco_texels_per_square
 
     return charuco_texels_per_square(p["square_mm"], p["marker_mm"], p["dictionary"],
                                      minimum=CHARUCO_TEXELS_PER_SQUARE)
@@ -63,7 +63,7 @@ def _image_raster(p: dict) -> np.ndarray:
     scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
     v = img.astype(np.float64) / scale
     if p["encoding"] == "srgb":
-        from lensfit.images import srgb_to_linear
+        from lensfit.io.images import srgb_to_linear
 
         v = srgb_to_linear(v)
     if (p.get("dark", 0.0), p.get("light", 1.0)) != (0.0, 1.0):

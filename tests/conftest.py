@@ -10,7 +10,7 @@ from hypothesis import settings
 settings.register_profile("deterministic", derandomize=True)
 settings.load_profile("deterministic")
 
-from synth.render import render
+from synth.rendering import render
 from synth.scene import scene_from_dict
 from synth.stack import write_stack
 
@@ -29,6 +29,6 @@ def calibration_stack(tmp_path_factory):
 @pytest.fixture(scope="session")
 def calibration_samples(calibration_stack):
     """The calibration stack measured with the edge estimator (shared: measuring takes seconds)."""
-    from lensfit.measure import measure
+    from lensfit.measurement.measure import measure
 
     return measure(calibration_stack)

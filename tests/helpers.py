@@ -142,3 +142,27 @@ def disk_hits(radius_px: float, rng, n: int = 200_000):
 
     r = radius_px * np.sqrt(rng.random(n))
     return r * np.cos(2 * np.pi * rng.random(r.size))
+
+
+def jpeg_with_exif(path: Path, *, make="Canon", model="Canon EOS R5", focal=50.0, fnum=2.8, subject_m=None,
+                   plane_res=None, plane_unit=None, exif_width=None, size=(48, 64)) -> Path:
+    """A small JPEG whose EXIF is written tag by tag with Pillow (not with synth.exif)."""
+    import numpy as np
+    from PIL import Image
+    from PIL.ExifTags import IFD
+    from PIL.TiffImagePlugin import IFDRational
+
+    ex = Image.Exif()
+    ex[0x010F], ex[0x0110] = make, model
+    sub = ex.get_ifd(IFD.Exif)
+    sub[0x920A] = IFDRational(int(focal * 10), 10)
+    sub[0x829D] = IFDRational(int(fnum * 10), 10)
+    if subject_m is not None:
+        sub[0x9206] = IFDRational(int(subject_m * 100), 100)
+    if plane_res is not None:
+        sub[0xA20E] = IFDRational(int(plane_res * 1000), 1000)
+        sub[0xA210] = plane_unit
+    if exif_width is not None:
+        sub[0xA002] = exif_width
+    Image.fromarray(np.full(size, 128, np.uint8)).save(path, "JPEG", exif=ex)
+    return path

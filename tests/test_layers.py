@@ -74,8 +74,8 @@ RANK = {"core": 0, "synth": 1, "bench": 2, "cli": 3}
 
 def test_the_graph_sees_the_known_imports():
     # the test itself must see imports, lazy ones included: guards against a parser that finds none
-    assert "lensfit.fit.core" in GRAPH["lensfit.fit"] and "lensfit.fit.model" in GRAPH["lensfit.fit.solve"]
-    assert "synth.render" in GRAPH["lensfit.bench.runs"]
+    assert "lensfit.fitting.core" in GRAPH["lensfit.fitting"] and "lensfit.fitting.model" in GRAPH["lensfit.fitting.solve"]
+    assert "synth.rendering" in GRAPH["lensfit.bench.runs"]
     assert "lensfit.optics" in GRAPH["synth.geometry"]
 
 
@@ -189,16 +189,15 @@ def test_code_speaks_the_house_words():
 
 
 #: Lines a function of the fit and of the measure path may take, its docstring aside: their
-#: stages are functions with names (lensfit.fit.stages, lensfit.measure._Run), not one body of
+#: stages are functions with names (lensfit.fitting.stages, lensfit.measurement.measure._Run), not one body of
 #: closures.
 FIT_FUNCTION_LINES = 100
-MEASURE_PATH = ("measure.py", "pipeline.py", "edge_geometry.py", "calibration.py", "calibration_sigma.py",
-                "estimators/*.py")
+MEASURE_PATH = ("measurement/*.py", "calibration/camera.py", "calibration/sigma.py", "estimators/*.py")
 
 
 def test_the_fit_and_measure_functions_are_short():
     long = []
-    paths = list((ROOT / "lensfit" / "fit").glob("*.py"))
+    paths = list((ROOT / "lensfit" / "fitting").glob("*.py"))
     for pattern in MEASURE_PATH:
         paths += (ROOT / "lensfit").glob(pattern)
     for path in sorted(paths):

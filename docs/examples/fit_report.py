@@ -10,11 +10,11 @@ import sys
 from pathlib import Path
 
 import synth
-from lensfit.fit import results_document
-from lensfit.fitreport import write_fit_report
-from lensfit.pipeline import measure_and_fit
-from lensfit.plots import plot_fit
-from lensfit.stack import load_stack
+from lensfit.fitting import results_document
+from lensfit.outputs.report import write_fit_report
+from lensfit.measurement.pipeline import measure_and_fit
+from lensfit.outputs.plots import plot_fit
+from lensfit.io.stack import load_stack
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "out/examples/fit_report")
 out.mkdir(parents=True, exist_ok=True)

@@ -11,8 +11,8 @@ import sys
 from pathlib import Path
 
 import synth
-from lensfit.pipeline import measure_and_fit
-from lensfit.plots import plot_fit
+from lensfit.measurement.pipeline import measure_and_fit
+from lensfit.outputs.plots import plot_fit
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "out/examples/focus_bracket")
 out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """The library against the command line on the same job (``lensfit bench-api``).
 
-The README's Python example fits a stack with :func:`lensfit.pipeline.measure_and_fit`, as
+The README's Python example fits a stack with :func:`lensfit.measurement.pipeline.measure_and_fit`, as
 ``lensfit fit`` does. Each is run as a fresh process, the way a user runs a script or a command:
 import, JAX's start, loading the compiled functions from the persistent cache, reading,
 detecting, calibrating, measuring and fitting. One warm-up run of each fills the cache; then
@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 #: The README's fit, as a script's process runs it.
 API_SCRIPT = ("import sys\n"
-              "from lensfit.pipeline import measure_and_fit\n"
+              "from lensfit.measurement.pipeline import measure_and_fit\n"
               "samples, result, rounds = measure_and_fit(sys.argv[1], auto_diffraction=True)\n"
               "print(result.code)\n")
 
@@ -53,7 +53,7 @@ def run(stack: str | Path, pairs: int = 3, progress: Callable[[str], None] | Non
             for name, command in order:
                 times[name].append(_seconds(command))
     ratios = [a / c for a, c in zip(times["api"], times["cli"])]
-    from lensfit.outputs import provenance
+    from lensfit.outputs.writers import provenance
 
     return {"benchmark": "api_vs_cli", "stack": stack, "pairs": pairs,
             "seconds_cli": times["cli"], "seconds_api": times["api"],

@@ -9,7 +9,7 @@ traces, for every all-spherical objective in optiland's sample library and every
 ships, the real rays of the axial point (``synth.lens``, checked against optiland in the tests)
 through focus, fits the circle-of-confusion V to the exact second-moment diameters, and reports
 the f-number that V gives (``N_effective``, the pupil magnification known) over EFL/EPD, wide open
-and one to three stops down. ``lensfit.fit.nominal`` carries the spread into the reported f-number.
+and one to three stops down. ``lensfit.fitting.nominal`` carries the spread into the reported f-number.
 
 Run ``python -m lensfit.bench.designs`` to print the table, ``--write`` to store it in
 ``data_specs/f_number_survey.toml`` (the table the prior's documentation cites). Needs optiland
@@ -154,7 +154,7 @@ def survey(stops=STOPS, designs=None) -> list[Row]:
 
 def to_toml(rows: list[Row]) -> str:
     lines = ["# N_effective / (EFL/EPD) of published designs: written by `python -m lensfit.bench.designs --write`",
-             "# (lensfit/bench/designs.py says how); lensfit.fit.nominal carries their spread into the f-number.",
+             "# (lensfit/bench/designs.py says how); lensfit.fitting.nominal carries their spread into the f-number.",
              f"x_over_f = {X_OVER_F:g}", ""]
     for r in rows:
         lines += ["[[design]]", f'name = "{r.design}"', f'source = "{r.source}"', f"efl_mm = {r.efl_mm:.4g}",
@@ -177,7 +177,7 @@ def lens_file_text(rx, name: str, source: str, f_number: float) -> str:
 
 def survey_file() -> Path:
     """``data_specs/f_number_survey.toml`` (where the package's data_specs are)."""
-    from lensfit.specs import specs_dir
+    from lensfit.io.specs import specs_dir
 
     return specs_dir() / SURVEY_NAME
 

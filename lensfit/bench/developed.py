@@ -32,7 +32,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Callable
 
-from lensfit.specs import specs_dir
+from lensfit.io.specs import specs_dir
 
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
 #: Developers: (program, Debian package); how each is run: :func:`_develop`.

@@ -6,8 +6,8 @@ data), runs the command a user would run on it in a fresh process, and records i
 status, wall time, peak resident memory (the process's own, from ``wait4`` in a small launcher
 process) and the first line it wrote to stderr. A case passes when the status is the expected one, the message is one line
 naming what it should, and the run stays within ``MAX_SECONDS`` and ``MAX_PEAK_BYTES``. The fast
-cases of the same kinds run in ``make test`` (``tests/test_hostile.py``,
-``tests/test_schema_fields.py``); these take seconds to minutes each and run here.
+cases of the same kinds run in ``make test`` (``tests/io/test_hostile.py``,
+``tests/io/test_schema_fields.py``); these take seconds to minutes each and run here.
 
 ``--record DIR`` writes ``DIR/hostile.json``, the table the documentation's validation page shows.
 """

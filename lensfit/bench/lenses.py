@@ -34,9 +34,9 @@ from typing import Any, Callable
 
 from lensfit.bench.coverage import wilson_interval
 from lensfit.errors import InputError, SpecError
-from lensfit.fit import fit
-from lensfit.pipeline import measure_and_fit
-from lensfit.specs import load_toml, specs_dir
+from lensfit.fitting import fit
+from lensfit.measurement.pipeline import measure_and_fit
+from lensfit.io.specs import load_toml, specs_dir
 
 LENGTH_KEYS = ("distance_mm", "square_mm", "marker_mm", "size_mm", "offset_mm", "pixel_pitch_mm", "focus_distance_mm")
 
@@ -139,7 +139,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     import json
 
     from synth.lens import list_prescriptions
-    from synth.render import render
+    from synth.rendering import render
     from synth.scene import scene_from_dict
     from synth.stack import write_stack
 
@@ -186,7 +186,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
             say(f"{name}: measuring")
             t0 = time.perf_counter()
             # As `lensfit fit`: the images tested for the Airy pattern, which decides the readings
-            # (the spots' shapes, or the pattern modelled; lensfit.fit.spots); its fit is the bracket's.
+            # (the spots' shapes, or the pattern modelled; lensfit.fitting.spots); its fit is the bracket's.
             try:
                 table, bracket, _ = measure_and_fit(folder, auto_diffraction=True)
             except (InputError, SpecError) as exc:  # the stack refused as a user's would be: a row saying why

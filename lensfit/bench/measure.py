@@ -13,14 +13,14 @@ import time
 import numpy as np
 
 from lensfit.estimators import EdgeTask, get_estimator
-from lensfit.jaxcache import enable_compilation_cache
+from lensfit.runtime.jaxcache import enable_compilation_cache
 
 COC_PX = (1.0, 4.0, 16.0, 48.0)
 NOISE = (0.0, 0.005, 0.02)  # standard deviation at mid grey (full scale 1)
 
 
 def _render(c_px: float):
-    from synth.render import render
+    from synth.rendering import render
     from synth.scene import scene_from_dict
 
     f, D, pitch, N = 50.0, 2000.0, 0.006, 2.0
@@ -98,7 +98,7 @@ def run_stack(stack, estimators=("edge", "target"), progress=None) -> list[dict]
 
     import json
 
-    from lensfit.measure import measure
+    from lensfit.measurement.measure import measure
 
     stack = Path(stack)
     truth = json.loads((stack / "truth.json").read_text())
@@ -171,9 +171,9 @@ def run_exact(noise: float = 0.005, draws: int = 40, seed: int = 0, progress=Non
     slant (two sub-pixel offsets each), and the mean over ``draws`` noise draws (standard
     deviation ``noise`` at mid grey, shot + read) with its standard error; beside each the
     bound the fit's error budget takes for the estimator's shared scale error
-    (lensfit.fit.constants.disk_scale_sigma: ``BLUR_SCALE_SIGMA`` and ``BLUR_SCALE_BIAS_PX2 / c^2`` in
+    (lensfit.fitting.constants.disk_scale_sigma: ``BLUR_SCALE_SIGMA`` and ``BLUR_SCALE_BIAS_PX2 / c^2`` in
     quadrature)."""
-    from lensfit.fit.constants import disk_scale_sigma
+    from lensfit.fitting.constants import disk_scale_sigma
 
     enable_compilation_cache()
     fn = get_estimator("edge")

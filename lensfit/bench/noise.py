@@ -22,9 +22,9 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.bench.suites import QUANTITIES
-from lensfit.fit import fit
-from lensfit.measure import measure
-from lensfit.stack import Stack, load_stack
+from lensfit.fitting import fit
+from lensfit.measurement.measure import measure
+from lensfit.io.stack import Stack, load_stack
 
 
 def _noisy_levels(linear: np.ndarray, rng: np.random.Generator, full_well_e: float, read_noise_e: float,
@@ -67,7 +67,7 @@ def noisy_copy(stack_dir: Path, out: Path, rng: np.random.Generator, full_well_e
 
 def noisy_stack(stack: Stack | Path, rng: np.random.Generator, full_well_e: float, read_noise_e: float,
                 exposure: float = 1.0) -> Stack | None:
-    """:func:`noisy_copy` held in memory: the stack (a folder, or a :class:`~lensfit.stack.Stack`,
+    """:func:`noisy_copy` held in memory: the stack (a folder, or a :class:`~lensfit.io.stack.Stack`,
     which may hold its clean images for several noise levels) holding (``Stack.hold``) the images
     that the copy's PNG files would decode to, the same to the bit (the same draws, in the same
     order, the same arithmetic), without writing and reading them back (1.2 s of a 12-image noisy
@@ -77,7 +77,7 @@ def noisy_stack(stack: Stack | Path, rng: np.random.Generator, full_well_e: floa
     if any(e.file.suffix.lower() != ".png" or e.encoding != "linear" or e.black_level is not None
            or e.white_level is not None for e in stack.images):
         return None
-    # decoded as lensfit.stack reads a 16-bit PNG (levels / 65535): the levels are whole numbers,
+    # decoded as lensfit.io.stack reads a 16-bit PNG (levels / 65535): the levels are whole numbers,
     # which the file's uint16 keeps as they are
     hold = {}
     for i in range(len(stack.images)):

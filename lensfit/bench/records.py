@@ -64,7 +64,7 @@ def make_record(doc: dict[str, Any]) -> dict[str, Any]:
 
 def write_json(folder: str | Path, name: str, data: dict[str, Any]) -> Path:
     """Write (or replace) the record ``folder/<name>.json``, the folder made where missing."""
-    from lensfit.outputs import write_text
+    from lensfit.outputs.writers import write_text
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--readme", default="README.md", help="the README to update (default README.md)")
     parser.add_argument("--records", default="docs/validation/records", help="the records' folder")
     args = parser.parse_args(argv)
-    from lensfit.outputs import write_text
+    from lensfit.outputs.writers import write_text
 
     readme = Path(args.readme)
     new = replace_readme_table(readme.read_text(), load_records(args.records))

@@ -24,7 +24,7 @@ import numpy as np
 from lensfit.bench.coverage import (GAUSSIAN_HALF_WIDTH_RATIO, RELIABILITY_LEVELS, coverage_summary,  # noqa: F401
                                     design_effect, interval_honesty, wilson_interval)
 from lensfit.bench.suites import QUANTITIES, Suite
-from lensfit.outputs import write_text
+from lensfit.outputs.writers import write_text
 
 CONFIG_KEYS = ("scene", "render", "effects", "noise", "estimator", "solver")
 

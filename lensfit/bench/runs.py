@@ -36,7 +36,7 @@ import numpy as np
 
 from lensfit.bench.suites import Suite, digest_key, render_key, render_label, scene_with_effects, solver_label
 from lensfit.errors import InputError, SpecError
-from lensfit.outputs import write_text
+from lensfit.outputs.writers import write_text
 
 _WARM: set[str] = set()  # estimators already compiled in this process
 
@@ -44,9 +44,9 @@ _WARM: set[str] = set()  # estimators already compiled in this process
 def run_group(tasks: list[dict[str, Any]], cache: str) -> list[dict[str, Any]]:
     """:func:`run_task` on tasks that differ only in their effects set (one scene, render
     setting and seed; :func:`groups`), in one process, sharing their geometric renders
-    (``synth.render.GeometricCache``): each shot is ray-traced or convolved once for all the
+    (``synth.rendering.GeometricCache``): each shot is ray-traced or convolved once for all the
     effects sets, whose images differ only in the stages after it."""
-    from synth.render import GeometricCache
+    from synth.rendering import GeometricCache
 
     shared = GeometricCache()
     done = []
@@ -73,16 +73,16 @@ def groups(tasks: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:
 def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, Any]]:
     """Render (or reuse) the task's stack, then measure and fit every case not yet done.
     Returns the finished case records (also written to ``cache/cases/<id>.json``).
-    ``shared``: a ``synth.render.GeometricCache`` of renders of the same shots with other effects
+    ``shared``: a ``synth.rendering.GeometricCache`` of renders of the same shots with other effects
     (:func:`run_group`); a render that takes its geometric images from there is timed as if it
     had rendered them: the seconds they took (without compilation) are added."""
     from lensfit.bench.noise import noisy_copy, noisy_stack
-    from lensfit.fit import cramer_rao, fit
-    from lensfit.jaxcache import enable_compilation_cache
-    from lensfit.measure import HOLD_BYTES, measure
-    from lensfit.pipeline import measure_and_fit
-    from lensfit.stack import load_stack
-    from synth.render import render
+    from lensfit.fitting import cramer_rao, fit
+    from lensfit.runtime.jaxcache import enable_compilation_cache
+    from lensfit.measurement.measure import HOLD_BYTES, measure
+    from lensfit.measurement.pipeline import measure_and_fit
+    from lensfit.io.stack import load_stack
+    from synth.rendering import render
     from synth.stack import write_stack
 
     enable_compilation_cache()
@@ -153,7 +153,7 @@ def run_task(task: dict[str, Any], cache: str, shared=None) -> list[dict[str, An
                         fit(measure(path, c["estimator"]))
                         _WARM.add(c["estimator"])
                     if c["solver"].get("diffraction_nm"):
-                        # Diffraction modelled: measuring and fitting alternate (lensfit.pipeline),
+                        # Diffraction modelled: measuring and fitting alternate (lensfit.measurement.pipeline),
                         # all of it counted as measuring.
                         t0 = time.perf_counter()
                         _, res, _ = measure_and_fit(path, c["estimator"], wavelength_nm=c["solver"]["diffraction_nm"],
@@ -302,7 +302,7 @@ def run_suite(suite: Suite, out: str | Path, *, jobs: int = 1, resume: bool = Fa
 def _case_record(cache: Path, case_id: str) -> dict[str, Any] | None:
     """A finished case's record, or None where it is missing or is not one this suite wrote for
     that case (truncated, edited, another case's): then the case runs again and replaces it."""
-    from lensfit.specs import load_json
+    from lensfit.io.specs import load_json
 
     f = cache / "cases" / f"{case_id}.json"
     if not f.is_file():
@@ -323,7 +323,7 @@ def _run_local(tasks, cache: str, jobs: int, tick: Callable[[], None]) -> None:
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    from lensfit.running import command_process
+    from lensfit.runtime.running import command_process
 
     # spawn, not fork: JAX and OpenCV hold threads that fork does not copy safely. The workers are
     # set up as a command's process (one BLAS thread each: two workers on two cores).
@@ -361,7 +361,7 @@ def _run_dask(tasks, cache: str, jobs: int, executor: str, tick: Callable[[], No
 def provenance(suite: Suite, command: list[str] | None, jobs: int, executor: str) -> dict[str, Any]:
     import platform
 
-    from lensfit.outputs import provenance as record
+    from lensfit.outputs.writers import provenance as record
 
     out = record("lensfit", list(command) if command else [], system=platform.platform(), cores=os.cpu_count(),
                  jobs=jobs, executor=executor, suite=suite.name, suite_file=str(suite.path), seeds=list(suite.seeds))

@@ -6,7 +6,7 @@ linearise), detect (targets), calibrate (intrinsics, poses, edge geometry), meas
 of every edge), fit (the solver), uncertainty (covariance, jackknife, every reported quantity).
 
 Each configuration runs in a fresh process (``cold``: imports, loading the stored traces and
-compiled code of ``lensfit.aot`` / the persistent cache) and again ``warm_runs`` times in that
+compiled code of ``lensfit.runtime.aot`` / the persistent cache) and again ``warm_runs`` times in that
 process (``warm``: each stage's median over them; one warm call alone scatters by a fifth).
 Sizes: the first k images of the stack, and the whole stack enlarged by a factor (bilinear, the
 pixel pitch divided by it: the same scene at more pixels). The OpenCV reference reads the same
@@ -31,10 +31,10 @@ STAGES = ("read", "detect", "calibrate", "measure", "fit", "uncertainty")
 _CHILD = r"""
 import json, sys, time
 t0 = time.perf_counter()
-from lensfit.jaxcache import enable_compilation_cache
+from lensfit.runtime.jaxcache import enable_compilation_cache
 enable_compilation_cache()
-from lensfit.measure import measure
-from lensfit.fit import fit
+from lensfit.measurement.measure import measure
+from lensfit.fitting import fit
 out = {}
 warm = []
 for k in range(1 + int(sys.argv[2])):
@@ -92,9 +92,9 @@ def _run(code: str, *args: str, env: dict | None = None) -> tuple[float, str]:
 
 def _same_numpy_env() -> dict[str, str]:
     """The environment of the OpenCV reference: numpy's memory settings as the ``lensfit``
-    process sets its own (``lensfit.running.NUMPY_ENV``), so that the ratio compares the work,
+    process sets its own (``lensfit.runtime.running.NUMPY_ENV``), so that the ratio compares the work,
     not the kernel's handling of huge pages (the reference's float64 temporaries stall the same)."""
-    from lensfit.running import NUMPY_ENV
+    from lensfit.runtime.running import NUMPY_ENV
 
     return {**NUMPY_ENV, **os.environ}
 
@@ -166,7 +166,7 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
     ``shots``: the whole-stack rows take this many images (the stack's own again, in turn, where
     it has fewer); each whole ``lensfit fit`` process's peak resident memory is in
     ``lensfit_fit_peak_mib`` (the largest over its runs)."""
-    from lensfit.outputs import provenance
+    from lensfit.outputs.writers import provenance
 
     stack = Path(stack)
     n_all = shots or len(tomllib.loads((stack / "stack.toml").read_text())["image"])
@@ -214,7 +214,7 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
 
 
 def _shape(folder: Path) -> tuple[int, int]:
-    from lensfit.images import image_size
+    from lensfit.io.images import image_size
 
     spec = tomllib.loads((folder / "stack.toml").read_text())
     w, h = image_size(folder / spec["image"][0]["file"])

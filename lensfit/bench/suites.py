@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from lensfit.errors import InputError, SpecError
-from lensfit.specs import load_toml, specs_dir, validate
+from lensfit.io.specs import load_toml, specs_dir, validate
 
 QUANTITIES = ("focal_length_mm", "f_number", "focus_distance_mm")
 DEFAULT_TOLERANCES = {"focal_length_mm": 0.005, "f_number": 0.01, "focus_distance_mm": 0.01}

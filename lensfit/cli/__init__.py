@@ -350,7 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from lensfit.running import run_guarded
+    from lensfit.runtime.running import run_guarded
 
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -369,8 +369,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run() -> None:
     """The ``lensfit`` program: :func:`main` on the command line's arguments, then the process
-    ends (``lensfit.running.exit_process``)."""
-    from lensfit.running import command_process, exit_process
+    ends (``lensfit.runtime.running.exit_process``)."""
+    from lensfit.runtime.running import command_process, exit_process
 
     command_process()
     exit_process(main())

@@ -127,7 +127,7 @@ def bench_fit_command(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from lensfit.bench.noise import run
-    from lensfit.jaxcache import enable_compilation_cache
+    from lensfit.runtime.jaxcache import enable_compilation_cache
 
     if not (Path(args.stack) / "truth.json").is_file():
         raise CliError(f"--stack {args.stack} has no truth.json; render one with synth render")
@@ -163,7 +163,7 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from lensfit.bench.lenses import run
-    from lensfit.jaxcache import enable_compilation_cache
+    from lensfit.runtime.jaxcache import enable_compilation_cache
 
     if not 1 <= args.spp <= 65536:
         raise CliError(f"--spp must be between 1 and 65536, got {args.spp}")
@@ -267,7 +267,7 @@ def bench_command(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()) and not args.resume:
         raise CliError(f"--out {out} is not empty; pass --resume to continue the run there, or choose another folder")
     _check_record_folder(args.record)
-    from lensfit.outputs import OutputLock
+    from lensfit.outputs.writers import OutputLock
 
     console = Console(stderr=True)
     n_cases = sum(len(t["cases"]) for t in suite.tasks())

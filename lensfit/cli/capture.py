@@ -17,9 +17,9 @@ _TARGET_OPTIONS = {"paper": "--paper", "squares": "--squares", "square_mm": "--s
 
 
 def target_command(args: argparse.Namespace) -> int:
-    from lensfit.outputs import claimed, write_all
-    from lensfit.printable import PAGE_SUFFIXES, charuco_page, target_toml, write_page
-    from lensfit.shotlist import CHECKLIST
+    from lensfit.outputs.writers import claimed, write_all
+    from lensfit.capture.printable import PAGE_SUFFIXES, charuco_page, target_toml, write_page
+    from lensfit.capture.shotlist import CHECKLIST
 
     out = Path(args.out)
     if out.suffix.lower() not in PAGE_SUFFIXES:
@@ -61,8 +61,8 @@ _INIT_OPTIONS = {"measured_square_mm": "--measured-square-mm", "pixel_pitch_mm":
 
 
 def init_command(args: argparse.Namespace) -> int:
-    from lensfit.manifest import draft_manifest, shown
-    from lensfit.outputs import claimed, write_text
+    from lensfit.io.manifest import draft_manifest, shown
+    from lensfit.outputs.writers import claimed, write_text
 
     folder = Path(args.photos)
     out = Path(args.out) if args.out else folder / "stack.toml"
@@ -104,8 +104,8 @@ _PLAN_OPTIONS = {"focal_length_mm": "--focal-length", "f_number": "--f-number", 
 
 
 def plan_command(args: argparse.Namespace) -> int:
-    from lensfit.plan import QUANTITIES, Board, blur_at, plan_capture
-    from lensfit.sensors import sensor_format
+    from lensfit.capture.plan import QUANTITIES, Board, blur_at, plan_capture
+    from lensfit.io.sensors import sensor_format
 
     try:
         if args.sensor:
@@ -121,7 +121,7 @@ def plan_command(args: argparse.Namespace) -> int:
             if args.pixel_pitch is None or args.width_px is None or args.height_px is None:
                 raise CliError("give --sensor NAME, or --pixel-pitch MM with --width-px and --height-px")
             pitch, width_px, height_px = args.pixel_pitch, args.width_px, args.height_px
-        from lensfit.manifest import target_entries
+        from lensfit.io.manifest import target_entries
 
         entries, _ = target_entries(Path(args.target) if args.target else None)
         board = Board.from_entry(entries[0])
@@ -163,9 +163,9 @@ def plan_command(args: argparse.Namespace) -> int:
 
 
 def _write_shot_list(args: argparse.Namespace, plan, board, pitch: float, width_px: int, height_px: int) -> None:
-    from lensfit.outputs import claimed, write_all
-    from lensfit.plan import blur_at
-    from lensfit.shotlist import promise_text, shot_rows, write_shot_list
+    from lensfit.outputs.writers import claimed, write_all
+    from lensfit.capture.plan import blur_at
+    from lensfit.capture.shotlist import promise_text, shot_rows, write_shot_list
 
     out = Path(args.shot_list)
     if out.suffix.lower() not in (".pdf", ".svg", ".png"):

@@ -83,8 +83,8 @@ def pupil_arg(text: str) -> float | tuple[float, float]:
 
 
 def jobs_arg(text: str) -> int:
-    """--jobs: a whole number of threads, 1 to ``lensfit.parallel.MAX_JOBS``."""
-    from lensfit.parallel import MAX_JOBS
+    """--jobs: a whole number of threads, 1 to ``lensfit.runtime.parallel.MAX_JOBS``."""
+    from lensfit.runtime.parallel import MAX_JOBS
 
     try:
         value = int(text)
@@ -97,7 +97,7 @@ def jobs_arg(text: str) -> int:
 
 def input_options(p: argparse.ArgumentParser, outside: bool = True, jobs: bool = True) -> None:
     """Options on reading a stack: the pixel budget and reading outside the stack folder."""
-    from lensfit.limits import DEFAULT_MAX_MEGAPIXELS
+    from lensfit.io.limits import DEFAULT_MAX_MEGAPIXELS
 
     p.add_argument("--max-megapixels", type=number_arg, default=DEFAULT_MAX_MEGAPIXELS, metavar="MP",
                    help=f"refuse images larger than this, checked from the file header before decoding "

@@ -26,7 +26,7 @@ MAX_COC_MM = 1.0
 
 def dof_command(args: argparse.Namespace) -> int:
     from lensfit import optics
-    from lensfit.sensors import sensor_format
+    from lensfit.io.sensors import sensor_format
 
     try:
         fmt = sensor_format(args.sensor) if args.sensor else None

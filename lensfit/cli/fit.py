@@ -12,14 +12,14 @@ from lensfit.errors import InputError
 from lensfit.cli.common import (EXIT_NOT_IDENTIFIABLE, EXIT_OK, CliError, max_pixels_arg, progress_bar)
 
 def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | None = None):
-    """``lensfit.measure.measure`` with a progress bar on stderr; with ``fit_options`` measure and
-    fit (``lensfit.pipeline``: diffraction modelled where ``--diffraction`` asks) and return
+    """``lensfit.measurement.measure.measure`` with a progress bar on stderr; with ``fit_options`` measure and
+    fit (``lensfit.measurement.pipeline``: diffraction modelled where ``--diffraction`` asks) and return
     (samples, result, rounds)."""
     from rich.console import Console
 
-    from lensfit.jaxcache import enable_compilation_cache
-    from lensfit.measure import measure
-    from lensfit.pipeline import measure_and_fit
+    from lensfit.runtime.jaxcache import enable_compilation_cache
+    from lensfit.measurement.measure import measure
+    from lensfit.measurement.pipeline import measure_and_fit
 
     enable_compilation_cache()
     console = Console(stderr=True)
@@ -39,11 +39,11 @@ def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | 
 
 def measure_command(args: argparse.Namespace) -> int:
     from lensfit.estimators import ESTIMATORS
-    from lensfit.stack import load_stack
+    from lensfit.io.stack import load_stack
 
     if args.estimator not in ESTIMATORS:
         raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
-    from lensfit.outputs import claimed, write_all
+    from lensfit.outputs.writers import claimed, write_all
 
     out = Path(args.out)
     if out.suffix.lower() not in (".csv", ".json"):
@@ -64,8 +64,8 @@ def measure_command(args: argparse.Namespace) -> int:
 
 def _write_fit_outputs(args, source: Path, table, result, document, stack=None) -> list[Path]:
     """Every output to a temporary sibling first, then renamed: all appear, or none."""
-    from lensfit.fit import write_results
-    from lensfit.outputs import write_all
+    from lensfit.fitting import write_results
+    from lensfit.outputs.writers import write_all
 
     files = []
     if args.out:
@@ -73,11 +73,11 @@ def _write_fit_outputs(args, source: Path, table, result, document, stack=None) 
     if args.samples:
         files.append((Path(args.samples), table.write))
     if args.plot:
-        from lensfit.plots import plot_fit
+        from lensfit.outputs.plots import plot_fit
 
         files.append((Path(args.plot), lambda tmp: plot_fit(result, tmp, title=f"{source.name}: {result.code}")))
     if args.report:
-        from lensfit.fitreport import write_fit_report
+        from lensfit.outputs.report import write_fit_report
 
         files.append((Path(args.report), lambda tmp: write_fit_report(
             tmp, result, document, table, stack, title=f"lensfit fit {source}")))
@@ -89,7 +89,7 @@ def print_fit(result, document) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from lensfit.fitreport import budget_text, calibration_text
+    from lensfit.outputs.report import budget_text, calibration_text
 
     show = ("focal_length_mm", "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm",
             "sensor_distance_mm", "aperture_diameter_mm", "blur_floor_px")
@@ -174,7 +174,7 @@ def _fit_outputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
 
 def fit_command(args: argparse.Namespace) -> int:
     from lensfit.estimators import ESTIMATORS
-    from lensfit.outputs import claimed
+    from lensfit.outputs.writers import claimed
 
     if args.estimator not in ESTIMATORS:
         raise CliError(f"--estimator must be one of {', '.join(ESTIMATORS)}, got {args.estimator!r}")
@@ -210,15 +210,15 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
         raise CliError(f"{source}: no such samples file; give one that 'lensfit measure STACK --out FILE' wrote, "
                        "or a stack folder")
     if source.is_file() and source.suffix.lower() in (".csv", ".json"):
-        from lensfit.jaxcache import enable_compilation_cache
-        from lensfit.sample_table import SampleTable
+        from lensfit.runtime.jaxcache import enable_compilation_cache
+        from lensfit.io.samples import SampleTable
 
         if forced:
             raise CliError("--diffraction measures the images again; give the stack folder, not a samples file")
         enable_compilation_cache()
         table = SampleTable.read(source)
     else:
-        from lensfit.stack import load_stack
+        from lensfit.io.stack import load_stack
 
         stack = load_stack(source, max_pixels=max_pixels_arg(args), allow_outside=args.allow_outside_stack)
         if forced or (args.diffraction == "auto" and args.estimator in ("edge", "edge-disk")):
@@ -229,8 +229,8 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     for w in table.warnings:
         print(f"warning: {w}", file=sys.stderr)
 
-    from lensfit.fit import fit, results_document
-    from lensfit.processing import apply, from_exif
+    from lensfit.fitting import fit, results_document
+    from lensfit.measurement.processing import apply, from_exif
 
     if result is None:
         with console.status("fitting"):
@@ -269,7 +269,7 @@ def _read_truth(stack) -> dict | None:
         print(f"warning: {truth_path} points outside the stack folder; not read", file=sys.stderr)
         return None
     from lensfit.errors import SpecError
-    from lensfit.specs import load_json
+    from lensfit.io.specs import load_json
 
     try:
         truth = load_json(truth_path, max_bytes=64 * 1024 * 1024)

@@ -9,7 +9,7 @@ PSF model
     Where the data reject two disks too (a bright ring in a faint halo), any radial profile of
     eight rings (``lensfit.estimators.radial``, flag ``radial_profile``).
     Both integrated over square pixels with 100 % fill factor in closed form
-    (``lensfit.psf.pixel_edge_profile``). No Gaussian stand-in: a Gaussian fitted to a disk is
+    (``lensfit.measurement.psf.pixel_edge_profile``). No Gaussian stand-in: a Gaussian fitted to a disk is
     biased.
 What "blur diameter" means
     The second-moment diameter ``c = 4 sigma``, sigma the spot's standard deviation across the
@@ -25,7 +25,7 @@ Method
     Pixels near a straight target edge are projected onto the edge normal, which super-samples
     the edge profile (ISO 12233 / MTF Mapper practice). The model
     ``lo + (hi - lo) * ESF_pixel(d - d0; R, a, t)`` is fitted in float64 by Levenberg-Marquardt
-    (``lensfit.lm``; parameters: edge offset d0, R^2 (a smooth max(., 0)), the two levels, the
+    (``lensfit.fitting.lm``; parameters: edge offset d0, R^2 (a smooth max(., 0)), the two levels, the
     line's turn), started from a grid search over the radius with the levels solved linearly;
     first as a uniform disk (a = 0), then, wherever the spot's shape can be read (a disk reading
     of ``SHAPE_MIN_PX`` or more), again as two disks (a and t free, priors a ~ 0 +- 1 and
@@ -63,7 +63,7 @@ Method
 Diffraction
     Where the caller gives the Airy scale ``a = lambda N_w / p`` (``airy_px``; the pipeline of
     ``lensfit fit --diffraction``), the model profile is the one above convolved with the Airy
-    line-spread function and the pixel (``lensfit.diffraction.edge_kernel``: a piecewise-linear
+    line-spread function and the pixel (``lensfit.measurement.diffraction.edge_kernel``: a piecewise-linear
     kernel of 97 knots per edge, exact against the disk), plus a ramp across the window (weak
     prior) for the Airy tails of the target's neighbouring edges; the reading is then the
     defocus blur alone. The spot's shape is not read there (the Airy core and rings are the
@@ -104,7 +104,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from lensfit.diffraction import MAX_AIRY_PX
+from lensfit.measurement.diffraction import MAX_AIRY_PX
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
 from lensfit.estimators.edge_fit import FitQueue, fit_profiles
 from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
@@ -113,7 +113,7 @@ from lensfit.estimators.radial import radial_reading
 from lensfit.estimators.stripe import DIFFER_Z as STRIPE_DIFFER_Z, MAX_SIGMA_SHARE as STRIPE_MAX_SIGMA_SHARE
 from lensfit.estimators.stripe import MIN_DIFFERENCE_SHARE as STRIPE_MIN_SHARE
 from lensfit.estimators.stripe import stripe_reading, stripe_window
-from lensfit.parallel import in_threads
+from lensfit.runtime.parallel import in_threads
 
 SUB_PIXEL_PX = 0.5
 SUB_PIXEL_SIGMA_PX = 0.2
@@ -155,7 +155,7 @@ def _at_one_depth(task: EdgeTask) -> bool:
     """Whether the edge lies at one depth (within ``SHAPE_MAX_DEPTH_SPAN``), or its depths are not
     known. Along an edge across depth the spot changes size, and the profile is a mixture of
     spots: the fit describes that by the power mean of a uniform-disk reading
-    (``lensfit.fit.constants.BLUR_POWER_MEAN``), so the shape is read there only where the blur
+    (``lensfit.fitting.constants.BLUR_POWER_MEAN``), so the shape is read there only where the blur
     is still the same along the edge (:func:`_even_along`)."""
     depths = task.context.get("end_depths_mm")
     if not depths:
@@ -208,7 +208,7 @@ def measure(image: np.ndarray, tasks: list[EdgeTask], second_moment: bool = True
     """Blur diameter at each edge of one image (see the module docstring): the second-moment
     diameter, or with ``second_moment=False`` the diameter of the best-fitting uniform disk.
     ``airy_px``: the Airy pattern's scale ``lambda N_w / p`` where diffraction is modelled
-    (``lensfit.diffraction``); the reading is then the defocus blur alone."""
+    (``lensfit.measurement.diffraction``); the reading is then the defocus blur alone."""
     return measure_images([(image, tasks)], second_moment, airy_px=None if airy_px is None else [airy_px])[0]
 
 
@@ -232,7 +232,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
     dict from other edges is ignored. Such a call keeps its solutions with the Airy pattern in
     the dict, and the next one starts its fits from them instead of from a grid over the first
     pass's radius (the same minima: readings within 1e-7, but for sub-pixel blurs on a flat
-    cost, within 0.0003 px; the fits a third faster). ``lensfit.pipeline``'s diffraction rounds
+    cost, within 0.0003 px; the fits a third faster). ``lensfit.measurement.pipeline``'s diffraction rounds
     re-read the same edges at a new Airy scale each (0.15 s of a 10-shot bracket's 0.6 s a
     round, warm)."""
     items = list(items)

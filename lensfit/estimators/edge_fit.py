@@ -1,8 +1,8 @@
 """The edge estimator's batched fits (``lensfit.estimators.edge`` describes the method): every
-edge profile of a stack solved by Levenberg-Marquardt (``lensfit.lm``) under ``jax.vmap``, in
+edge profile of a stack solved by Levenberg-Marquardt (``lensfit.fitting.lm``) under ``jax.vmap``, in
 chunks of a fixed size padded to one of a few profile sizes, so that a few compiled shapes per
 kind of fit (uniform disk, two disks, with the Airy pattern) serve any stack; compiled once
-per installation (``lensfit.aot``) and loaded in the background (:func:`prewarm`). The model,
+per installation (``lensfit.runtime.aot``) and loaded in the background (:func:`prewarm`). The model,
 its residuals and start grids are in ``lensfit.estimators.edge_model``."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit import aot
-from lensfit.diffraction import edge_kernel
+from lensfit.runtime import aot
+from lensfit.measurement.diffraction import edge_kernel
 from lensfit.estimators.edge_model import (AIRY_START_SHARES, chunks, from_moment, grid_start, moment_residuals,
                                            residuals, shape_start, squared_radius, to_moment)
 from lensfit.estimators.profile import NBINS_ACROSS, STRIPS
@@ -33,9 +33,9 @@ MAX_STEPS = 40
 #: agree to rounding (a problem may land in the other profile size: 1e-14 in a sigma, and after
 #: the diffraction rounds, which amplify it, 1e-9 in f and N).
 SMALL_CHUNK = 4
-#: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.aot).
-AOT_MODULES = ("lensfit.estimators.edge_fit", "lensfit.estimators.edge_model", "lensfit.psf", "lensfit.lm",
-               "lensfit.diffraction")  # (the profile is data)
+#: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.runtime.aot).
+AOT_MODULES = ("lensfit.estimators.edge_fit", "lensfit.estimators.edge_model", "lensfit.measurement.psf", "lensfit.fitting.lm",
+               "lensfit.measurement.diffraction")  # (the profile is data)
 #: The solver stops when a step gains less than this in chi-square (parameters within 1e-3
 #: standard errors of the minimum).
 FTOL = 1e-6
@@ -52,7 +52,7 @@ NPIX_CLASSES = (64, NPIX)
 
 def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: bool = False, warm: bool = False):
     # airy: per problem the Airy kernel (knots, slope changes, tail); dummies without diffraction
-    from lensfit import lm
+    from lensfit.fitting import lm
 
     def one(d, s, v, w, nx, ny, theta_disk, airy):
         args = (d, s, v, w, nx, ny, airy) if diffraction else (d, s, v, w, nx, ny)
@@ -198,7 +198,7 @@ def prewarm(shaped: bool = True, diffraction: bool = False) -> None:
     """Load (or trace and compile) the batched fits that ``lensfit.estimators.edge.measure_images``
     calls, for every profile size (``NPIX_CLASSES``), on chunks with nothing to fit, so that a
     caller can overlap the loading (about 0.1 s per kind and size from the stores, seconds without) with other
-    work: ``lensfit.measure`` runs it in a background thread while it reads and detects."""
+    work: ``lensfit.measurement.measure`` runs it in a background thread while it reads and detects."""
     # One size per call (a lone small problem would move up a size), in the order of use.
     for npix in NPIX_CLASSES:
         fit_profiles(_dummy(npix), False)  # the first pass (never with the Airy model)
@@ -210,7 +210,7 @@ def prewarm(shaped: bool = True, diffraction: bool = False) -> None:
 
 def prewarm_airy(rounds: bool = True) -> None:
     """Load the fits with the Airy pattern (every profile size) and compute its tables, as
-    :func:`prewarm` does for the plain fits: ``lensfit.pipeline`` runs it in the background
+    :func:`prewarm` does for the plain fits: ``lensfit.measurement.pipeline`` runs it in the background
     while the first fit runs, before its diffraction test. ``rounds=False``: not the fits that
     start from a round before (what the diffraction test alone calls; a round's own measuring
     loads them, :func:`prewarm`)."""

@@ -1,9 +1,9 @@
 """The edge estimator's model of an edge profile and the start of its fit (``lensfit.estimators.edge``
 describes the method): the uniform disk or two concentric disks, integrated over square pixels
 in closed form, convolved where diffraction is modelled with the edge's Airy kernel
-(``lensfit.diffraction.edge_kernel``); the residuals the batched Levenberg-Marquardt solve
+(``lensfit.measurement.diffraction.edge_kernel``); the residuals the batched Levenberg-Marquardt solve
 minimises and the grids it starts from. Pure JAX functions of one edge: the estimator maps
-them over chunks of edges (packed by :func:`chunks`) and compiles them once (``lensfit.aot``)."""
+them over chunks of edges (packed by :func:`chunks`) and compiles them once (``lensfit.runtime.aot``)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit.diffraction import KERNEL_KNOTS, edge_kernel
-from lensfit.psf import disk_esf_integral2, pixel_edge_profile
+from lensfit.measurement.diffraction import KERNEL_KNOTS, edge_kernel
+from lensfit.measurement.psf import disk_esf_integral2, pixel_edge_profile
 
 RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
 #: Where diffraction is modelled, the start's grid over the radius, as shares of the uniform
@@ -56,7 +56,7 @@ def squared_radius_slope(rho: float) -> float:
 
 def profile(x, radius, nx, ny, airy):
     """The pixel-integrated disk ESF; where diffraction is modelled (``airy``: the edge's kernel
-    ``(knots, slope changes, tail)`` from ``lensfit.diffraction.edge_kernel``, which holds the
+    ``(knots, slope changes, tail)`` from ``lensfit.measurement.diffraction.edge_kernel``, which holds the
     pixel's footprint too; None: no diffraction), the disk ESF convolved with that piecewise-linear
     kernel, exactly: one second antiderivative of the disk's ESF per knot."""
     if airy is None:

@@ -1,4 +1,4 @@
-"""Sharpening halos on a stack's edge profiles: the test behind ``lensfit.processing``.
+"""Sharpening halos on a stack's edge profiles: the test behind ``lensfit.measurement.processing``.
 
 A lens's point spread function is never negative, so the edge it blurs rises monotonically from
 one level to the other, whatever the aberrations. Sharpening (an unsharp mask, a deconvolution)
@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lensfit.estimators.edge_model import squared_radius
-from lensfit.psf import pixel_edge_profile
+from lensfit.measurement.psf import pixel_edge_profile
 
 #: The unsharp mask's Gaussian (1 sigma, px) the test fits with: in-camera and raw developers'
 #: defaults run 0.5-2 px, and the amount a mask of another radius reads differs little in sign.
@@ -49,7 +49,7 @@ def _residuals(theta, args):
 
 @jax.jit
 def _fit_chunk(theta0, d, v, w, nx, ny):
-    from lensfit import lm
+    from lensfit.fitting import lm
 
     def one(t0, d, v, w, nx, ny):
         args = (d, v, w, nx, ny)

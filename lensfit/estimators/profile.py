@@ -99,7 +99,7 @@ def select(image: np.ndarray, task: EdgeTask, half_width: float | tuple[float, f
 
 def footprint(normal: np.ndarray, bin_variance_px2: float) -> np.ndarray:
     """The two box widths (px) that the edge fits' model convolves the blur with
-    (``lensfit.psf.pixel_edge_profile``, ``lensfit.diffraction.edge_kernel``): a unit square
+    (``lensfit.measurement.psf.pixel_edge_profile``, ``lensfit.measurement.diffraction.edge_kernel``): a unit square
     pixel seen along the edge ``normal`` is two boxes, ``|nx|`` and ``|ny|`` wide; the narrower
     is widened so that the footprint's variance also holds ``bin_variance_px2``, the variance of
     the pixels' normal distances about their bin's mean (pooled over the bins).
@@ -109,7 +109,7 @@ def footprint(normal: np.ndarray, bin_variance_px2: float) -> np.ndarray:
     slanted edge (variance 1/768 px^2). Left out, it read the blur of exact edges (a half-plane
     blurred by a uniform disk, integrated over square pixels) too wide by about 0.9 % / c^2 for
     a blur diameter of c px: +0.9 % at 1 px, +0.2 % at 2 px (``lensfit bench-measure``, its
-    exact-edge table; tests/test_measure.py)."""
+    exact-edge table; tests/measurement/test_measure.py)."""
     a = max(abs(float(normal[0])), abs(float(normal[1])))
     b = min(abs(float(normal[0])), abs(float(normal[1])))
     return np.array([a, math.sqrt(b * b + 12.0 * bin_variance_px2)])
@@ -171,7 +171,7 @@ def _band_variance(d: np.ndarray, sq_dev: np.ndarray, count: np.ndarray) -> np.n
     :func:`_noise_variance`), kept for the two-disk fit of a visibly shaped spot: its faint halo
     shows in the profile's tails, which these weights favour (noise-free, the spread of a bin is
     mostly the profile's slope across it); with the smooth weights the shaped reading of a
-    retrofocus lens's core-and-halo spot came out 2.6 % low (``tests/test_compound_render.py``).
+    retrofocus lens's core-and-halo spot came out 2.6 % low (``tests/synth/test_compound_render.py``).
     On exact 2-6 px disks under a render's Monte-Carlo noise (32 spp) the shaped readings stay
     within 0.2 % (0.4 % low at 2 px); in the uniform disk's fit these weights would read 1-3 px
     blurs 1-1.5 % low, which is why that fit takes :func:`_noise_variance`'s."""
@@ -256,7 +256,7 @@ def line_end_covariance(cov: np.ndarray, half_len: float, given_radius: bool = F
     the middle): (variance at the start, covariance, variance at the end). The turn moves the
     two ends in opposite directions, so their errors anti-correlate (about -0.6 for an even
     spread of pixels along the edge); corners refined from these lines inherit that
-    (:func:`lensfit.edge_geometry.refine_corners`).
+    (:func:`lensfit.measurement.edge_geometry.refine_corners`).
 
     ``given_radius``: the covariance given the squared radius (index 1), for an edge whose blur
     the fit does not determine (a sub-pixel reading: no curvature in ``R^2`` at 0). A symmetric
@@ -264,7 +264,7 @@ def line_end_covariance(cov: np.ndarray, half_len: float, given_radius: bool = F
     leaks into the offset through round-off: on a board 6 mm beyond the focus distance (an
     end-to-end fuzz's focus bracket), one line stated offsets of 71-184 px (1 sigma) for an error
     of thousandths of a pixel, and the calibration that read its corners through it stated the
-    focal length to 0.2 px against an error of 4.5-6.9 px (tests/test_random_scenes.py)."""
+    focal length to 0.2 px against an error of 4.5-6.9 px (tests/measurement/test_random_scenes.py)."""
     cov = np.asarray(cov, np.float64)
     if given_radius and np.isfinite(cov[1, 1]) and cov[1, 1] > 0:
         keep = [0, 4]

@@ -4,12 +4,12 @@ A real lens's spot near focus, wide open, can be a bright ring with a faint halo
 (undercorrected spherical aberration, the near side of focus of a fast Petzval): a third of its
 second moment lies in a halo a few percent as bright as the ring. Two disks hold a core in a halo
 or a rim, not both; fitted to such an edge they read the ring and miss the halo, 5-13 % small
-(exact edges of an f/1.4 Petzval's real-ray spots, ``tests/test_radial_profile.py``).
+(exact edges of an f/1.4 Petzval's real-ray spots, ``tests/estimators/test_radial_profile.py``).
 
 Here the spot is any radial profile, piecewise constant over ``ANNULI`` equal-width rings out
 to the window's reach: the edge profile is then linear in the rings' shares of the light (each
 ring's pixel-integrated edge-spread function is a difference of two disks', in closed form,
-``lensfit.psf``), solved by weighted linear least squares with the edge line and its turn held
+``lensfit.measurement.psf``), solved by weighted linear least squares with the edge line and its turn held
 where the two-disk fit put them. The second moment is the ratio of two linear functions of the
 shares, ``c^2 = sum_k w_k 4 (r_{k-1}^2 + r_k^2) / sum_k w_k``, its variance from the solve's
 covariance through that ratio's gradient.
@@ -35,7 +35,7 @@ import math
 import numpy as np
 
 from lensfit.estimators.edge_model import squared_radius
-from lensfit.psf import pixel_edge_profiles_np
+from lensfit.measurement.psf import pixel_edge_profiles_np
 
 #: Rings of the radial profile, out to the window's reach.
 ANNULI = 8

@@ -7,7 +7,7 @@ on a fast lens's aberrated spots (a halo, or off the axis a comatic tail on one 
 short of the light the spot spreads, and the symmetric profiles fitted there read small or not
 at all. Exact edges of an f/1.4 Petzval's real-ray spots 240 px off the axis, on the near side of
 focus, with a marker 14.6 px beyond the edge: 0.73-0.86 of their second moment (0.85-0.99 with
-clean room); on the axis (``tests/test_marker_stripe.py``) more than 5 % small or refused.
+clean room); on the axis (``tests/estimators/test_marker_stripe.py``) more than 5 % small or refused.
 
 Here the window runs on across the stripe and into the border (to the border's far side less the
 spot's reach ``support``), and the image there is modelled as what it is: the stripe
@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from lensfit.psf import over_pixel_boxes
+from lensfit.measurement.psf import over_pixel_boxes
 
 #: Bins of the line-spread histogram across ``[-support, support]``: at most BINS, no finer than
 #: the profile's sampling, and at least MIN_BINS (else no reading).

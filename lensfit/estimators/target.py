@@ -17,7 +17,7 @@ Uncertainty
     ``sigma_c^2 = 2 s^2 / RSS''(c)`` with s^2 the residual variance, combined in quadrature with
     the same model floor as ``edge`` (0.3 % of c + 0.02 px); where the RSS is flat at its minimum
     (a blur below a sub-pixel), how far c rises before the RSS rises by s^2. Against synth's
-    truth maps (noise-free; tests/test_measure.py): the calibration stack's 121 edges at 0-5 px,
+    truth maps (noise-free; tests/measurement/test_measure.py): the calibration stack's 121 edges at 0-5 px,
     error over sigma 1.06 RMS, 93 % within 2 sigma; the demo's 264 at 0-20 px, 1.54 RMS (a few
     near-focus edges), 77 % within 1 sigma, bias +0.005 px from 1.5 px up.
 Valid range
@@ -39,7 +39,7 @@ import scipy.optimize
 import scipy.signal
 
 from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
-from lensfit.psf import disk_kernel
+from lensfit.measurement.psf import disk_kernel
 
 SUB = 4
 #: Texture samples per sub-pixel, along each axis (see _measure_one): one sample puts the

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from lensfit._checks import arg, float64, require, xp
+from lensfit.optics.checks import arg, float64, require, xp
 
 
 def _dof_args(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_distance_mm):

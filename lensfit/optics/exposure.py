@@ -7,7 +7,7 @@ References: S. F. Ray, *Applied Photographic Optics*, 3rd ed., Focal Press 2002,
 
 from __future__ import annotations
 
-from lensfit._checks import arg, float64, xp
+from lensfit.optics.checks import arg, float64, xp
 
 __all__ = ["exposure_value", "equivalent_shutter_s", "equivalent_f_number", "equivalent_iso"]
 

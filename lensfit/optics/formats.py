@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from lensfit._checks import arg, float64, xp
+from lensfit.optics.checks import arg, float64, xp
 from lensfit.optics.thin import FULL_FRAME_DIAGONAL_MM, sensor_distance
 
 

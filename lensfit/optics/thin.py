@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from lensfit._checks import arg, float64, require, xp
+from lensfit.optics.checks import arg, float64, require, xp
 
 
 #: Diagonal of the 36 x 24 mm ("35 mm", full-frame) format, the reference of crop factors.

@@ -42,7 +42,7 @@ hangs on the profile's width to a few thousandths of a px^2. On an axis-aligned 
 a 0.28 px disk at ``a = 1.1`` px (cells integrated exactly, read by the edge estimator at four
 sub-pixel phases) k = 2 reads 0.0-0.63 px by the phase, k = 4 0.25-0.30 and k = 8 0.276-0.277
 (the exact image: 0.276-0.278); under a pattern of ``a = 0.22`` px, k = 4 still reads 0.0-0.36
-px for 0.29, k = 8 0.28-0.32, hence 8 there (tests/test_diffraction.py renders such an edge).
+px for 0.29, k = 8 0.28-0.32, hence 8 there (tests/measurement/test_diffraction.py renders such an edge).
 Against the exact transfer-function product (disk x pupil x pixel) an edge at the focus plane at
 f/11 on 5 um pixels misfits by 0.15-0.16 % of the contrast RMS, ray traced or convolved. The
 finer grid costs the filtering memory and time in proportion to k^2
@@ -179,7 +179,7 @@ def apply_fine(fine: np.ndarray, params: Diffraction, working_f_number: float, p
     from ``a`` = 2 px), multiplied by the transfer function, the k cells' mean (``sin(pi nu)
     / (k sin(pi nu / k))``) and the half cell that takes the cells' centres to the pixel's, and
     transformed back at that size. The same image as filtering the fine one and averaging its
-    cells (within float32 rounding; tests/test_diffraction.py), with one transform of the fine
+    cells (within float32 rounding; tests/measurement/test_diffraction.py), with one transform of the fine
     image's size instead of two a channel (about half the time)."""
     import scipy.fft
 

@@ -78,7 +78,7 @@ class Sensor:
 
 @functools.lru_cache(maxsize=1)
 def presets() -> dict[str, Sensor]:
-    from lensfit.specs import load_toml, specs_dir, validate
+    from lensfit.io.specs import load_toml, specs_dir, validate
 
     path = specs_dir() / "sensor_presets.toml"
     data = load_toml(path)

@@ -51,7 +51,7 @@ def apply(image: np.ndarray, params: Mosaic) -> np.ndarray:
 def write_dng(path: str | Path, raw: np.ndarray, pattern: str, black_level: int, white_level: int,
               exif: dict[str, Any], *, model: str = "lensfit synth") -> None:
     """Write a uint16 CFA frame as DNG (uncompressed), with the camera record ``exif``
-    (``synth.render.RenderResult.exif``; tags from ``synth.exif``)."""
+    (``synth.rendering.RenderResult.exif``; tags from ``synth.exif``)."""
     import tifffile
 
     from synth.exif import tiff_extratags

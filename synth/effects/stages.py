@@ -3,7 +3,7 @@
 Each stage belongs to one effect and owns, in one class, what the pipeline needs of it: whether
 the scene calls for it (``wanted``), how ``synth plan`` names it and what it costs (``describe``,
 seconds estimated per shot), and what it does to the image and records in the truth
-(``apply``). ``STAGES`` lists them in the order light meets them; ``synth.render`` runs the ones
+(``apply``). ``STAGES`` lists them in the order light meets them; ``synth.rendering`` runs the ones
 a scene wants, ``synth.planning`` lists them. A stage the scene does not call for is not
 constructed into the shot's list: it costs nothing and changes nothing.
 
@@ -80,7 +80,7 @@ def fine_choice(scene, camera, method: str) -> int:
     as far as the method's samples allow (:func:`fine_factor`) and within the memory budget
     (else the next smaller); 1 where none: diffraction then filters the image as sampled (an
     approximation; the truth says which)."""
-    from lensfit.limits import RENDER_MEMORY_BYTES
+    from lensfit.io.limits import RENDER_MEMORY_BYTES
     from synth.effects import diffraction
 
     r, params, n_w = scene.render, scene.effects.diffraction, working_f_number(camera)

@@ -25,7 +25,7 @@ that glass's Sellmeier equation, shifted so that its index at the d line is ``n`
 and ``n_F - n_C = (n - 1) / V`` (F 486.13 nm, C 656.27 nm): exact at d, F and C; from 420 to
 700 nm within 2e-4 of the catalogue's crowns but up to 4e-3 off dense flints (N-SF11: the
 Cauchy law misses their steep blue dispersion), so name the glass where it is known
-(tests/test_spectral.py measures this).
+(tests/synth/test_spectral.py measures this).
 A glass with neither cannot be traced at another wavelength. The table's n, and so the EFL,
 f-number and focus, are those of the d line, the reference wavelength of every spectral render.
 

@@ -15,7 +15,7 @@ from synth.lens.prescription import Glass, Prescription, Surface, paraxial
 
 
 def lens_dir() -> Path:
-    from lensfit.specs import specs_dir
+    from lensfit.io.specs import specs_dir
 
     return specs_dir() / "lenses"
 
@@ -85,7 +85,7 @@ def prescription_from_dict(data: dict[str, Any], path: str | Path = "<lens>") ->
 @functools.cache
 def glass_catalogue() -> dict[str, Glass]:
     """The glasses of ``data_specs/glasses.toml`` by name."""
-    from lensfit.specs import load_toml, specs_dir
+    from lensfit.io.specs import load_toml, specs_dir
 
     return {name: Glass(name, tuple(g["B"]), tuple(g["C_um2"]), "SCHOTT Zemax catalogue 2017-01-20b")
             for name, g in load_toml(specs_dir() / "glasses.toml")["glass"].items()}
@@ -105,7 +105,7 @@ def _glass(name, path, where: str) -> Glass:
 
 def load_prescription(name: str | Path) -> Prescription:
     """A shipped design by name (``data_specs/lenses/NAME.toml``) or the path of a lens file."""
-    from lensfit.specs import load_toml
+    from lensfit.io.specs import load_toml
 
     path = Path(name)
     if path.suffix != ".toml":

@@ -1,0 +1,191 @@
+"""What a raw developer or a camera's JPEG engine did to a stack's images, as far as lensfit can
+tell, and what it does to the f-number.
+
+Blur is read from edge profiles in linear light. A developed image (a camera's JPEG, a raw
+developer's export) went through a tone curve beyond the sRGB encoding it declares and through
+sharpening: the tone curve narrows every edge by some percent, sharpening takes about half a
+pixel off each, and the fitted blur floor cannot go below zero, so the f-number absorbs both and
+reads high (5-20 % with common defaults) while its interval stays narrow. Neither the focal
+length nor the focus distance depends on the blur's scale, and they stay right.
+
+Two kinds of evidence, each enough:
+
+- the files' EXIF: a ``Software`` tag naming a raw developer, or a JPEG written by a camera
+  (its ``Make``, and the firmware as ``Software``);
+- halos on the edges (``lensfit.estimators.halo``): an overshoot no lens makes, the mark of
+  sharpening, wherever the file came from.
+
+Images declared sRGB-encoded (``encoding = "srgb"``, the default for JPEG) with either evidence
+have their f-number (and the aperture diameter) refused by default, naming the processing and
+the fix: the RAW files, or a linear export without sharpening. Images declared linear are read
+as they are (a linear TIFF from a developer is the advice), their EXIF and halos unchecked.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+#: ``Software`` tags of raw developers and photo editors (case-insensitive, anywhere in the tag).
+DEVELOPERS = re.compile(r"darktable|rawtherapee|\bART\b|lightroom|camera raw|photoshop|capture one|dxo|\bon1\b|"
+                        r"luminar|affinity|gimp|digikam|silkypix|acdsee|pixelmator|aperture|snapseed|exposure x|"
+                        r"lightzone|filmulator|photolab|capture nx|nx studio|digital photo professional|"
+                        r"imaging edge|olympus workspace|om workspace|raw power|photos \d|iphoto|polarr|"
+                        r"photoscape|rawdigger|dcraw|libraw", re.IGNORECASE)
+#: Writers whose JPEGs hold the sRGB encoding alone (no tone curve, no sharpening): lensfit's own
+#: renderer names itself so.
+FAITHFUL = re.compile(r"^lensfit\b", re.IGNORECASE)
+#: Halos: the pooled unsharp-mask amount (``lensfit.estimators.halo``) above this, and this many
+#: standard errors from 0. An image as the lens drew it reads about 0 (the shipped demo 0.0000 +-
+#: 0.0008) or below 0 (strong spherical aberration, a core in a halo: -1.3); an in-camera
+#: pipeline's 1 px mask +0.17 +- 0.016.
+HALO_MIN_AMOUNT = 0.05
+HALO_MIN_Z = 5.0
+POLICIES = ("refuse", "report")
+#: A reduced chi-square above this is flagged with its likely causes (renders through a thin lens
+#: and real-ray renders of stopped-down lenses read about 1-3; an in-camera JPEG pipeline 8.9).
+MISFIT_CHI2 = 3.0
+
+
+@dataclass
+class Processing:
+    """What is known of the processing of a stack's images.
+
+    Attributes
+    ----------
+    developer : what the EXIF names (a raw developer, or a camera's JPEG engine), or None
+    developed_files : the images the EXIF says were developed
+    encoded : whether any image is declared sRGB-encoded (not linear)
+    halo_amount, halo_sigma, halo_edges : the pooled unsharp-mask amount, its standard error and
+        the edges it rests on (NaN, 0 where not tested)
+    """
+
+    developer: str | None = None
+    developed_files: list[str] = field(default_factory=list)
+    encoded: bool = False
+    halo_amount: float = math.nan
+    halo_sigma: float = math.nan
+    halo_edges: int = 0
+
+    @property
+    def halos(self) -> bool:
+        """Sharpening halos on the edges (see ``HALO_MIN_AMOUNT``, ``HALO_MIN_Z``)."""
+        return (math.isfinite(self.halo_amount) and self.halo_amount > HALO_MIN_AMOUNT
+                and self.halo_amount > HALO_MIN_Z * self.halo_sigma)
+
+    @property
+    def biases_f_number(self) -> bool:
+        """Whether the blur readings, so the f-number, are biased by processing lensfit does not model."""
+        return self.encoded and (self.developer is not None or self.halos)
+
+    def describe(self) -> str:
+        """What was found, in one clause."""
+        parts = []
+        if self.developer:
+            parts.append(f"the images were developed ({self.developer}: a tone curve beyond sRGB, often sharpening)")
+        if self.halos:
+            parts.append(f"their edges show sharpening halos (unsharp-mask amount {self.halo_amount:.2f} +- "
+                         f"{self.halo_sigma:.2f} over {self.halo_edges} edges; a lens makes none)")
+        return " and ".join(parts)
+
+    def reason(self) -> str:
+        """The f-number's refusal: the cause and the fix."""
+        return (f"{self.describe()}; a developer's tone curve and sharpening narrow every edge, which reads N "
+                "5-20 % high with an interval that does not hold it: fit the RAW files (lensfit init takes RAW "
+                "where a camera wrote RAW + JPEG), or export linear TIFF without sharpening and declare it "
+                "encoding = \"linear\"; the focal length and focus distance do not depend on it and are reported")
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The results file's ``processing`` object."""
+        finite = (lambda x: x if math.isfinite(x) else None)
+        return {"developer": self.developer, "developed_files": list(self.developed_files),
+                "encoded": self.encoded, "halos": self.halos,
+                "halo_amount": finite(self.halo_amount), "halo_sigma": finite(self.halo_sigma),
+                "halo_edges": self.halo_edges, "f_number_biased": self.biases_f_number}
+
+
+def developer_of(path: Path, record: Any) -> str | None:
+    """What developed the image at ``path`` by its EXIF (``record``, a ``lensfit.io.exif.CameraRecord``):
+    a raw developer's ``Software`` tag, or a camera that wrote a JPEG; None (RAW and DNG files,
+    files without such tags, lensfit's own renders)."""
+    from lensfit.io.images import JPEG_SUFFIXES, RAW_SUFFIXES
+
+    suffix = path.suffix.lower()
+    software, maker = record.software or "", record.make or ""
+    if suffix in RAW_SUFFIXES:
+        return None
+    # a developer's name first: its output keeps the camera's Make, lensfit's own renders' too
+    if DEVELOPERS.search(software):
+        return software
+    if FAITHFUL.search(software) or FAITHFUL.search(maker):
+        return None
+    if suffix in JPEG_SUFFIXES and maker:
+        return "in-camera JPEG of the " + (record.camera or maker) + (f", {software}" if software else "")
+    return None
+
+
+def from_exif(stack: Any) -> Processing:
+    """The EXIF evidence of a stack's sRGB-encoded images (images declared linear are read as
+    they are, and their EXIF is not consulted)."""
+    from lensfit.io.exif import read_camera_record
+
+    found = Processing(encoded=stack.encoded)
+    for im in stack.images:
+        if im.encoding != "srgb":  # (linear images keep today's path, untouched)
+            continue
+        name = developer_of(im.file, read_camera_record(im.file))
+        if name:
+            found.developed_files.append(im.file.name)
+            found.developer = found.developer or name
+    return found
+
+
+def assess(stack: Any, table: Any) -> Processing:
+    """The EXIF and the halo evidence of a measured stack (``table``: its ``SampleTable`` with the
+    edge estimator's profiles kept, ``measure(..., keep_profiles=True)``; without them the
+    halos are not tested)."""
+    import numpy as np
+
+    from lensfit.estimators.halo import halo_amounts, pooled
+
+    found = from_exif(stack)
+    state = (table.profiles or {}).get("state")
+    if state is not None and found.encoded:
+        radius, batch, index = state[1], state[7], state[8]
+        amounts, var = halo_amounts(batch, [radius[i] for i in index])
+        found.halo_amount, found.halo_sigma, found.halo_edges = pooled(np.asarray(amounts), np.asarray(var))
+    return found
+
+
+def apply(result: Any, found: Processing, policy: str = "refuse") -> None:
+    """Say in ``result`` (a ``FitResult``) what ``found`` says: its ``processing``, a warning, and
+    under ``policy = "refuse"`` every setting's f-number and aperture diameter refused with the
+    cause and the fix."""
+    from lensfit.fitting.result import Estimate, Outcome
+
+    result.processing = found
+    if math.isfinite(result.chi2_reduced) and result.chi2_reduced > MISFIT_CHI2:
+        cause = (found.describe() if found.biases_f_number else
+                 "likely causes: images developed or sharpened beyond what their EXIF and edges show, a lens's "
+                 "aberrations wide open (stop down), or a lens that moved between shots")
+        result.warnings.append(f"the blur readings scatter about the fitted V {math.sqrt(result.chi2_reduced):.1f} "
+                               f"times more than their noise (reduced chi-square {result.chi2_reduced:.1f}); the "
+                               f"intervals are widened by it, but a systematic cause is not noise: {cause}")
+    if not found.biases_f_number:  # (halos are looked for on sRGB-encoded images only, so they bias it)
+        return
+    if policy == "report":
+        result.warnings.append(f"{found.describe()}: the f-number reads high (typically 5-20 %) and its interval "
+                               "does not carry it (--processed report); fit the RAW files for a trustworthy N")
+        return
+    reason = found.reason()
+    for quantities in result.settings.values():
+        for q in ("f_number", "f_number_effective", "aperture_diameter_mm", "aperture_diameter_effective_mm"):
+            before = quantities.get(q)
+            if before is not None:  # (a reason of its own is kept after the processing's)
+                quantities[q] = Estimate(None, reason=reason if before.value is not None or not before.reason
+                                         else f"{reason}; besides, {before.reason}")
+    result.reasons.append(f"f_number: {reason}")
+    result.code = Outcome.NOT_IDENTIFIABLE

@@ -1,0 +1,2 @@
+"""What lensfit writes: result files written whole or not at all (``writers``), the HTML fit report
+(``report``) and the figures (``plots``)."""

@@ -1,0 +1,174 @@
+"""Developed images (lensfit.measurement.processing): a camera's or a raw developer's tone curve and sharpening
+read N high; the EXIF and halos on the edges say so, and the f-number is refused with the fix,
+while faithful sRGB JPEGs and linear images keep their reading."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from lensfit.estimators.halo import halo_amounts, pooled
+from lensfit.measurement.measure import measure
+from lensfit.measurement.pipeline import measure_and_fit
+from lensfit.measurement.processing import DEVELOPERS, from_exif
+from lensfit.io.images import read_image
+from lensfit.io.stack import load_stack
+
+
+def _encode(linear):
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, 1) ** (1 / 2.4) - 0.055)
+
+
+def _jpeg_copy(stack, folder, develop=None, software=None):
+    """``stack``'s PNGs as 8-bit sRGB JPEGs in ``folder``; ``develop`` maps the encoded image
+    (float, 0-1) as a camera would; ``software``: the EXIF Software tag written."""
+    folder.mkdir()
+    for png in sorted(stack.glob("*.png")):
+        encoded = _encode(read_image(png))
+        if develop is not None:
+            encoded = develop(encoded)
+        exif = Image.Exif()
+        if software:
+            exif[0x0131] = software
+        Image.fromarray(np.round(255 * np.clip(encoded, 0, 1)).astype(np.uint8)).save(
+            folder / f"{png.stem}.jpg", quality=95, exif=exif)
+    (folder / "stack.toml").write_text((stack / "stack.toml").read_text().replace(".png", ".jpg")
+                                       .replace('encoding = "linear"', 'encoding = "srgb"'))
+    return folder
+
+
+def _camera(encoded):
+    """An in-camera pipeline's look: an S curve over the encoded values and a 1 px unsharp mask of
+    amount 0.5 (a typical default)."""
+    curved = 0.8 * encoded
+    curved = curved - 0.04 * np.sin(2 * np.pi * curved)
+    blurred = cv2.GaussianBlur(curved, (0, 0), 1.0)
+    return curved + 0.5 * (curved - blurred)
+
+
+def _sharpened(encoded):
+    """A 1 px unsharp mask of amount 0.6, with headroom for its overshoot."""
+    encoded = 0.8 * encoded
+    return encoded + 0.6 * (encoded - cv2.GaussianBlur(encoded, (0, 0), 1.0))
+
+
+def test_halos_are_read_from_sharpened_edges_and_not_from_a_lens(calibration_stack, tmp_path):
+    """The pooled unsharp-mask amount of a sharpened copy of a stack is well above 0, that of the
+    stack as the lens drew it within noise of 0 (the lens's PSF is never negative)."""
+    plain = measure(calibration_stack, keep_profiles=True)
+    sharp_dir = _jpeg_copy(calibration_stack, tmp_path / "sharp", _sharpened)
+    sharp = measure(sharp_dir, keep_profiles=True)
+    found = {}
+    for name, table in (("plain", plain), ("sharp", sharp)):
+        state = table.profiles["state"]
+        a, v = halo_amounts(state[7], [state[1][i] for i in state[8]])
+        found[name] = pooled(a, v)
+    assert abs(found["plain"][0]) < 0.03, found
+    assert found["sharp"][0] > 0.2 and found["sharp"][0] > 10 * found["sharp"][1], found
+
+
+def test_a_developed_stack_refuses_n_with_the_cause_and_keeps_f_and_focus(calibration_stack, tmp_path):
+    """An in-camera look (S curve, unsharp mask) with no EXIF at all: the halos alone refuse the
+    f-number, naming sharpening and the fix; f and the focus distance stay right. Reported
+    anyway (``processed="report"``), a warning says so."""
+    truth = json.loads((calibration_stack / "truth.json").read_text())
+    folder = _jpeg_copy(calibration_stack, tmp_path / "camera", _camera)
+    _, result, _ = measure_and_fit(folder)
+    n = result.settings["a"]["f_number"]
+    assert n.value is None and "sharpening halos" in n.reason and "RAW" in n.reason
+    assert result.settings["a"]["aperture_diameter_mm"].value is None
+    assert result.processing.halos and result.processing.developer is None
+    doc = result.to_json_dict()
+    assert doc["processing"]["f_number_biased"] and doc["settings"]["a"]["f_number"]["value"] is None
+    lo, hi = result.focal_length_mm.ci95
+    assert lo <= truth["focal_length_mm"] <= hi
+    lo, hi = result.settings["a"]["focus_distance_mm"].ci95
+    assert lo <= truth["settings"]["a"]["focus_distance_mm"] <= hi
+    _, reported, _ = measure_and_fit(folder, processed="report")
+    assert any("reads high" in w for w in reported.warnings) and reported.processing.halos
+
+
+def test_exif_names_the_developer_and_linear_images_are_trusted(calibration_stack, tmp_path):
+    """A Software tag naming a raw developer marks sRGB images as developed (even without halos);
+    the same files declared linear, as a linear export would be, are trusted; a faithful sRGB
+    JPEG with no EXIF is not marked."""
+    folder = _jpeg_copy(calibration_stack, tmp_path / "dt", software="darktable 4.2.1")
+    found = from_exif(load_stack(folder))
+    assert found.developer == "darktable 4.2.1" and found.biases_f_number and len(found.developed_files) == 8
+    (folder / "stack.toml").write_text((folder / "stack.toml").read_text().replace('"srgb"', '"linear"'))
+    assert not from_exif(load_stack(folder)).biases_f_number
+    faithful = _jpeg_copy(calibration_stack, tmp_path / "faithful")
+    _, result, _ = measure_and_fit(faithful)
+    assert not result.processing.biases_f_number and result.settings["a"]["f_number"].value is not None
+
+
+@pytest.mark.parametrize("make, software, developed", [
+    ("lensfit", "darktable 4.2.1", True),  # synth's DNG developed by darktable (it keeps the Make)
+    ("lensfit", "", False), ("lensfit", "lensfit synth", False),  # synth's own JPEG
+    ("Canon", "", True), ("Canon", "RawTherapee 5.9", True)])
+def test_a_developer_is_named_whatever_camera_made_the_raw(tmp_path, make, software, developed):
+    from lensfit.io.exif import CameraRecord
+    from lensfit.measurement.processing import developer_of
+
+    record = CameraRecord(make=make, model=f"{make} body", software=software or None)
+    assert bool(developer_of(tmp_path / "a.jpg", record)) == developed
+    assert developer_of(tmp_path / "a.dng", record) is None  # a raw file is what the sensor gave
+
+
+@pytest.mark.parametrize("software, developer", [
+    ("darktable 4.2.1", True), ("RawTherapee 5.9", True), ("Adobe Photoshop Lightroom Classic 13.1", True),
+    ("Capture One 23 Windows", True), ("DxO PhotoLab 7", True), ("ART 1.21", True),
+    ("Ver.1.00", False), ("Canon EOS R5 firmware", False), ("Blender 4.1", False)])
+def test_developer_names(software, developer):
+    assert bool(DEVELOPERS.search(software)) == developer
+
+
+def test_init_notes_developed_photos(calibration_stack, tmp_path):
+    """``lensfit init`` on a camera's JPEGs says they were developed and what to give instead;
+    on lensfit's own faithful JPEGs it says nothing of the kind."""
+    from lensfit.io.manifest import draft_manifest
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for k, png in enumerate(sorted(calibration_stack.glob("*.png"))[:3]):
+        exif = Image.Exif()
+        exif[0x010F], exif[0x0110], exif[0x0131] = "Canon", "Canon EOS R5", "Firmware Version 1.8.1"
+        Image.fromarray(np.round(255 * _encode(read_image(png))).astype(np.uint8)).save(
+            folder / f"IMG_{k}.jpg", quality=95, exif=exif)
+    notes = " ".join(draft_manifest(folder, pixel_pitch_mm=0.006).notes)
+    assert "3 photo(s) were developed (in-camera JPEG of the Canon EOS R5" in notes and "RAW" in notes
+    faithful = _jpeg_copy(calibration_stack, tmp_path / "faithful", software="lensfit synth")
+    (faithful / "stack.toml").unlink()
+    assert "developed" not in " ".join(draft_manifest(faithful, pixel_pitch_mm=0.006).notes)
+
+
+@pytest.mark.parametrize("name, developer, keeps_pitch", [
+    ("rawtherapee-5.9_shot_000.jpg", "RawTherapee 5.9", False), ("darktable-4.2.1_shot_000.jpg", "darktable 4.2.1", True)])
+def test_files_written_by_the_developers_name_them(tmp_path, capsys, name, developer, keeps_pitch):
+    """JPEGs written by RawTherapee and darktable themselves (tests/fixtures/developed/README.md)
+    from synth's DNG, whose Make reads lensfit: the developer is named; where the developer
+    dropped the focal-plane resolution, lensfit init asks for the pixel pitch."""
+    import shutil
+    from pathlib import Path
+
+    from lensfit.cli import main
+    from lensfit.io.exif import read_camera_record
+    from lensfit.measurement.processing import developer_of
+
+    path = Path(__file__).resolve().parents[1] / "fixtures" / "developed" / name
+    record = read_camera_record(path)
+    assert record.make == "lensfit" and developer_of(path, record) == developer
+    assert (record.focal_plane_pitch_mm is not None) == keeps_pitch
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    shutil.copy(path, photos / "shot_000.jpg")
+    code = main(["init", str(photos)])
+    said = capsys.readouterr()
+    if keeps_pitch:
+        assert code == 0 and "developed" in said.out and developer in said.out
+    else:
+        assert code == 2 and "--pixel-pitch" in said.err
