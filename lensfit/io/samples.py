@@ -15,7 +15,8 @@ import numpy as np
 
 from lensfit.calibration.camera import Intrinsics, TargetPose
 from lensfit.errors import SpecError
-from lensfit.outputs.writers import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, provenance
+from lensfit.io.samples_csv import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, csv_calibration, read_samples_csv
+from lensfit.outputs.writers import provenance
 
 
 @dataclass(frozen=True)
@@ -146,8 +147,6 @@ class SampleTable:
         if not path.is_file():
             raise SpecError(path, "", "no such file; write samples with lensfit measure --out")
         if path.suffix.lower() == ".csv":
-            from lensfit.io.samples_csv import csv_calibration, read_samples_csv
-
             rows = read_samples_csv(path)
             doc: dict[str, Any] = {"samples": rows, **csv_calibration(path, rows)}
         else:

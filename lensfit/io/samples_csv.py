@@ -1,5 +1,6 @@
-"""The samples CSV that ``lensfit measure`` writes, read back: rows with numbers parsed, and the
-calibration (pixel pitch, focal length in px per setting) its rows repeat."""
+"""The samples CSV that ``lensfit measure`` writes: its columns, and the file read back (rows with
+numbers parsed, and the calibration, pixel pitch and focal length in px per setting, that its rows
+repeat). :class:`lensfit.io.samples.SampleTable` writes it."""
 
 from __future__ import annotations
 
@@ -9,6 +10,26 @@ from pathlib import Path
 from typing import Any
 
 from lensfit.errors import SpecError
+
+#: The header line ``lensfit measure`` writes to a samples CSV (lensfit.io.samples.SampleTable.COLUMNS).
+SAMPLES_CSV_COLUMNS = ("image", "setting", "target", "edge", "distance_mm", "coc_diameter_px", "sigma_px",
+                       "estimator", "flags", "distance_start_mm", "distance_end_mm", "start_px", "end_px",
+                       "distance_source", "field_radius_px", "disk_diameter_px", "disk_sigma_px")
+#: Headers earlier versions wrote (their files are lensfit's to replace with --force): without
+#: disk_diameter_px and disk_sigma_px, and without field_radius_px too.
+SAMPLES_CSV_EARLIER = (SAMPLES_CSV_COLUMNS[:-2], SAMPLES_CSV_COLUMNS[:-3])
+#: The calibration columns after them (each row repeats its setting's calibration, so that a
+#: refit from the CSV alone equals the fit from the stack), with the radial
+#: distortion the calibration fitted (OpenCV's k1, k2; blank where the intrinsics were given),
+#: which the fit's error budget reads (lensfit.fitting.constants.BLUR_SCALE_SIGMA_PLAIN).
+SAMPLES_CSV_CALIBRATION = ("pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "distortion_k1",
+                           "distortion_k2")
+SAMPLES_CSV_CALIBRATION_EARLIER = SAMPLES_CSV_CALIBRATION[:3]
+#: Columns that hold numbers (blank: no value).
+SAMPLES_CSV_NUMERIC = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
+                       "field_radius_px", "disk_diameter_px", "disk_sigma_px", *SAMPLES_CSV_CALIBRATION)
+#: Columns every samples CSV has (also one written by hand for ``lensfit fit``).
+SAMPLES_CSV_REQUIRED = ("setting", "distance_mm", "coc_diameter_px", "sigma_px")
 
 
 def read_samples_csv(path: str | Path) -> list[dict[str, Any]]:
@@ -31,9 +52,6 @@ def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
     if size > MAX_BYTES:
         raise SpecError(path, "", f"is {size / 1e6:.0f} MB, more than the {MAX_BYTES / 1e6:.0f} MB of a samples CSV "
                         "lensfit reads; is it the file you meant?")
-    numeric = ("distance_mm", "distance_start_mm", "distance_end_mm", "coc_diameter_px", "sigma_px",
-               "pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "field_radius_px",
-               "disk_diameter_px", "disk_sigma_px", "distortion_k1", "distortion_k2")
     rows = []
     with path.open(newline="", encoding="utf-8-sig") as fh:
         reader = csv.DictReader(fh)
@@ -41,7 +59,7 @@ def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
         twice = sorted({c for c in names if names.count(c) > 1})
         if twice:
             raise SpecError(path, twice[0], "column appears twice in the header; one value per column")
-        missing = [c for c in ("setting", "distance_mm", "coc_diameter_px", "sigma_px") if c not in names]
+        missing = [c for c in SAMPLES_CSV_REQUIRED if c not in names]
         if missing:
             raise SpecError(path, missing[0], "column missing; write samples with lensfit measure")
         for i, r in enumerate(reader, start=2):
@@ -53,7 +71,7 @@ def _read_samples_csv(path: Path) -> list[dict[str, Any]]:
             if any("\x00" in (v or "") for v in r.values()):
                 raise SpecError(path, f"line {i}", "holds a NUL byte; a samples CSV is text")
             row: dict[str, Any] = dict(r)
-            for c in numeric:
+            for c in SAMPLES_CSV_NUMERIC:
                 if c in row:
                     v = (row[c] or "").strip()
                     try:

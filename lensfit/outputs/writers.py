@@ -47,23 +47,11 @@ from typing import Any, Callable, Iterable, Iterator
 
 from lensfit.errors import OutputError
 from lensfit.io.specs import MAX_JSON_BYTES
+from lensfit.io.samples_csv import (SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_CALIBRATION_EARLIER, SAMPLES_CSV_COLUMNS,
+                                    SAMPLES_CSV_EARLIER)
 
 PROGRAMS = ("lensfit", "synth")
 
-#: The header line ``lensfit measure`` writes to a samples CSV (lensfit.measurement.measure.SampleTable.COLUMNS).
-SAMPLES_CSV_COLUMNS = ("image", "setting", "target", "edge", "distance_mm", "coc_diameter_px", "sigma_px",
-                       "estimator", "flags", "distance_start_mm", "distance_end_mm", "start_px", "end_px",
-                       "distance_source", "field_radius_px", "disk_diameter_px", "disk_sigma_px")
-#: Headers earlier versions wrote (their files are lensfit's to replace with --force): without
-#: disk_diameter_px and disk_sigma_px, and without field_radius_px too.
-SAMPLES_CSV_EARLIER = (SAMPLES_CSV_COLUMNS[:-2], SAMPLES_CSV_COLUMNS[:-3])
-#: The calibration columns after them (each row repeats its setting's calibration, so that a
-#: refit from the CSV alone equals the fit from the stack), with the radial
-#: distortion the calibration fitted (OpenCV's k1, k2; blank where the intrinsics were given),
-#: which the fit's error budget reads (lensfit.fitting.constants.BLUR_SCALE_SIGMA_PLAIN).
-SAMPLES_CSV_CALIBRATION = ("pixel_pitch_mm", "focal_length_px", "focal_length_sigma_px", "distortion_k1",
-                           "distortion_k2")
-SAMPLES_CSV_CALIBRATION_EARLIER = SAMPLES_CSV_CALIBRATION[:3]
 
 _SNIFF_BYTES = 1 << 16
 
