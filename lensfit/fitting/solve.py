@@ -12,19 +12,52 @@ from lensfit.fitting.data import FitData
 from lensfit.fitting.model import Layout, blur_diameters_px, jax_blur, pinhole_distance, unpack
 
 
-def _residuals(theta_free, args):
-    """Weighted residuals: blur rows, then the focal-length-in-px rows, then the floor priors."""
+class Rows(NamedTuple):
+    """The fit's rows as the compiled solver takes them (a pytree of arrays; :func:`solver_args`
+    pads the samples to :func:`padded_size`). Blur rows, one per sample: its setting's index,
+    its edge's inverse distances at the Gauss-Legendre nodes (1/mm), 1 where its distance is a
+    target pose's, its squared field radius, its reading and its weight (``sqrt(w) / sigma``, 0
+    for padding and rows left out). Then per setting the calibration's row (the focal length in
+    px and its weight, 1 / sigma) and the floor prior's weight, and log P's prior (its centre
+    and weight; weight 0: none)."""
+
+    setting: np.ndarray
+    w_nodes: np.ndarray
+    pose: np.ndarray
+    field2: np.ndarray
+    coc_px: np.ndarray
+    weight: np.ndarray
+    pixel_pitch_mm: float
+    focal_length_px: np.ndarray
+    focal_length_weight: np.ndarray
+    floor_weight: np.ndarray
+    p_prior: np.ndarray
+
+
+class SolverArgs(NamedTuple):
+    """What the compiled solver functions take beside the free parameters: the whole parameter
+    vector (``lensfit.fitting.model.Layout``; its free entries, ``free_idx``, are the solver's) and
+    the rows."""
+
+    theta: np.ndarray
+    free_idx: np.ndarray
+    rows: Rows
+
+
+def _residuals(theta_free, args: SolverArgs, m: int):
+    """Weighted residuals: blur rows, then the focal-length-in-px rows, then the floor priors,
+    then log P's prior."""
     import jax.numpy as jnp
 
-    (theta_fixed, free_idx, m, setting, w_nodes, pose, field2, coc, sqrt_w_over_sigma, pitch, fpx, fpx_w, floor_w,
-     p_prior) = args
-    theta = jnp.asarray(theta_fixed).at[free_idx].set(theta_free)  # numpy where called eagerly
-    c, s = jax_blur(theta, m, setting, w_nodes, pitch, fpx, pose, field2)
-    r_blur = (c - coc) * sqrt_w_over_sigma
-    r_fpx = (s / pitch - fpx) * fpx_w
+    rows = args.rows
+    theta = jnp.asarray(args.theta).at[args.free_idx].set(theta_free)  # numpy where called eagerly
+    c, s = jax_blur(theta, m, rows.setting, rows.w_nodes, rows.pixel_pitch_mm, rows.focal_length_px, rows.pose,
+                    rows.field2)
+    r_blur = (c - rows.coc_px) * rows.weight
+    r_fpx = (s / rows.pixel_pitch_mm - rows.focal_length_px) * rows.focal_length_weight
     at = Layout(m)
-    r_floor = theta[at.floor()] * floor_w
-    r_p = ((theta[at.log_p] - p_prior[0]) * p_prior[1])[None]  # prior on log P (weight 0: none)
+    r_floor = theta[at.floor()] * rows.floor_weight
+    r_p = ((theta[at.log_p] - rows.p_prior[0]) * rows.p_prior[1])[None]
     return jnp.concatenate([r_blur, r_fpx, r_floor, r_p])
 
 
@@ -80,7 +113,7 @@ def _robust_rows(r, q, loss: str):
 
 def _optx_solve_robust(theta0, args, q, m: int, loss: str):
     def fn(theta_free, a):
-        res = _residuals(theta_free, (*a[0][:2], m, *a[0][2:]))
+        res = _residuals(theta_free, a[0], m)
         n = a[1].shape[0]
         return res.at[:n].set(_robust_rows(res[:n], a[1], loss))
 
@@ -116,7 +149,7 @@ class _Solver:
     keeps a store (``lensfit.runtime.aot``), else jit-compiled per process: ``solve(theta0, args) ->
     (theta, converged)`` (optimistix Levenberg-Marquardt), ``evaluate(theta, args) ->
     (residuals, Jacobian)`` and ``derived(theta_full) -> (values, Jacobians)`` of the reported
-    quantities. Indexable as (solve, evaluate, derived)."""
+    quantities; ``args`` a :class:`SolverArgs`."""
 
     def __init__(self, m: int):
         self.m = m
@@ -140,9 +173,6 @@ class _Solver:
     def derived(self, t):
         return self._call("derived", _derived, t)
 
-    def __getitem__(self, k):
-        return (self.solve, self.evaluate, self.derived)[k]
-
 
 def solver_for(m: int) -> _Solver:
     """The compiled solver functions for ``m`` settings (see :class:`_Solver`)."""
@@ -161,10 +191,10 @@ def floor_escape(sol, free_idx, args, m: int):
         return None
     start = np.array(sol, np.float64)
     start[near] = FLOOR_START_PX
-    alt = np.asarray(solver_for(m)[0](start, args)[0])
+    alt = np.asarray(solver_for(m).solve(start, args)[0])
     if not np.all(np.isfinite(alt)):
         return None
-    cost = [float(np.sum(np.asarray(solver_for(m)[1](t, args)[0]) ** 2)) for t in (sol, alt)]
+    cost = [float(np.sum(np.asarray(solver_for(m).evaluate(t, args)[0]) ** 2)) for t in (sol, alt)]
     return alt if cost[1] < cost[0] * (1.0 - 1e-9) else None
 
 
@@ -356,8 +386,9 @@ def padded_size(n: int) -> int:
     return max(64, 1 << int(math.ceil(math.log2(max(n, 1)))))
 
 
-def solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w, p_prior=(0.0, 0.0)):
-    """The solver's ``args``, samples padded to :func:`padded_size`. numpy arrays, which the
+def solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, floor_w,
+                p_prior=(0.0, 0.0)) -> SolverArgs:
+    """The solver's arguments, samples padded to :func:`padded_size`. numpy arrays, which the
     compiled functions take as they are (``jnp.asarray`` compiles a small conversion per new
     shape in every process: about 0.1 s of a cold fit)."""
     pad = padded_size(len(data.coc_px)) - len(data.coc_px)
@@ -365,17 +396,19 @@ def solver_args(theta, free_idx, data: FitData, sqrt_w_over_sigma, fpx, fpx_w, f
     def padded(a, fill):
         return np.concatenate([a, np.full((pad, *np.shape(a)[1:]), fill)])
 
-    return (np.asarray(theta, np.float64), np.asarray(free_idx), padded(data.setting.astype(np.int32), 0),
-            padded(data.w_nodes, 1e-3), padded(data.pose.astype(np.float64), 0.0),
-            padded(np.nan_to_num(data.field2), 0.0), padded(data.coc_px, 1.0),
-            padded(sqrt_w_over_sigma, 0.0),
-            data.pixel_pitch_mm, np.asarray(fpx, np.float64), np.asarray(fpx_w, np.float64),
-            np.asarray(floor_w, np.float64), np.asarray(p_prior, dtype=np.float64))
+    rows = Rows(setting=padded(data.setting.astype(np.int32), 0), w_nodes=padded(data.w_nodes, 1e-3),
+                pose=padded(data.pose.astype(np.float64), 0.0), field2=padded(np.nan_to_num(data.field2), 0.0),
+                coc_px=padded(data.coc_px, 1.0), weight=padded(sqrt_w_over_sigma, 0.0),
+                pixel_pitch_mm=data.pixel_pitch_mm, focal_length_px=np.asarray(fpx, np.float64),
+                focal_length_weight=np.asarray(fpx_w, np.float64), floor_weight=np.asarray(floor_w, np.float64),
+                p_prior=np.asarray(p_prior, dtype=np.float64))
+    return SolverArgs(np.asarray(theta, np.float64), np.asarray(free_idx), rows)
 
 
-def solver_residual_fn(m):
-    def fn(theta_free, args):
-        return _residuals(theta_free, (*args[:2], m, *args[2:]))
+def solver_residual_fn(m: int):
+    """The weighted residuals ``fn(theta_free, args)`` of a fit of ``m`` settings."""
+    def fn(theta_free, args: SolverArgs):
+        return _residuals(theta_free, args, m)
 
     return fn
 

@@ -192,7 +192,7 @@ def irls(pb: Problem, theta: np.ndarray, rows: np.ndarray, weights: np.ndarray):
     base = rows / data.sigma_px
     for it in range(pb.rounds):
         if q is None:
-            sol, ok = solver_for(m)[0](theta[free_idx], pb.args(theta, np.sqrt(weights) * base))
+            sol, ok = solver_for(m).solve(theta[free_idx], pb.args(theta, np.sqrt(weights) * base))
         else:
             sol, ok = solver_for(m).solve_robust(theta[free_idx], pb.args(theta, base),
                                               np.concatenate([q, np.ones(npad - n)]), pb.loss)
@@ -243,7 +243,7 @@ def evaluate(pb: Problem, theta: np.ndarray, weights: np.ndarray):
     npad = padded_size(len(data.coc_px))
     args = pb.args(theta, np.sqrt(weights) * row_on / data.sigma_px)
     if free_idx.size:
-        res, jac = (np.asarray(a) for a in solver_for(pb.m)[1](theta[free_idx], args))
+        res, jac = (np.asarray(a) for a in solver_for(pb.m).evaluate(theta[free_idx], args))
     else:
         res = np.asarray(solver_residual_fn(pb.m)(theta[free_idx], args))
         jac = np.zeros((len(res), 0))

@@ -323,7 +323,7 @@ def derive_quantities(theta, cov, m, p, data, free, blocked, has_fpx, no_fpx_rea
     import jax
 
     with jax.enable_x64(True):
-        values, grads = solver_for(m)[2](np.asarray(theta, np.float64))
+        values, grads = solver_for(m).derived(np.asarray(theta, np.float64))
         q = {k: np.asarray(v) for k, v in values.items()}
         jacs = {k: np.asarray(v) for k, v in grads.items()}
     variance = _Variance(q, jacs, cov, parts or {}, scale_var)
@@ -471,8 +471,8 @@ def cramer_rao(result: FitResult, focal_length_mm: float, settings: dict[str, tu
     with jax.enable_x64(True):
         args = solver_args(theta, free_idx, data, setup["row_on"] / data.sigma_px, setup["fpx"], setup["fpx_w"],
                             setup["floor_w"], setup.get("p_prior", (0.0, 0.0)))
-        _, jac = solver_for(m)[1](theta[free_idx], args)
-        values, grads = solver_for(m)[2](np.asarray(theta, np.float64))
+        _, jac = solver_for(m).evaluate(theta[free_idx], args)
+        values, grads = solver_for(m).derived(np.asarray(theta, np.float64))
     cov_free, _ = svd_covariance(np.asarray(jac), 1.0)
     cov = np.zeros((vector_size(m), vector_size(m)))
     cov[np.ix_(free_idx, free_idx)] = cov_free

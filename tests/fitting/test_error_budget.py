@@ -491,10 +491,10 @@ def test_a_floor_stuck_at_zero_is_left():
     args = solver_args(theta, free_idx, data, 1.0 / data.sigma_px, [fpx], [1.0 / fsg], [1.0])
     assert abs(s / PITCH / fpx - 1) < 0.01
     with jax.enable_x64(True):
-        stuck = np.asarray(solver_for(1)[0](theta[free_idx], args)[0])
+        stuck = np.asarray(solver_for(1).solve(theta[free_idx], args)[0])
         left = floor_escape(stuck, free_idx, args, 1)
         assert left is not None
-        cost = [float(np.sum(np.asarray(solver_for(1)[1](t, args)[0]) ** 2)) for t in (stuck, left)]
+        cost = [float(np.sum(np.asarray(solver_for(1).evaluate(t, args)[0]) ** 2)) for t in (stuck, left)]
     assert stuck[3] == 0.0
     assert abs(abs(left[3]) - 0.6) < 0.05 and cost[1] < cost[0] - 10.0
 

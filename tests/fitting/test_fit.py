@@ -576,19 +576,13 @@ def test_a_floor_left_at_zero_by_an_earlier_solve_is_tried_again(loss, monkeypat
         def __getattr__(self, name):  # the robust solve (the rounds after the first) as it is
             return getattr(self.inner, name)
 
-        def __getitem__(self, k):
-            if k != 0:
-                return self.inner[k]
-
-            def solve(theta0, args):
-                sol, ok = self.inner[0](theta0, args)
-                if not zeroed:
-                    free_idx = np.asarray(args[1])
-                    sol = np.array(sol)
-                    sol[np.flatnonzero(free_idx == Layout(self.m).floor(0))] = 0.0
-                    zeroed.append(True)
-                return sol, ok
-            return solve
+        def solve(self, theta0, args):
+            sol, ok = self.inner.solve(theta0, args)
+            if not zeroed:
+                sol = np.array(sol)
+                sol[np.flatnonzero(np.asarray(args.free_idx) == Layout(self.m).floor(0))] = 0.0
+                zeroed.append(True)
+            return sol, ok
 
     monkeypatch.setattr(stages, "solver_for", FirstSolveZeroesTheFloor)
     r = run_fit(rows, fpx, fpx_sigma, loss=loss)
