@@ -16,8 +16,8 @@ import numpy as np
 
 from lensfit.runtime import aot
 from lensfit.measurement.diffraction import edge_kernel
-from lensfit.estimators.edge_model import (AIRY_START_SHARES, chunks, from_moment, grid_start, moment_residuals,
-                                           residuals, shape_start, squared_radius, to_moment)
+from lensfit.estimators.edge_model import (AIRY_START_SHARES, Profile, chunks, from_moment, grid_start,
+                                           moment_residuals, residuals, shape_start, squared_radius, to_moment)
 from lensfit.estimators.profile import NBINS_ACROSS, STRIPS
 
 #: Edges per compiled call, bins per edge profile (at most; STRIPS x NBINS_ACROSS) and the
@@ -55,7 +55,7 @@ def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: 
     from lensfit.fitting import lm
 
     def one(d, s, v, w, nx, ny, theta_disk, airy):
-        args = (d, s, v, w, nx, ny, airy) if diffraction else (d, s, v, w, nx, ny)
+        args = Profile(d, s, v, w, nx, ny, airy if diffraction else None)
         fn = partial(residuals, shaped=shaped)
         # The uniform disk starts from a grid over the radius; two disks (which have more than one
         # local minimum: a core in a halo, a bright rim) from the best of a grid of shapes at the

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -88,11 +89,23 @@ def model(theta, d, s, nx, ny, shaped: bool, airy=None):
     return lo + (hi - lo) * (outer + a * (inner - outer))
 
 
-def residuals(theta, args, shaped: bool):
-    # w = 1 / standard error of the bin mean (0 for padding); the edge's Airy kernel last where
-    # diffraction is modelled
-    d, s, v, w, nx, ny = args[:6]
-    airy = args[6] if len(args) > 6 else None
+class Profile(NamedTuple):
+    """One edge's binned profile as its fit takes it (a pytree): each bin's offset across the
+    edge ``d`` and position along it ``s`` (px), its mean value ``v`` and weight ``w`` (1 / the
+    standard error of the mean; 0 for padding), the edge normal's components ``nx``, ``ny``, and
+    the edge's Airy kernel where diffraction is modelled (None: not)."""
+
+    d: Any
+    s: Any
+    v: Any
+    w: Any
+    nx: Any
+    ny: Any
+    airy: Any = None
+
+
+def residuals(theta, args: Profile, shaped: bool):
+    d, s, v, w, nx, ny, airy = args
     r = w * (v - model(theta, d, s, nx, ny, shaped, airy))
     if not shaped:
         if airy is not None:  # the ramp, held near 0 where the profile does not ask for one
