@@ -31,7 +31,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
     submod_attrs={
         "fitting": ["fit", "FitResult", "Estimate", "Outcome", "results_document", "write_results",
                     "compare_with_truth", "cramer_rao"],
-        "measurement.measure": ["measure"],
+        "measurement.measure": ["measure", "Measurement"],
         "measurement.pipeline": ["measure_and_fit"],
         "io.stack": ["load_stack"],
         "errors": ["InputError"],

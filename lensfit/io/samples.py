@@ -89,20 +89,10 @@ class SampleTable:
     #: none); kept in memory for the diffraction test of ``lensfit.measurement.pipeline``, never written
     fit_rms: list[float | None] = field(default_factory=list)
     #: per sample, the edge geometry its blur was read with (an ``EdgeTask`` with only the edge
-    #: estimator's context, ``EDGE_CONTEXT``), in memory for :func:`lensfit.measurement.measure.remeasure`
+    #: estimator's context, ``EDGE_CONTEXT``), in memory for ``Measurement.reread`` (lensfit.measurement.measure)
     edge_tasks: list[Any] = field(default_factory=list)
     #: what ``lensfit.measurement.pipeline``'s diffraction test found (None where it did not run)
     diffraction: dict[str, Any] | None = None
-    #: per image (index in the stack), the targets as detected, before refinement; in memory for
-    #: a later :func:`lensfit.measurement.measure.measure` of the same stack (``detected``), never written
-    detections: dict[int, list[Any]] = field(default_factory=dict)
-    #: the edge estimator's profiles of the first pass over the edges as detected (where asked
-    #: for, ``keep_profiles``: about 4 kB an edge); in memory for a later
-    #: :func:`lensfit.measurement.measure.measure` of the same stack with the Airy pattern, which solves them
-    #: again instead of gathering them (``lensfit.measurement.pipeline``, which lets them go when it returns);
-    #: beside them the calibration from the corners as detected and the edges it gives, which
-    #: that measure takes too where its detections are these very objects
-    profiles: dict[str, Any] | None = None
     #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``, ``ideal``), which the
     #: fit takes where no argument gives it; written to the samples JSON
     lens: dict[str, Any] = field(default_factory=dict)

@@ -111,9 +111,7 @@ def in_background(load: Callable[[], None], name: str) -> threading.Thread:
 
 def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
             progress: Callable[[str, int, int], None] | None = None,
-            airy_px: dict[str, float] | None = None, detected: SampleTable | None = None,
-            on_edges: Callable[[int, int], None] | None = None, keep_profiles: bool = False,
-            jobs: int | None = None) -> SampleTable:
+            airy_px: dict[str, float] | None = None, jobs: int | None = None) -> SampleTable:
     """Measure blur versus distance on every target edge of a stack.
 
     Parameters
@@ -131,18 +129,6 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
         Per setting label, the Airy pattern's scale ``lambda N_w / p`` in px: the edge estimators
         then model diffraction and read the defocus blur alone (flag ``diffraction_modelled``;
         ``lensfit.measurement.diffraction``, ``lensfit.measurement.pipeline``).
-    detected : SampleTable, optional
-        A table this process measured of the same stack: its targets as detected are taken
-        instead of detecting them again (the diffraction rounds of ``lensfit.measurement.pipeline``; the
-        corners are refined, the intrinsics calibrated and the blur read afresh: from its edge
-        profiles where it kept them and its edges are these, ``keep_profiles``).
-    on_edges : callable, optional
-        Called with the number of settings and of edges once the edges are known, before they
-        are measured (``lensfit.measurement.pipeline`` starts loading the fit's compiled functions for them
-        there, in the background).
-    keep_profiles : bool
-        Keep the edge estimator's profiles in the table (``SampleTable.profiles``) for a later
-        measure with the Airy pattern (``detected``); memory: about 4 kB an edge.
     jobs : int, optional
         Images read and searched for targets at once, in threads (default: the cores this
         process may use; ``lensfit.runtime.parallel``). The results are the same whatever it is.
@@ -162,48 +148,81 @@ def measure(stack: Stack | str | Path, estimator: str = "edge", *, refine: bool 
     >>> table = measure("out/demo")                     # doctest: +SKIP
     >>> table.write("samples.csv")                      # doctest: +SKIP
     """
-    fn = get_estimator(estimator)
-    jobs = check_jobs(jobs)
-    if airy_px is not None and estimator not in ("edge", "edge-disk"):
-        raise InputError("estimator", estimator, "edge or edge-disk where diffraction is modelled",
-                         "the target estimator has no diffraction model")
-    if not isinstance(stack, Stack):
-        stack = load_stack(stack)
-    if airy_px is not None:
-        missing = sorted({e.setting for e in stack.images} - set(airy_px))
-        if missing:
-            raise InputError("airy_px", missing[0], "an Airy scale for every setting of the stack")
-
-    if not stack.targets:
-        raise SpecError(stack.manifest_path, "target", "no [[target]] tables; describe the calibration targets "
-                        "(kind, squares, square_mm, ...) so that they can be found")
-    warming = _prewarm(estimator, airy_px is not None)
-    try:
-        same = detected is not None and len(detected.detections) == len(stack.images)
-        return _measure(stack, estimator, fn, refine, progress, airy_px,
-                        detected.detections if same else None, on_edges,
-                        {} if keep_profiles else detected.profiles if same else None, jobs)
-    finally:
-        if warming is not None:
-            warming.join()
+    return Measurement(stack, estimator, refine=refine, progress=progress, jobs=jobs).read(airy_px)
 
 
-def remeasure(stack: Stack, table: SampleTable, which: list[int], airy_px: dict[str, float]) -> list[Any]:
-    """The edge estimator again on samples ``which`` of ``table`` (a :func:`measure` of ``stack``
-    in this process) with each setting's Airy scale ``airy_px`` (px): their edges as they were
-    read, their images read again, all in one batched solve. A quick second reading of a few
-    edges (``lensfit.measurement.pipeline``'s diffraction test), not a new table: the estimates, in order."""
-    from lensfit.estimators import edge as edge_estimator
+class Measurement:
+    """A stack being measured, which can read its edges again on request.
 
-    index = {entry.file.name: i for i, entry in enumerate(stack.images)}
-    by_image: dict[int, list[int]] = {}
-    for j in which:
-        by_image.setdefault(index[table.samples[j].image], []).append(j)
-    per_image = edge_estimator.measure_images(
-        [(partial(stack.read, i), [table.edge_tasks[j] for j in js]) for i, js in by_image.items()],
-        airy_px=[float(airy_px[stack.images[i].setting]) for i in by_image])
-    found = {j: est for js, ests in zip(by_image.values(), per_image) for j, est in zip(js, ests)}
-    return [found[j] for j in which]
+    ``read()`` is :func:`measure`'s table; ``read(airy_px)`` after it reads the same targets
+    again through each setting's Airy pattern (``lensfit.measurement.pipeline``'s diffraction
+    rounds): the targets as first detected are taken instead of detecting them again, and the
+    corners are refined, the intrinsics calibrated and the blur read afresh, from the first
+    pass's edge profiles where they were kept (``keep_profiles``; about 4 kB an edge; the same
+    readings, a quarter less time a round). ``reread`` reads a few edges of a table again with
+    the pattern, not a new table. ``on_edges`` is called with the number of settings and of
+    edges once the first read knows its edges, before they are measured (the pipeline starts
+    loading the fit's compiled functions for them there, in the background). The other
+    arguments are :func:`measure`'s.
+    """
+
+    def __init__(self, stack: Stack | str | Path, estimator: str = "edge", *, refine: bool = True,
+                 progress: Callable[[str, int, int], None] | None = None, jobs: int | None = None,
+                 keep_profiles: bool = False, on_edges: Callable[[int, int], None] | None = None):
+        self.fn = get_estimator(estimator)
+        self.jobs = check_jobs(jobs)
+        self.stack = stack if isinstance(stack, Stack) else load_stack(stack)
+        if not self.stack.targets:
+            raise SpecError(self.stack.manifest_path, "target", "no [[target]] tables; describe the calibration "
+                            "targets (kind, squares, square_mm, ...) so that they can be found")
+        self.estimator, self.refine, self.progress, self.on_edges = estimator, refine, progress, on_edges
+        #: each image's targets as the first read detected them (None before it)
+        self.detected: dict[int, list[Detection]] | None = None
+        #: the first pass's edge profiles, the edge estimator's state among them (None: not kept)
+        self.profiles: dict[str, Any] | None = {} if keep_profiles else None
+
+    def read(self, airy_px: dict[str, float] | None = None) -> SampleTable:
+        """The stack's samples, through each setting's Airy pattern ``airy_px`` (px) where given."""
+        if airy_px is not None and self.estimator not in ("edge", "edge-disk"):
+            raise InputError("estimator", self.estimator, "edge or edge-disk where diffraction is modelled",
+                             "the target estimator has no diffraction model")
+        if airy_px is not None:
+            missing = sorted({e.setting for e in self.stack.images} - set(airy_px))
+            if missing:
+                raise InputError("airy_px", missing[0], "an Airy scale for every setting of the stack")
+        warming = _prewarm(self.estimator, airy_px is not None)
+        first = self.detected is None
+        try:
+            table, detected = _measure(self.stack, self.estimator, self.fn, self.refine, self.progress, airy_px,
+                                       self.detected, self.on_edges if first else None, self.profiles, self.jobs)
+        finally:
+            if warming is not None:
+                warming.join()
+        if first:
+            self.detected = detected
+        return table
+
+    def reread(self, table: SampleTable, which: list[int], airy_px: dict[str, float]) -> list[Any]:
+        """The edge estimator again on samples ``which`` of ``table`` (a :meth:`read`) with each
+        setting's Airy scale ``airy_px`` (px): their edges as they were read, their images read
+        again, all in one batched solve. A quick second reading of a few edges (the pipeline's
+        diffraction test), not a new table: the estimates, in order."""
+        from lensfit.estimators import edge as edge_estimator
+
+        stack = self.stack
+        index = {entry.file.name: i for i, entry in enumerate(stack.images)}
+        by_image: dict[int, list[int]] = {}
+        for j in which:
+            by_image.setdefault(index[table.samples[j].image], []).append(j)
+        per_image = edge_estimator.measure_images(
+            [(partial(stack.read, i), [table.edge_tasks[j] for j in js]) for i, js in by_image.items()],
+            airy_px=[float(airy_px[stack.images[i].setting]) for i in by_image])
+        found = {j: est for js, ests in zip(by_image.values(), per_image) for j, est in zip(js, ests)}
+        return [found[j] for j in which]
+
+    def release(self) -> None:
+        """Let the kept edge profiles go (no later read needs them)."""
+        self.profiles = None
 
 
 def _same_objects(a: list[list[Any]], b: list[list[Any]]) -> bool:
@@ -215,12 +234,12 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
              progress: Callable[[str, int, int], None] | None, airy_px: dict[str, float] | None,
              detected: dict[int, list[Detection]] | None = None,
              on_edges: Callable[[int, int], None] | None = None,
-             profiles: dict[str, Any] | None = None, jobs: int = 1) -> SampleTable:
-    """:func:`measure` once its arguments are checked (the edge estimator's compiled fits loading
-    in the background meanwhile, :func:`_prewarm`); ``detected``: the targets of each image as an
-    earlier measure of the stack detected them; ``on_edges``: see :func:`measure`; ``profiles``:
-    an empty dict to keep the first pass's edge profiles in, or those an earlier measure kept
-    (``SampleTable.profiles``), carried on to this table. The stages are :class:`_Run`'s."""
+             profiles: dict[str, Any] | None = None, jobs: int = 1) -> tuple[SampleTable, dict[int, list[Detection]]]:
+    """:class:`Measurement`'s read once its arguments are checked (the edge estimator's compiled
+    fits loading in the background meanwhile, :func:`_prewarm`); ``detected``: the targets of
+    each image as an earlier read detected them; ``profiles``: an empty dict to keep the first
+    pass's edge profiles in, or those an earlier read kept. The stages are :class:`_Run`'s.
+    Returns the table and the targets as detected."""
     run = _Run(stack, estimator, fn, airy_px, progress, 3 * len(stack.images) if refine else 2 * len(stack.images))
     run.detect(detected, jobs)
     work = run.calibrate(profiles, refine)
@@ -232,7 +251,7 @@ def _measure(stack: Stack, estimator: str, fn: Callable, refine: bool,
         run.samples_of(i, first.get(i))
         run.tick("measure")
     run.table.stage_seconds = dict(run.clock.seconds)
-    return run.table
+    return run.table, run.detected
 
 
 class _Run:
@@ -304,7 +323,7 @@ class _Run:
         else:
             for i in range(n):
                 self.tick("detect")
-        self.table.detections = {i: list(found) for i, found in self.detections.items()}
+        self.detected = {i: list(found) for i, found in self.detections.items()}
         missing = [stack.images[i].file.name for i in range(n) if not self.detections[i]]
         if missing:
             self.table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
@@ -392,7 +411,6 @@ class _Run:
                 [(partial(self.read, i), work[i][0]) for i in range(n)], progress=lambda k: self.tick("edges"),
                 airy_px=None if self.airy_px is None else [self.airy(i) for i in range(n)],
                 keep_profiles=profiles if self.keeping else None, profiles=None if self.keeping else profiles)
-        table.profiles = profiles if profiles else None
         return {i: (work[i][0], work[i][1], per_image[i]) for i in range(n)}
 
     def refine(self, first: dict[int, tuple[list, list, list]]) -> None:

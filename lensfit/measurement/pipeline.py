@@ -6,7 +6,7 @@ settles.
 Whether the images show diffraction (``auto_diffraction``) is the edges' own verdict: where the
 first fit puts the Airy pattern at ``TEST_MIN_AIRY_PX`` or more (at 550 nm), up to
 ``TEST_MAX_EDGES`` edges with small blur are read again with it
-(:func:`~lensfit.measurement.measure.remeasure`), and it is modelled only if it fits them better than the
+(``Measurement.reread``, :mod:`lensfit.measurement.measure`), and it is modelled only if it fits them better than the
 disk alone, most of them and in total. A lens's photographs always carry it; a geometric
 renderer's images (Mitsuba, pbrt, synth without the effect) never do, and read with it the
 f-number comes out 6-9 % high. On a focus bracket at f/11 (Airy scale 1 px, 64 spp) the mean
@@ -84,22 +84,21 @@ TEST_RETRY_MAX_RATIO = 0.5
 TEST_MIN_AIRY_PX = 0.1
 
 
-def diffraction_test(stack: Any, table: Any, airy: dict[str, float]) -> dict[str, Any]:
+def diffraction_test(measurement: Any, table: Any, airy: dict[str, float]) -> dict[str, Any]:
     """Does the Airy pattern belong in the blur model? Reads again, with the pattern (``airy`` px
-    per setting), the edges of ``table`` (a plain :func:`~lensfit.measurement.measure.measure` of ``stack``)
+    per setting), the edges of ``table`` (a plain read of ``measurement``, a
+    :class:`~lensfit.measurement.measure.Measurement`)
     whose blur is small enough for it to shape their profile, and compares each edge's fit (RMS
     residual in units of the noise) with and without. Returns the evidence and ``modelled``:
     True where the pattern fits better on at least ``TEST_BETTER_SHARE`` of at least
     ``TEST_MIN_EDGES`` edges and in total (the geometric mean of the chi-square ratios)."""
-    from lensfit.measurement.measure import remeasure
-
     which = [j for j, (smp, rms) in enumerate(zip(table.samples, table.fit_rms))
              if rms is not None and smp.coc_diameter_px is not None
              and smp.coc_diameter_px < max(TEST_MAX_BLUR_PX, TEST_MAX_BLUR_AIRY * airy.get(smp.setting, 0.0))]
     if len(which) > TEST_MAX_EDGES:  # evenly over the blurs they show
         by_blur = sorted(which, key=lambda j: table.samples[j].coc_diameter_px)
         which = sorted(by_blur[k] for k in np.linspace(0, len(by_blur) - 1, TEST_MAX_EDGES).round().astype(int))
-    again = remeasure(stack, table, which, airy) if len(which) >= TEST_MIN_EDGES else []
+    again = measurement.reread(table, which, airy) if len(which) >= TEST_MIN_EDGES else []
     chi2 = np.array([(table.fit_rms[j] ** 2, est.rms_residual ** 2) for j, est in zip(which, again)
                      if est.rms_residual is not None], float).reshape(-1, 2)
     better = float(np.mean(chi2[:, 1] < chi2[:, 0])) if len(chi2) else 0.0
@@ -173,7 +172,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     >>> N.value, N.ci95, N.shares["calibration"]                                       # doctest: +SKIP
     (11.0023, (10.987, 11.018), 0.12)
     """
-    from lensfit.measurement.measure import HOLD_BYTES, in_background, measure
+    from lensfit.measurement.measure import HOLD_BYTES, Measurement, in_background
     from lensfit.io.stack import Stack, load_stack
 
     if wavelength_nm is not None and not (math.isfinite(wavelength_nm) and 200.0 <= wavelength_nm <= 2000.0):
@@ -207,10 +206,11 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
 
     try:
         # The edges' profiles are kept for the rounds, which solve them again with the Airy pattern
-        # (``measure``'s ``keep_profiles``: the same readings, a quarter less time a round).
+        # (the Measurement's ``keep_profiles``: the same readings, a quarter less time a round).
         # (and for the halo test of sRGB-encoded images)
-        table = measure(stack, estimator, progress=progress, jobs=jobs,
-                        keep_profiles=auto or wavelength_nm is not None or stack.encoded, on_edges=on_edges)
+        measurement = Measurement(stack, estimator, progress=progress, jobs=jobs, on_edges=on_edges,
+                                  keep_profiles=auto or wavelength_nm is not None or stack.encoded)
+        table = measurement.read()
     except BaseException:
         for thread in ahead:
             thread.join()
@@ -219,13 +219,13 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         ahead[0].join()
     warming = ahead[1] if len(ahead) > 1 else airy_ahead() if auto or wavelength_nm else None
     try:
-        found = assess(stack, table)  # (the halos where the edge estimator kept its profiles)
-        out = _fit_rounds(stack, table, estimator, wavelength_nm, options, progress, auto, warming)
+        found = assess(stack, measurement.profiles)  # (the halos where the edge estimator kept its profiles)
+        out = _fit_rounds(measurement, table, wavelength_nm, options, auto, warming)
     finally:
         if warming is not None:
             warming.join()
     apply(out[1], found, processed)
-    out[0].profiles = table.profiles = None  # the rounds' kept profiles: not held by the caller
+    measurement.release()  # the rounds' kept profiles: not held by the caller
     return out
 
 
@@ -245,8 +245,8 @@ def _prewarm_airy(rounds: bool) -> None:
     edge_fit.prewarm_airy(rounds)
 
 
-def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | None, options: dict[str, Any],
-                progress: Callable[[str, int, int], None] | None, auto: bool, warming: Any):
+def _fit_rounds(measurement: Any, table: Any, wavelength_nm: float | None, options: dict[str, Any], auto: bool,
+                warming: Any):
     """:func:`measure_and_fit` once the stack is measured; ``warming``: the thread loading the fits
     with the Airy pattern, joined before they are first called."""
     from lensfit.fitting import fit
@@ -262,7 +262,7 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
         airy = airy_per_setting(result, DEFAULT_WAVELENGTH_NM)
         if max(airy.values(), default=0.0) >= TEST_MIN_AIRY_PX:
             warming.join()
-            evidence = table.diffraction = _test_with_retries(stack, table, airy)
+            evidence = table.diffraction = _test_with_retries(measurement, table, airy)
             if evidence["modelled"]:
                 wavelength_nm = DEFAULT_WAVELENGTH_NM
                 start = evidence["airy_scale_px"]
@@ -287,7 +287,7 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
     if warming is not None:
         warming.join()
     rounds_options = {**options, "floor_choice": False}
-    table, result = diffraction_rounds(stack, table, result, airy, estimator, wavelength_nm, rounds_options, progress, rounds)
+    table, result = diffraction_rounds(measurement, table, result, airy, wavelength_nm, rounds_options, rounds)
     if (options.get("blur_floor_px") is None and options.get("floor_choice", True)
             and (sensitive := floor_sensitive(result))):
         # Each round takes the Airy scale from the fit before it, so the fit without the floor is
@@ -295,19 +295,19 @@ def _fit_rounds(stack: Any, table: Any, estimator: str, wavelength_nm: float | N
         # the fuzz's 13 mm f/4 stack read N +8 % there, +0.4 % after its rounds).
         without = {**rounds_options, "blur_floor_px": 0.0}
         alt = fit(table, **without)
-        _, alt = diffraction_rounds(stack, table, alt, airy_per_setting(alt, wavelength_nm), estimator, wavelength_nm,
-                         without, progress, [])
+        _, alt = diffraction_rounds(measurement, table, alt, airy_per_setting(alt, wavelength_nm), wavelength_nm,
+                                    without, [])
         widen(result, alt, sensitive)
     return table, result, rounds
 
 
-def diffraction_rounds(stack: Any, table: Any, result: Any, airy: dict[str, float], estimator: str, wavelength_nm: float,
-            options: dict[str, Any], progress: Callable[[str, int, int], None] | None, rounds: list):
-    """Measure ``stack`` again with the Airy scales ``airy`` and fit, each round's scales from the
+def diffraction_rounds(measurement: Any, table: Any, result: Any, airy: dict[str, float], wavelength_nm: float,
+                       options: dict[str, Any], rounds: list):
+    """Read ``measurement`` (a :class:`~lensfit.measurement.measure.Measurement`) again with the Airy scales
+    ``airy`` and fit, each round's scales from the
     fit before, until the f-numbers settle; appends each round's scales to ``rounds``; returns
     the last (table, result)."""
     from lensfit.fitting import fit
-    from lensfit.measurement.measure import measure
 
     for _ in range(MAX_ROUNDS):
         if not any(airy.values()):
@@ -315,7 +315,7 @@ def diffraction_rounds(stack: Any, table: Any, result: Any, airy: dict[str, floa
                                    f"pattern is wider than the {MAX_AIRY_PX:g} px the edge model reads)")
             break
         rounds.append(airy)
-        new_table = measure(stack, estimator, progress=progress, airy_px=airy, detected=table)
+        new_table = measurement.read(airy)
         new_table.diffraction = table.diffraction
         if not any(s.coc_diameter_px is not None and s.sigma_px is not None for s in new_table.samples):
             return new_table, _unread(result, airy)
@@ -362,19 +362,19 @@ def rounds_settled(rounds: list[dict[str, float]], following: dict[str, float], 
         rounds[-2], last, following, changes))
 
 
-def _test_with_retries(stack: Any, table: Any, airy: dict[str, float]) -> dict[str, Any]:
+def _test_with_retries(measurement: Any, table: Any, airy: dict[str, float]) -> dict[str, Any]:
     """:func:`diffraction_test` at the first fit's Airy scales ``airy``, and where the pattern
     does not fit better there, at ``TEST_RETRY_FRACTIONS`` of them: the first retry that fits far
     better (``TEST_RETRY_MAX_RATIO``) is the evidence, with ``first_airy_scale_px`` the scales
     first tested; else the first test's."""
-    first = diffraction_test(stack, table, airy)
+    first = diffraction_test(measurement, table, airy)
     if first["modelled"]:
         return first
     for fraction in TEST_RETRY_FRACTIONS:
         scaled = {k: v * fraction for k, v in airy.items()}
         if max(scaled.values(), default=0.0) < AUTO_MIN_AIRY_PX:
             break
-        retry = diffraction_test(stack, table, scaled)
+        retry = diffraction_test(measurement, table, scaled)
         if retry["modelled"] and retry["geometric_mean_ratio"] < TEST_RETRY_MAX_RATIO:
             return {**retry, "first_airy_scale_px": dict(airy)}
     return first

@@ -143,16 +143,16 @@ def from_exif(stack: Any) -> Processing:
     return found
 
 
-def assess(stack: Any, table: Any) -> Processing:
-    """The EXIF and the halo evidence of a measured stack (``table``: its ``SampleTable`` with the
-    edge estimator's profiles kept, ``measure(..., keep_profiles=True)``; without them the
+def assess(stack: Any, profiles: dict[str, Any] | None) -> Processing:
+    """The EXIF and the halo evidence of a measured stack (``profiles``: the edge profiles its
+    ``lensfit.measurement.measure.Measurement`` kept, ``keep_profiles=True``; without them the
     halos are not tested)."""
     import numpy as np
 
     from lensfit.estimators.halo import halo_amounts, pooled
 
     found = from_exif(stack)
-    state = (table.profiles or {}).get("state")
+    state = (profiles or {}).get("state")
     if state is not None and found.encoded:
         radius, batch, index = state[1], state[7], state[8]
         amounts, var = halo_amounts(batch, [radius[i] for i in index])

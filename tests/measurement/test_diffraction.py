@@ -340,7 +340,7 @@ def test_the_rounds_decode_each_image_once(diffraction_stack, monkeypatch):
     monkeypatch.setattr(stack_module, "read_image", lambda *a, **k: decoded.append(a[0]) or original(*a, **k))
     table, result, rounds = measure_and_fit(diffraction_stack, auto_diffraction=True)
     assert rounds  # the stack was measured again through the Airy model
-    assert table.profiles is None  # the rounds' kept profiles are not left with the caller
+    assert not hasattr(table, "profiles")  # the rounds' kept profiles are not left with the caller
     assert len(decoded) == len(set(decoded)) == len(load_stack(diffraction_stack).images)
     decoded.clear()
     monkeypatch.setattr(measure_module, "HOLD_BYTES", 0)
@@ -360,27 +360,31 @@ def test_a_round_solves_the_kept_profiles_again_and_reads_what_gathering_them_an
     import lensfit.estimators.edge as edge_module
     import lensfit.measurement.measure as measure_module
 
-    plain = measure_module.measure(diffraction_stack, keep_profiles=True)
-    assert plain.profiles and len(plain.profiles["state"][-1]) > 0.9 * len(plain.samples)
+    measurement = measure_module.Measurement(diffraction_stack, keep_profiles=True)
+    plain = measurement.read()
+    kept = measurement.profiles
+    assert kept and len(kept["state"][-1]) > 0.9 * len(plain.samples)
     airy = {"a": 1.4}
-    fresh = measure_module.measure(diffraction_stack, airy_px=airy, detected=measure_module.measure(diffraction_stack))
+    anew = measure_module.Measurement(diffraction_stack)
+    anew.read()
+    fresh = anew.read(airy)
     gathered, calibrated = [], []
     original = edge_module._select
     monkeypatch.setattr(edge_module, "_select", lambda *a, **k: gathered.append(1) or original(*a, **k))
     calibrate = measure_module.calibrate
     monkeypatch.setattr(measure_module, "calibrate", lambda *a, **k: calibrated.append(k) or calibrate(*a, **k))
-    again = measure_module.measure(diffraction_stack, airy_px=airy, detected=plain)
+    again = measurement.read(airy)
     assert len(gathered) < 0.05 * len(plain.samples)  # only edges the refined corners added, if any
     # the corners as detected were calibrated by the first measure: only the refined ones again
     assert calibrated == [{"jackknife": True}]
-    assert again.profiles is plain.profiles  # carried on to the next round
+    assert measurement.profiles is kept  # carried on to the next round
     key = [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in again.samples]
     assert key == [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm, s.flags) for s in fresh.samples]
     assert all("diffraction_modelled" in s.flags for s in again.samples)
     # Profiles of other edges are not taken: these edges' own are gathered and read as without.
     im, task = edge_image(4.0, 1.4)
     gathered.clear()
-    got = edge_module.measure_images([(im, [task])], airy_px=[1.4], profiles=plain.profiles)
+    got = edge_module.measure_images([(im, [task])], airy_px=[1.4], profiles=kept)
     assert gathered
     assert got[0][0].coc_diameter_px == edge_module.measure_images([(im, [task])], airy_px=[1.4])[0][0].coc_diameter_px
 
@@ -391,15 +395,17 @@ def test_a_later_round_starts_from_the_round_before_and_reads_what_a_grid_start_
     the next round starts its fits from them (a third less time) instead of from a grid over the
     first pass's radius: the same minima, so the same readings as that round started from the
     grid (to the solver's tolerance; sub-pixel blurs, on a flat cost, to a thousandth of a px)."""
-    import dataclasses
+    import copy
 
     import lensfit.estimators.edge as edge_module
     import lensfit.measurement.measure as measure_module
 
-    plain = measure_module.measure(diffraction_stack, keep_profiles=True)
-    measure_module.measure(diffraction_stack, airy_px={"a": 1.40}, detected=plain)
-    assert len(plain.profiles["airy_theta"]) > 0.9 * len(plain.samples)
-    grid_profiles = {k: v for k, v in plain.profiles.items() if k != "airy_theta"}
+    measurement = measure_module.Measurement(diffraction_stack, keep_profiles=True)
+    plain = measurement.read()
+    measurement.read({"a": 1.40})
+    assert len(measurement.profiles["airy_theta"]) > 0.9 * len(plain.samples)
+    grid_measurement = copy.copy(measurement)
+    grid_measurement.profiles = {k: v for k, v in measurement.profiles.items() if k != "airy_theta"}
     started = []
     original = edge_module.FitQueue
 
@@ -407,11 +413,10 @@ def test_a_later_round_starts_from_the_round_before_and_reads_what_a_grid_start_
         started.append(warm)
         return original(shaped, diffraction, warm)
     monkeypatch.setattr(edge_module, "FitQueue", queue)
-    later = measure_module.measure(diffraction_stack, airy_px={"a": 1.46}, detected=plain)
+    later = measurement.read({"a": 1.46})
     assert started == [True]
     started.clear()
-    grid = measure_module.measure(diffraction_stack, airy_px={"a": 1.46},
-                                  detected=dataclasses.replace(plain, profiles=grid_profiles))
+    grid = grid_measurement.read({"a": 1.46})
     assert started == [False]
     pairs = [(a.coc_diameter_px, b.coc_diameter_px) for a, b in zip(later.samples, grid.samples)]
     assert len(pairs) == len(plain.samples) and all((a is None) == (b is None) for a, b in pairs)
@@ -546,7 +551,6 @@ def test_a_round_that_reads_no_edge_is_a_refusal_that_says_why(monkeypatch):
     # (not identifiable, exit 3) that names the pattern's scale and what to change.
     from types import SimpleNamespace
 
-    import lensfit.measurement.measure
     from lensfit.fitting import Outcome, prepare
     from lensfit.measurement.pipeline import diffraction_rounds
 
@@ -554,10 +558,10 @@ def test_a_round_that_reads_no_edge_is_a_refusal_that_says_why(monkeypatch):
             for d, c in ((800.0, 0.5), (1200.0, 0.4), (2000.0, 0.3))]
     before = SimpleNamespace(samples=prepare(rows, pixel_pitch_mm=0.006), loss="huber", warnings=["as before"])
     unread = SimpleNamespace(samples=[SimpleNamespace(coc_diameter_px=None, sigma_px=None)] * 3, diffraction=None)
-    monkeypatch.setattr(lensfit.measurement.measure, "measure", lambda *args, **kwargs: unread)
+    measurement = SimpleNamespace(read=lambda airy_px=None: unread)
     calls = []
-    table, result = diffraction_rounds(None, SimpleNamespace(diffraction={"modelled": True}), before, {"a": 54.0}, "edge",
-                            550.0, {}, None, calls)
+    table, result = diffraction_rounds(measurement, SimpleNamespace(diffraction={"modelled": True}), before,
+                                       {"a": 54.0}, 550.0, {}, calls)
     assert table is unread and calls == [{"a": 54.0}]
     assert result.code == Outcome.NOT_IDENTIFIABLE
     assert result.settings["a"]["f_number"].value is None

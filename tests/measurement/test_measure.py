@@ -243,9 +243,12 @@ def test_measuring_again_from_the_first_detections_gives_the_same_samples(calibr
     def no_detection(*args, **kwargs):
         raise AssertionError("detected again")
 
+    measurement = measure_module.Measurement(calibration_stack)
+    first = measurement.read()
     monkeypatch.setattr(measure_module.Target, "detect", no_detection)
-    table = measure_module.measure(calibration_stack, detected=calibration_samples)
+    table = measurement.read()
     assert [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in table.samples] == \
+        [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in first.samples] == \
         [(s.edge, s.image, s.coc_diameter_px, s.sigma_px, s.distance_mm) for s in calibration_samples.samples]
     assert {k: v.focal_length_px for k, v in table.intrinsics.items()} == \
         {k: v.focal_length_px for k, v in calibration_samples.intrinsics.items()}
@@ -265,21 +268,24 @@ def test_a_misdetected_target_is_left_out_of_the_calibration_and_the_samples(cal
 
     stack = load_stack(calibration_stack)
     bad = 2
-    fake = copy.copy(calibration_samples)
-    fake.detections = dict(calibration_samples.detections)
-    d = fake.detections[bad][0]
+    measurement = measure_module.Measurement(stack, refine=False)
+    measurement.read()
+    fake = copy.copy(measurement)
+    fake.detected = dict(measurement.detected)
+    d = fake.detected[bad][0]
     points = d.image_points_px.copy()
     k = len(points) // 3
     points[:k] = np.roll(points[:k], 1, axis=0)
-    fake.detections[bad] = [Detection(d.target_id, d.object_points_mm, points, d.ids)]
-    table = measure_module.measure(calibration_stack, detected=fake)
+    fake.detected[bad] = [Detection(d.target_id, d.object_points_mm, points, d.ids)]
+    fake.refine = True
+    table = fake.read()
     name = stack.images[bad].file.name
     assert any(w.startswith(f"{name}: target {d.target_id!r} left out") for w in table.warnings), table.warnings
     assert not any(s.image == name for s in table.samples)
     assert len({s.image for s in table.samples}) == len({s.image for s in calibration_samples.samples}) - 1
     for label, clean in calibration_samples.intrinsics.items():
         assert abs(table.intrinsics[label].focal_length_px - clean.focal_length_px) < 2 * clean.focal_length_sigma_px
-    spoilt = calibrate({label: [x for i, dets in fake.detections.items() for x in dets
+    spoilt = calibrate({label: [x for i, dets in fake.detected.items() for x in dets
                                 if stack.images[i].setting == label] for label in calibration_samples.intrinsics},
                        stack.shape)
     assert any(abs(spoilt[label].focal_length_px - clean.focal_length_px) > 5 * clean.focal_length_sigma_px
@@ -574,7 +580,7 @@ def test_the_pipeline_loads_the_edge_fits_then_the_fit_then_the_airy_fits(calibr
 
     events = []
     real = {"edge": edge_module.prewarm, "fit": solve_module.prewarm, "airy": edge_module.prewarm_airy,
-            "measure": measure_module.measure, "in_background": measure_module.in_background}
+            "read": measure_module.Measurement.read, "in_background": measure_module.in_background}
 
     def logged(kind):
         def run(*a, **k):
@@ -587,7 +593,7 @@ def test_the_pipeline_loads_the_edge_fits_then_the_fit_then_the_airy_fits(calibr
         return real["in_background"](load, name)
 
     def measured(*a, **k):
-        out = real["measure"](*a, **k)
+        out = real["read"](*a, **k)
         events.append("measured")
         return out
 
@@ -595,7 +601,7 @@ def test_the_pipeline_loads_the_edge_fits_then_the_fit_then_the_airy_fits(calibr
     monkeypatch.setattr(solve_module, "prewarm", logged("fit"))
     monkeypatch.setattr(edge_module, "prewarm_airy", logged("airy"))
     monkeypatch.setattr(measure_module, "in_background", started)
-    monkeypatch.setattr(measure_module, "measure", measured)
+    monkeypatch.setattr(measure_module.Measurement, "read", measured)
     table, result, _ = pipeline.measure_and_fit(calibration_stack, auto_diffraction=True)
     assert result.code == "ok"
     starts = [e for e in events if e.startswith("started") or e == "measured"]
@@ -606,7 +612,7 @@ def test_the_pipeline_loads_the_edge_fits_then_the_fit_then_the_airy_fits(calibr
 
 def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkeypatch):
     """The pipeline loads the CoC fit's compiled functions in the background once the stack's
-    edges are known (``measure(on_edges=...)``, ``lensfit.fitting.solve.prewarm``), and those are the
+    edges are known (``Measurement(on_edges=...)``, ``lensfit.fitting.solve.prewarm``), and those are the
     ones its fit then calls: every compiled call of the fit has a name, settings count and argument
     dtypes and shapes that the loading had (an int32 where the fit passes int64, or a sample count
     padded otherwise, would make the loading useless and fails here)."""

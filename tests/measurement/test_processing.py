@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 from lensfit.estimators.halo import halo_amounts, pooled
-from lensfit.measurement.measure import measure
+from lensfit.measurement.measure import Measurement
 from lensfit.measurement.pipeline import measure_and_fit
 from lensfit.measurement.processing import DEVELOPERS, from_exif
 from lensfit.io.images import read_image
@@ -59,12 +59,12 @@ def _sharpened(encoded):
 def test_halos_are_read_from_sharpened_edges_and_not_from_a_lens(calibration_stack, tmp_path):
     """The pooled unsharp-mask amount of a sharpened copy of a stack is well above 0, that of the
     stack as the lens drew it within noise of 0 (the lens's PSF is never negative)."""
-    plain = measure(calibration_stack, keep_profiles=True)
     sharp_dir = _jpeg_copy(calibration_stack, tmp_path / "sharp", _sharpened)
-    sharp = measure(sharp_dir, keep_profiles=True)
     found = {}
-    for name, table in (("plain", plain), ("sharp", sharp)):
-        state = table.profiles["state"]
+    for name, folder in (("plain", calibration_stack), ("sharp", sharp_dir)):
+        measurement = Measurement(folder, keep_profiles=True)
+        measurement.read()
+        state = measurement.profiles["state"]
         a, v = halo_amounts(state[7], [state[1][i] for i in state[8]])
         found[name] = pooled(a, v)
     assert abs(found["plain"][0]) < 0.03, found
