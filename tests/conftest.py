@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
-import pytest
+import os
+
+# JAX's strict dtype promotion for everything the tests run (subprocesses too): an int array
+# meeting a float one is an error, not a silent promotion, so that the float64 fit stays float64.
+os.environ.setdefault("JAX_NUMPY_DTYPE_PROMOTION", "strict")
+
+import pytest  # noqa: E402
 from hypothesis import settings
 
 # Property tests draw the same examples on every run (the repository's rule: deterministic given

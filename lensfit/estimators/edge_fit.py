@@ -85,10 +85,10 @@ def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: 
         ok = jnp.isfinite(cost) & jnp.all(jnp.isfinite(theta)) & (converged | shaped)
         r, J = lm.residuals_and_jacobian(fn, theta, args)
         r = r[:d.shape[0]]  # the blur's rows, without the shape's priors
-        n_eff = jnp.sum(w > 0)  # bins
+        n_eff = jnp.sum(w > 0).astype(w.dtype)  # bins
         # Residuals are in units of each bin's own standard error; a reduced chi-square above 1
         # (model misfit) inflates the covariance, one below 1 does not shrink it.
-        dof = jnp.maximum(n_eff - theta.shape[0], 1)
+        dof = jnp.maximum(n_eff - theta.shape[0], 1.0)
         s2 = jnp.sum(r * r) / dof
         cov = jnp.maximum(s2, 1.0) * lm.covariance(J)
         # How much worse a 1 px blur fits (the rest held): what a sub-pixel reading is worth.
