@@ -1,12 +1,74 @@
-"""What every blur estimator shares: the task (one edge), the estimate, the model-error floor."""
+"""What every blur estimator shares: the task (one edge), the estimate and its flags, the
+model-error floor."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
+
+
+class Flag(StrEnum):
+    """How an edge's blur was read, or why it was not: a sample's ``flags`` (an ordered tuple of
+    these, no flag twice; written ``;``-separated in the samples files). Each is its own string
+    value, so a flag read back from a file compares equal to its member."""
+
+    #: within 2 degrees of a pixel axis: little super-sampling, unreliable below about 2 px
+    AXIS_ALIGNED = "axis_aligned"
+    #: the profile does not determine the blur (no value)
+    BLUR_UNDETERMINED = "blur_undetermined"
+    #: the clean room around the edge is narrower than the spot's reach (no value, unless read
+    #: across a marker's stripe)
+    WINDOW_TRUNCATED = "window_truncated"
+    #: the edge is too short for a profile of its own length
+    SHORT_EDGE = "short_edge"
+    #: too few pixels in the edge's window (no value)
+    TOO_FEW_PIXELS = "too_few_pixels"
+    #: the levels on the two sides differ too little for a reading
+    LOW_CONTRAST = "low_contrast"
+    #: the profile's fit did not converge (no value)
+    FIT_FAILED = "fit_failed"
+    #: the edge was not measured (no estimate came back for it)
+    NOT_MEASURED = "not_measured"
+    #: the target estimator: no pose for the target (no value)
+    NO_POSE = "no_pose"
+    #: the target estimator: the cost is flat in the blur (no value)
+    FLAT_COST = "flat_cost"
+    #: a blur below a pixel, read only where a 1 px blur fits clearly worse
+    SUB_PIXEL_BLUR = "sub_pixel_blur"
+    #: the spot read as two disks (a core in a halo, a bright rim): its second moment
+    SHAPED_SPOT = "shaped_spot"
+    #: a spot two disks cannot hold, read as a radial profile
+    RADIAL_PROFILE = "radial_profile"
+    #: read across a ChArUco marker's light stripe into its black border
+    MARKER_STRIPE = "marker_stripe"
+    #: the reading divided by the lens distortion's stretch across the edge
+    DISTORTION_SCALED = "distortion_scaled"
+    #: the distortion's stretch is beyond the range the correction is trusted over
+    DISTORTION_EXTREME = "distortion_extreme"
+    #: read through the Airy pattern: the defocus blur alone
+    DIFFRACTION_MODELLED = "diffraction_modelled"
+    #: the pipeline's diffraction test found no Airy pattern in these images: the spots' shapes
+    #: are the lens's
+    AIRY_NOT_SEEN = "airy_not_seen"
+    #: the target's pose has two solutions that fit about equally well
+    POSE_AMBIGUOUS = "pose_ambiguous"
+
+
+def flags_from_text(text: str) -> tuple[Flag, ...]:
+    """A samples file's ``;``-separated flags as members (ValueError names an unknown one)."""
+    out: list[Flag] = []
+    for name in filter(None, (part.strip() for part in text.split(";"))):
+        try:
+            flag = Flag(name)
+        except ValueError:
+            raise ValueError(f"flag {name!r} is not one lensfit writes (known: {', '.join(Flag)})") from None
+        if flag not in out:
+            out.append(flag)
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -45,7 +107,7 @@ class BlurEstimate:
 
     coc_diameter_px: float | None
     sigma_px: float | None
-    flags: tuple[str, ...] = ()
+    flags: tuple[Flag, ...] = ()
     pixels: int = 0
     rms_residual: float | None = None
     line_px: tuple[tuple[float, float], tuple[float, float]] | None = None

@@ -105,7 +105,7 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.measurement.diffraction import MAX_AIRY_PX
-from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
+from lensfit.estimators.base import BlurEstimate, EdgeTask, Flag, with_model_floor
 from lensfit.estimators.edge_fit import FitQueue, fit_profiles
 from lensfit.estimators.edge_model import MIN_VARIANCE_SHARE, squared_radius, squared_radius_slope
 from lensfit.estimators.profile import line_end_covariance, select as _select, window_wanted, windows
@@ -293,7 +293,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                     got = _profile_of(images[owner[i]], task, radius[i] if attempt else None,
                                       expected[i] if attempt else None)
                     if got is None:
-                        results[i] = BlurEstimate(None, None, ("too_few_pixels",), 0)
+                        results[i] = BlurEstimate(None, None, (Flag.TOO_FEW_PIXELS,), 0)
                         radius[i] = None
                         continue
                     profile, banded[i], lines[i], f, npixels[i], narrowed = got
@@ -329,7 +329,7 @@ def measure_images(items: list[tuple[Any, list[EdgeTask]]], second_moment: bool 
                 expected[i] = where
     out: list[list[BlurEstimate]] = [[] for _ in items]
     for k, r in zip(owner, results):
-        out[k].append(r if r is not None else BlurEstimate(None, None, ("not_measured",)))
+        out[k].append(r if r is not None else BlurEstimate(None, None, (Flag.NOT_MEASURED,)))
     return out
 
 
@@ -343,17 +343,17 @@ def _profile_of(image: np.ndarray, task: EdgeTask, radius: float | None, expecte
     if sel is None or len(sel[0]) < 8:
         return None
     d, s_along, v, se, n, L, short, pixels, line, se_banded, boxes = sel
-    flags: list[str] = []
+    flags: list[Flag] = []
     if radius is not None:
-        flags = (["window_truncated"] if truncated else []) + (["short_edge"] if short else [])
+        flags = ([Flag.WINDOW_TRUNCATED] if truncated else []) + ([Flag.SHORT_EDGE] if short else [])
         angle = math.degrees(math.atan2(abs(n[1]), abs(n[0])))
         if min(angle, 90.0 - angle) < AXIS_ALIGNED_DEG:
-            flags.append("axis_aligned")
+            flags.append(Flag.AXIS_ALIGNED)
     narrowed = radius is not None and min(half) < window_wanted(radius) - 1e-9
     return (d, s_along, v, se, boxes), (d, s_along, v, se_banded, boxes), (line, n), flags, pixels, narrowed
 
 
-def _read_shapes(fits: list, tasks: list[EdgeTask], batch: list, banded: list, flags: list[list[str]],
+def _read_shapes(fits: list, tasks: list[EdgeTask], batch: list, banded: list, flags: list[list[Flag]],
                  cramped: list[bool], stripes: list) -> tuple[list, set[int], dict, dict, set[int], dict]:
     """The spot's shape read wherever it can be (see the module docstring), the uniform disk's
     reading kept beside it (their difference sizes the shape's model error): the fits with the
@@ -376,7 +376,7 @@ def _read_shapes(fits: list, tasks: list[EdgeTask], batch: list, banded: list, f
     for j, refit in zip(shaped, fit_profiles([banded[j] for j in shaped], True, [fits[j][0] for j in shaped])):
         disk[j] = (diameter[j], fits[j][2], 2.0 * _radius_terms(*fits[j][:2])[3])
         fits[j] = refit
-        if refit[3] and "window_truncated" not in flags[j]:  # where two disks cannot hold it
+        if refit[3] and Flag.WINDOW_TRUNCATED not in flags[j]:  # where two disks cannot hold it
             got = radial_reading(banded[j], np.asarray(refit[0], np.float64), refit[2])
             if got is not None and got[2] and cramped[j]:  # a halo the clean room cut
                 halo_cut.add(j)
@@ -409,7 +409,7 @@ def _across_stripe(stripe: tuple | None, fitted: tuple, task: EdgeTask) -> tuple
     return stripe_reading(profile, np.asarray(fitted[0], np.float64), task, support)
 
 
-def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile: tuple, shaped: bool,
+def _reading(fitted: tuple, flags: list[Flag], npixels: int, line: tuple, profile: tuple, shaped: bool,
              disk: tuple[float, float, float] | None, radial: tuple[float, float] | None,
              halo_cut: bool, stripe: tuple[float, float] | None = None
              ) -> tuple[BlurEstimate, float | None, tuple[float, float] | None]:
@@ -424,13 +424,13 @@ def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile
     t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
     m = 1.0 - a * (1.0 - t * t)  # variance of two disks over that of the outer one
     if not (ok and np.isfinite(r) and np.isfinite(var_rho) and np.isfinite(a) and m > MIN_VARIANCE_SHARE):
-        return BlurEstimate(None, None, tuple(flags) + ("fit_failed",), npixels), None, None
+        return BlurEstimate(None, None, tuple(flags) + (Flag.FIT_FAILED,), npixels), None, None
     reach = (r, (float(theta[0]), r))
     # The second-moment diameter c = 2 R sqrt(1 - a (1 - t^2)): 16 x the spot's variance across
     # the edge; the uniform disk's diameter where a = 0.
     k = math.sqrt(m)
     c = 2.0 * r * k
-    f = list(flags) + (["shaped_spot"] if shaped else []) + (["window_truncated"] if halo_cut else [])
+    f = list(flags) + ([Flag.SHAPED_SPOT] if shaped else []) + ([Flag.WINDOW_TRUNCATED] if halo_cut else [])
     # 1 sigma of c from that of R (_radius_terms); the shape's share by the gradient of c in
     # (a, logit t), with its covariance with R^2.
     var_c = (2.0 * k * sigma_r) ** 2
@@ -441,7 +441,7 @@ def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile
     sigma_c = math.sqrt(max(var_c, (2.0 * k * sigma_r) ** 2 * 0.25))
     if radial is not None:  # two disks could not hold it: the radial profile's reading
         c, noise = radial
-        f.append("radial_profile")
+        f.append(Flag.RADIAL_PROFILE)
         sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[0]))
     elif shaped:
         # Chi-square inflation measures the profile family's misfit, which the model error states
@@ -456,7 +456,7 @@ def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile
         # the marker's stripe shows more of the spot than the symmetric profile's window, which
         # the marker may have cut short of the spot's reach: its window holds the reach
         c, noise = stripe
-        f = [flag for flag in f if flag != "window_truncated"] + ["marker_stripe"]
+        f = [flag for flag in f if flag != Flag.WINDOW_TRUNCATED] + [Flag.MARKER_STRIPE]
         sigma_c = math.hypot(noise, SHAPE_MODEL_SHARE * abs(c - disk[0]))
     sigma = with_model_floor(sigma_c, c)
     if c < SUB_PIXEL_PX:
@@ -467,14 +467,14 @@ def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile
         # against the edge's position).
         undetermined = not probe >= PROBE_DCHI2
         sigma = SUB_PIXEL_SIGMA_PX
-        f.append("sub_pixel_blur")
+        f.append(Flag.SUB_PIXEL_BLUR)
     else:
         undetermined = not sigma <= UNDETERMINED_SIGMA * c
     if undetermined:
-        return BlurEstimate(None, None, tuple(f) + ("blur_undetermined",), npixels), *reach
+        return BlurEstimate(None, None, tuple(f) + (Flag.BLUR_UNDETERMINED,), npixels), *reach
     contrast = abs(float(theta[3] - theta[2]))
     if contrast < 10 * max(rms, 1e-12) * float(np.median(profile[3])):
-        f.append("low_contrast")
+        f.append(Flag.LOW_CONTRAST)
     (q0, q1), n = line
     d0, turn = float(theta[0]), float(theta[4])
     half_len = 0.5 * float(np.linalg.norm(q1 - q0))
@@ -482,8 +482,8 @@ def _reading(fitted: tuple, flags: list[str], npixels: int, line: tuple, profile
                tuple(float(x) for x in q1 + (d0 + turn * half_len) * n))
     # A window that cannot hold the spot's reach gives no value (the line is kept for the
     # corners): such readings came out 2-40 % low, their sigmas not saying so.
-    cut = "window_truncated" in f
+    cut = Flag.WINDOW_TRUNCATED in f
     d_c, d_rms, d_sigma = disk if shaped and not cut else (None, rms, None)
     return BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels, d_rms, line_px, d_c,
                         None if d_c is None else with_model_floor(d_sigma, d_c),
-                        line_end_covariance(np.asarray(cov, np.float64), half_len, "sub_pixel_blur" in f)), *reach
+                        line_end_covariance(np.asarray(cov, np.float64), half_len, Flag.SUB_PIXEL_BLUR in f)), *reach

@@ -55,7 +55,7 @@ def _fit_chunk(theta0, d, v, w, nx, ny):
         args = (d, v, w, nx, ny)
         theta, cost, ok = lm.least_squares(_residuals, t0, args, max_steps=40, rtol=1e-8, atol=1e-10, ftol=1e-6)
         _, J = lm.residuals_and_jacobian(_residuals, theta, args)
-        dof = jnp.maximum(jnp.sum(w > 0) - 5, 1)
+        dof = jnp.maximum(jnp.sum(w > 0).astype(cost.dtype) - 5.0, 1.0)
         var = jnp.maximum(cost / dof, 1.0) * lm.covariance(J)[4, 4]
         return theta[4], var, ok & jnp.isfinite(cost)
 

@@ -38,7 +38,7 @@ import numpy as np
 import scipy.optimize
 import scipy.signal
 
-from lensfit.estimators.base import BlurEstimate, EdgeTask, with_model_floor
+from lensfit.estimators.base import BlurEstimate, EdgeTask, Flag, with_model_floor
 from lensfit.measurement.psf import disk_kernel
 
 SUB = 4
@@ -107,7 +107,7 @@ def _patch(task: EdgeTask, shape):
 def _measure_one(image: np.ndarray, task: EdgeTask) -> BlurEstimate:
     box = _patch(task, image.shape)
     if box is None:
-        return BlurEstimate(None, None, ("too_few_pixels",))
+        return BlurEstimate(None, None, (Flag.TOO_FEW_PIXELS,))
     (x0, y0, x1, y1), mask = box
     data = image[y0:y1 + 1, x0:x1 + 1][mask]
     # Sharp texture on sub-pixels over the box plus a margin for the largest blur considered.
@@ -125,7 +125,7 @@ def _measure_one(image: np.ndarray, task: EdgeTask) -> BlurEstimate:
         for ox in offsets:
             values = _sample_texture(task, X + ox, Y + oy)
             if values is None:
-                return BlurEstimate(None, None, ("no_pose",))
+                return BlurEstimate(None, None, (Flag.NO_POSE,))
             sharp = values if sharp is None else sharp + values
     sharp = sharp / POINTS**2
     max_c = 2.0 * (pad - 1)
@@ -161,10 +161,10 @@ def _measure_one(image: np.ndarray, task: EdgeTask) -> BlurEstimate:
     else:  # flat at the minimum (a blur below a sub-pixel): how far c rises before the RSS does
         sigma_fit = _rise(rss, c, res.fun + s2, max_c)
         if sigma_fit is None:
-            return BlurEstimate(None, None, ("flat_cost",), n_pix)
+            return BlurEstimate(None, None, (Flag.FLAT_COST,), n_pix)
     sigma = with_model_floor(sigma_fit, c)
     if c >= 0.95 * max_c:
-        flags.append("window_truncated")
+        flags.append(Flag.WINDOW_TRUNCATED)
     return BlurEstimate(c, sigma, tuple(flags), n_pix, math.sqrt(s2))
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from lensfit.estimators.base import Flag
 from lensfit.errors import InputError
 from lensfit.fitting.constants import (BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX,
                                    MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, SHAPE_ERROR_SHARE, SHAPE_ERROR_SHARE_RADIAL,
@@ -52,7 +53,7 @@ class FitData:
     field2: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: True where the sample was read through the shaped-spot model and gives the uniform disk's
     #: reading too; whether the images were read through the Airy pattern or found without one
-    #: (flags ``diffraction_modelled``, ``AIRY_NOT_SEEN``; lensfit.fitting.spots)
+    #: (flags ``diffraction_modelled``, ``airy_not_seen``; lensfit.fitting.spots)
     shaped: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     airy_checked: bool = False
     #: each kept shaped reading's relative model error (1 sigma), NaN where the reading is not
@@ -144,13 +145,14 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     the settings (labels; True: all) whose samples read through the shaped-spot model are taken
     at the uniform disk's reading where they give it (``disk_diameter_px``, ``disk_sigma_px``)."""
     rows, ctx = rows_from(samples)
-    shaped = [i for i, r in enumerate(rows) if "shaped_spot" in _flags(r) and r.get("disk_diameter_px") is not None
+    shaped = [i for i, r in enumerate(rows) if Flag.SHAPED_SPOT in _flags(r) and r.get("disk_diameter_px") is not None
               and r.get("disk_sigma_px") is not None and r.get("coc_diameter_px") is not None]
     swap = [i for i in shaped if disk_readings is True or str(rows[i].get("setting")) in disk_readings]
     kept = set(shaped) - set(swap)  # shaped readings that stay so
     for i in swap:
         rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
-                   "flags": ";".join(sorted(_flags(rows[i]) - {"shaped_spot", "radial_profile", "marker_stripe"}))}
+                   "flags": ";".join(sorted(_flags(rows[i]) - {Flag.SHAPED_SPOT, Flag.RADIAL_PROFILE,
+                                                                 Flag.MARKER_STRIPE}))}
     pitch = _pixel_pitch(pixel_pitch_mm, ctx.get("pixel_pitch_mm"))
     used, used_rows, dropped, truncated = [], [], 0, 0
     for i, r in enumerate(rows):
@@ -172,7 +174,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                              "no measurement")
         if c is None or sg is None or not (math.isfinite(c) and math.isfinite(sg) and sg > 0 and c >= 0):
             dropped += 1  # the estimator could not measure this edge
-            truncated += "window_truncated" in _flags(r)
+            truncated += Flag.WINDOW_TRUNCATED in _flags(r)
             continue
         if c > MAX_BLUR_PX:
             raise InputError(f"samples[{i}].coc_diameter_px", c, f"at most {MAX_BLUR_PX:g} px",
@@ -229,7 +231,7 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
                              for r in used]), truncated,
                    _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
                    np.array([i in kept for i in used_rows], bool),
-                   any(_flags(r) & {"diffraction_modelled", AIRY_NOT_SEEN} for r in rows),
+                   any(_flags(r) & {Flag.DIFFRACTION_MODELLED, Flag.AIRY_NOT_SEEN} for r in rows),
                    np.array([_shape_error(r) if i in kept else math.nan for i, r in zip(used_rows, used)]),
                    fdof, unread_share)
 
@@ -300,9 +302,9 @@ def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), disto
     ``distortion_scaled``: ``lensfit.measurement.measure``)."""
     c = float(row["coc_diameter_px"])
     flags, setting = _flags(row), str(row.get("setting"))
-    plain = "diffraction_modelled" not in flags and (
-        setting in undistorted or (setting in distorted and "distortion_scaled" in flags))
-    if "shaped_spot" not in flags:
+    plain = Flag.DIFFRACTION_MODELLED not in flags and (
+        setting in undistorted or (setting in distorted and Flag.DISTORTION_SCALED in flags))
+    if Flag.SHAPED_SPOT not in flags:
         return disk_scale_sigma(c, plain)
     departure = _departure(row)
     if departure is None:
@@ -314,7 +316,7 @@ def _departure(row: dict[str, Any]) -> float | None:
     """A shaped reading's relative difference from the uniform disk's reading of the same edge,
     ``|c - disk| / c``; None where the reading is not shaped or gives no disk reading."""
     c, disk = float(row["coc_diameter_px"]), row.get("disk_diameter_px")
-    if "shaped_spot" not in _flags(row) or disk is None or not math.isfinite(float(disk)) or c <= 0:
+    if Flag.SHAPED_SPOT not in _flags(row) or disk is None or not math.isfinite(float(disk)) or c <= 0:
         return None
     return abs(c - float(disk)) / c
 
@@ -339,7 +341,7 @@ def _shape_error(row: dict[str, Any]) -> float:
     ``marker_stripe``: read across a marker's stripe, where the symmetric profiles missed the
     spot's reach) of its relative difference from the uniform disk's reading of the same edge."""
     departure = _departure(row)
-    share = SHAPE_ERROR_SHARE_RADIAL if _flags(row) & {"radial_profile", "marker_stripe"} else SHAPE_ERROR_SHARE
+    share = SHAPE_ERROR_SHARE_RADIAL if _flags(row) & {Flag.RADIAL_PROFILE, Flag.MARKER_STRIPE} else SHAPE_ERROR_SHARE
     return math.nan if departure is None else share * departure
 
 
@@ -364,7 +366,8 @@ def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[
     w = np.array([1.0 / float(r["distance_mm"]) for r in used])
     departure = np.array([_departure(r) for r in used], dtype=float)  # NaN: no shape read
     is_shaped = np.isfinite(departure)
-    unread = np.array([not _flags(r) & {"shaped_spot", "diffraction_modelled", "sub_pixel_blur"} for r in used])
+    read_shaped = {Flag.SHAPED_SPOT, Flag.DIFFRACTION_MODELLED, Flag.SUB_PIXEL_BLUR}
+    unread = np.array([not _flags(r) & read_shaped for r in used])
     c = np.array([float(r["coc_diameter_px"]) for r in used])
     for label in labels:
         mine = setting == label
@@ -386,11 +389,8 @@ def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[
     return sigma, out
 
 
-#: The flag the pipeline gives samples of images its diffraction test found without an Airy
-#: pattern (lensfit.measurement.pipeline): their spots' shapes are the lens's.
-AIRY_NOT_SEEN = "airy_not_seen"
-
-
 def _flags(row: dict[str, Any]) -> set[str]:
+    """A row's flags (:class:`lensfit.estimators.base.Flag`, or the same names as text from a
+    file), as a set that members and names alike are found in."""
     f = row.get("flags") or ()
     return set(f.split(";")) if isinstance(f, str) else set(f)

@@ -15,6 +15,7 @@ import numpy as np
 
 from lensfit.calibration.camera import Intrinsics, TargetPose
 from lensfit.errors import SpecError
+from lensfit.estimators.base import Flag, flags_from_text
 from lensfit.io.samples_csv import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, csv_calibration, read_samples_csv
 from lensfit.outputs.writers import provenance
 
@@ -33,7 +34,7 @@ class Sample:
     coc_diameter_px: float | None
     sigma_px: float | None
     estimator: str
-    flags: str  # ";"-separated
+    flags: tuple[Flag, ...]  # written ";"-separated
     start_px: tuple[float, float]
     end_px: tuple[float, float]
     distance_source: str  # "pose" or "manifest"
@@ -114,6 +115,7 @@ class SampleTable:
         for s in self.samples:
             row = asdict(s)
             row["start_px"], row["end_px"] = list(s.start_px), list(s.end_px)
+            row["flags"] = ";".join(s.flags)
             out.append({k: row[k] for k in self.COLUMNS})
         return out
 
@@ -184,7 +186,7 @@ class SampleTable:
                     distance_end_mm=float(given_or(r.get("distance_end_mm"), r["distance_mm"])),
                     coc_diameter_px=None if r.get("coc_diameter_px") is None else float(r["coc_diameter_px"]),
                     sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
-                    estimator=str(r.get("estimator", "")), flags=str(r.get("flags", "") or ""),
+                    estimator=str(r.get("estimator", "")), flags=flags_from_text(str(r.get("flags", "") or "")),
                     start_px=tuple(start), end_px=tuple(end), distance_source=str(r.get("distance_source", "")),
                     field_radius_px=None if r.get("field_radius_px") is None else float(r["field_radius_px"]),
                     disk_diameter_px=None if r.get("disk_diameter_px") is None else float(r["disk_diameter_px"]),

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from lensfit.calibration.camera import Intrinsics, TargetPose, estimate_pose, project
-from lensfit.estimators.base import EdgeTask
+from lensfit.estimators.base import EdgeTask, Flag
 from lensfit.calibration.targets import Detection, Target
 
 
@@ -242,7 +242,7 @@ def refined_detections(detections: list[Detection], first: tuple[list, list, lis
     return out
 
 
-def undistorted_blur(est: Any, scale: float, flags: list[str]) -> Any:
+def undistorted_blur(est: Any, scale: float, flags: list[Flag]) -> Any:
     """An edge's blur reading in the undistorted image's pixels, where the CoC model lives: the
     image's reading over the distortion's ``scale`` across the edge (its sigma and the uniform
     disk's reading with it; flag ``distortion_scaled``); none where the scale is out of
@@ -250,9 +250,9 @@ def undistorted_blur(est: Any, scale: float, flags: list[str]) -> Any:
     if scale == 1.0 or est.coc_diameter_px is None:
         return est
     if not (math.isfinite(scale) and DISTORTION_SCALE_RANGE[0] <= scale <= DISTORTION_SCALE_RANGE[1]):
-        flags.append("distortion_extreme")
+        flags.append(Flag.DISTORTION_EXTREME)
         return dataclasses.replace(est, coc_diameter_px=None, sigma_px=None)
-    flags.append("distortion_scaled")
+    flags.append(Flag.DISTORTION_SCALED)
 
     def over(v):
         return None if v is None else v / scale

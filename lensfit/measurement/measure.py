@@ -22,6 +22,7 @@ from lensfit.runtime.clock import StageClock
 from lensfit.calibration.camera import calibrate, estimate_pose, few_informative_views, known_intrinsics, outlier_views
 from lensfit.errors import InputError, SpecError
 from lensfit.estimators import EdgeTask, get_estimator
+from lensfit.estimators.base import Flag
 from lensfit.runtime.parallel import check_jobs, in_threads
 from lensfit.io.samples import Sample, SampleTable
 from lensfit.io.stack import Stack, load_stack
@@ -471,9 +472,9 @@ class _Run:
             table.poses[(entry.file.name, tid)] = pose
             flags = list(est.flags)
             if pose.ambiguous:
-                flags.append("pose_ambiguous")
+                flags.append(Flag.POSE_AMBIGUOUS)
             if self.airy_px is not None:
-                flags.append("diffraction_modelled")
+                flags.append(Flag.DIFFRACTION_MODELLED)
             source = "pose"
             if entry.distance_mm is not None:
                 z = np.full(3, float(entry.distance_mm))
@@ -485,7 +486,7 @@ class _Run:
                 image=entry.file.name, setting=entry.setting, target=tid, edge=seg.id,
                 distance_mm=float(z[1]), distance_start_mm=float(z[0]), distance_end_mm=float(z[2]),
                 coc_diameter_px=est.coc_diameter_px, sigma_px=est.sigma_px, estimator=self.estimator,
-                flags=";".join(flags), start_px=tuple(float(v) for v in task.start_px),
+                flags=tuple(flags), start_px=tuple(float(v) for v in task.start_px),
                 end_px=tuple(float(v) for v in task.end_px), distance_source=source,
                 field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px))),
                 disk_diameter_px=est.disk_diameter_px, disk_sigma_px=est.disk_sigma_px))

@@ -38,7 +38,7 @@ import numpy as np
 
 from lensfit.measurement.diffraction import DEFAULT_WAVELENGTH_NM, MAX_AIRY_PX
 from lensfit.errors import InputError
-from lensfit.fitting.data import AIRY_NOT_SEEN
+from lensfit.estimators.base import Flag
 from lensfit.fitting.floor_choice import floor_sensitive, widen
 from lensfit.fitting.spots import AUTO_MIN_AIRY_PX, airy_per_setting
 from lensfit.measurement.processing import POLICIES, apply, assess
@@ -267,7 +267,7 @@ def _fit_rounds(measurement: Any, table: Any, wavelength_nm: float | None, optio
                 wavelength_nm = DEFAULT_WAVELENGTH_NM
                 start = evidence["airy_scale_px"]
             elif evidence["edges"] >= TEST_MIN_EDGES:  # no Airy pattern: the spots' shapes are the lens's
-                table.samples = [dataclasses.replace(s, flags=";".join(filter(None, (s.flags, AIRY_NOT_SEEN))))
+                table.samples = [dataclasses.replace(s, flags=(*s.flags, Flag.AIRY_NOT_SEEN))
                                  for s in table.samples]
             else:  # not tested: where the pattern would matter, the uniform disk's readings
                 result = fit(table, **options)

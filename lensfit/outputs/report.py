@@ -170,11 +170,11 @@ def samples_by_image(table: SampleTable) -> dict[str, np.ndarray]:
     return {name: np.array(idx) for name, idx in groups.items()}
 
 
-def _flag_counts(flags: list[str]) -> str:
+def _flag_counts(flags: list[tuple[str, ...]]) -> str:
     """"radial_profile 3, short_edge 1": the flags of some edges, most frequent first."""
     counts: dict[str, int] = {}
-    for text in flags:
-        for flag in filter(None, text.split(";")):
+    for some in flags:
+        for flag in some:
             counts[flag] = counts.get(flag, 0) + 1
     return ", ".join(f"{k} {v}" for k, v in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
@@ -210,7 +210,7 @@ def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarra
                      "suspicious": int((np.abs(zi) > SUSPICIOUS_SIGMAS).sum()),
                      "down_weighted": int((w[idx][np.isfinite(w[idx])] < DOWN_WEIGHTED).sum()),
                      "flags": _flag_counts([table.samples[i].flags for i, m in zip(idx, measured) if m]),
-                     "not_measured": _flag_counts([table.samples[i].flags or "unreadable"
+                     "not_measured": _flag_counts([table.samples[i].flags or ("unreadable",)
                                                    for i, m in zip(idx, measured) if not m]),
                      "why_none": ""})
     order = {name: k for k, (name, _) in enumerate(images)}
