@@ -10,22 +10,15 @@ from dataclasses import dataclass
 from lensfit.errors import InputError
 from lensfit.io.limits import RENDER_MEMORY_BYTES, format_bytes
 from synth.convolve import blurred_footprint_px, convolve_bytes
+from synth.methods import REGISTRY
 from synth.effects import Effects
 from synth.effects.stages import wanted_stages, working_f_number
 from synth.scene import Scene, Shot
 
 
-METHODS = ("auto", "raytrace", "convolve", "mitsuba")
-
-#: Rough throughputs on a 2-core machine, used only for the cost estimates of ``synth plan``.
-# synth bench: ~320 M/s on a flat board, ~260 on a tilted one, compiled, every pixel traced; an upper
-# bound on a render's time, which samples only the pixels outside constant regions (synth.flat: 5-35 % on the demo)
-RAYTRACE_SAMPLES_PER_S = 250e6
-# synth bench --plan-costs: 32-38 M lens samples x surfaces per second through the four shipped designs
-# (6-13 surfaces, 16 and 64 spp); every pixel is traced through a compound lens
-COMPOUND_SURFACE_SAMPLES_PER_S = 34e6
-CONVOLVE_SUBPIXELS_PER_S = 25e6
-MITSUBA_SAMPLES_PER_S = 4.5e6  # Mitsuba 3 scalar_rgb, thinlens, direct (synth.mitsuba; synth bench --against-mitsuba)
+#: What a scene's ``render.method`` may ask for: ``auto`` (:func:`choose_method`) or a registered
+#: method (``synth.methods``).
+METHODS = ("auto", *REGISTRY)
 
 
 @dataclass(frozen=True)
@@ -72,28 +65,6 @@ def convolve_is_exact(shot: Shot) -> tuple[bool, str]:
                 return False, (f"blurred images of {boxes[i][0]} and {boxes[j][0]} overlap: partial occlusion "
                                "needs ray tracing")
     return True, "all targets fronto-parallel, no overlapping blur: convolution with the exact PSF is exact"
-
-
-def _estimate(shot: Shot, method: str, spp: int, supersampling: int) -> tuple[float, str]:
-    cam = shot.camera
-    if method == "mitsuba":
-        samples = cam.width_px * cam.height_px * spp
-        return samples / MITSUBA_SAMPLES_PER_S, f"{samples / 1e6:.0f} M lens samples (Mitsuba 3)"
-    if method == "raytrace":
-        samples = cam.width_px * cam.height_px * spp
-        rx = getattr(cam, "prescription", None)
-        if rx is not None:
-            n = len(rx.surfaces)
-            return (samples * n / COMPOUND_SURFACE_SAMPLES_PER_S,
-                    f"{samples / 1e6:.0f} M lens samples through {n} surfaces")
-        return samples / RAYTRACE_SAMPLES_PER_S * max(1, len(shot.objects)) ** 0.5, f"{samples / 1e6:.0f} M lens samples"
-    sub = 0.0
-    for o in shot.objects:
-        u0, v0, u1, v1 = blurred_footprint_px(o, shot)
-        w = max(0.0, min(u1, cam.width_px) - max(u0, 0))
-        h = max(0.0, min(v1, cam.height_px) - max(v0, 0))
-        sub += w * h * supersampling**2
-    return sub / CONVOLVE_SUBPIXELS_PER_S + 0.05, f"{sub / 1e6:.1f} M sub-pixels convolved"
 
 
 def choose_method(shot: Shot, requested: str, effects: Effects | None = None, *,
@@ -158,17 +129,7 @@ def _check_memory(shot: Shot, method: str, supersampling: int, effects: Effects 
                              "an Airy pattern a few hundred pixels wide or less",
                              f"its kernel and FFT would need {format_bytes(need)} (budget {budget}); use a larger "
                              "pixel pitch or a smaller f-number")
-    if method == "mitsuba":
-        return  # a band of rows at a time; its film and a target's raster are small
-    if method == "raytrace":
-        return  # two tiles of pixels in flight, 0.2 GB at most (synth.raytrace.tile_pixels)
-    need = convolve_bytes(shot, supersampling)
-    if need > RENDER_MEMORY_BYTES:
-        raise InputError("method", "convolve", "raytrace or auto for this shot",
-                         f"{shot.name}'s blur kernel and FFT grid would need {format_bytes(need)} (budget "
-                         f"{budget}): its blur ({shot.camera.coc_diameter_px(min(o.pose.t_cam_target[2] for o in shot.objects)):.3g} "
-                         "px or more) is too large to convolve; is the focus distance meant to be so close to the "
-                         "focal length?")
+    REGISTRY[method].check_memory(shot, supersampling)
 
 
 def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[tuple[str, float]]:
@@ -204,7 +165,7 @@ def plan(scene: Scene) -> list[ShotPlan]:
     r = scene.render
     for shot in scene.shots:
         method, exact, reason = choose_method(shot, r.method, scene.effects, supersampling=r.supersampling)
-        seconds, work = _estimate(shot, method, r.samples_per_pixel, r.supersampling)
+        seconds, work = REGISTRY[method].estimate(shot, r.samples_per_pixel, r.supersampling)
         stages = _stages(scene, shot, method, seconds)
         out.append(ShotPlan(shot, method, exact, reason, tuple(n for n, _ in stages), sum(t for _, t in stages), work,
                             tuple(t for _, t in stages)))

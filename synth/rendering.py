@@ -21,9 +21,10 @@ import numpy as np
 from lensfit import __version__
 from lensfit.errors import InputError
 from lensfit.outputs.writers import provenance
-from synth.convolve import block_mean, render_convolve
+from synth.convolve import block_mean
 from synth.mitsuba import VARIANTS as MITSUBA_VARIANTS
-from synth.raytrace import cell_factor, render_raytrace
+from synth.methods import REGISTRY, RenderJob
+from synth.raytrace import cell_factor
 from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
 from synth.effects.stages import ShotState, fine_choice, quantise_16bit, run_stages, working_f_number
@@ -205,23 +206,10 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
             rows(ccam.height_px)
             continue
         started = time.time()
-        img_fine = None
-        if sp.method == "mitsuba":
-            from synth.mitsuba import render_mitsuba
-
-            img = render_mitsuba(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
-                                 effects=fx, variant=r.mitsuba_variant)
-        elif sp.method == "raytrace":
-            img = render_raytrace(shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), rows,
-                                  **cam_kw, **kwargs_rt, fine=cells)
-            if cells > 1:
-                img, img_fine = img
-        else:
-            img = render_convolve(shot, scene.background_value, r.supersampling, **cam_kw,
-                                  **({"aperture": fx.aperture} if fx.aperture.shape != "circle" else {}), fine=factor)
-            if fine:
-                img, img_fine = img
-            rows(cam.height_px)
+        img, img_fine = REGISTRY[sp.method].render(RenderJob(
+            shot, scene.background_value, r.samples_per_pixel, raytrace_seed(r.seed, k), r.supersampling, rows,
+            camera=cam_kw.get("camera"), raytrace_options=kwargs_rt, effects=fx, mitsuba_variant=r.mitsuba_variant,
+            cells=cells, factor=factor))
         if key is not None:
             cache.entries[key] = {"image": img.copy(), "fine": None if img_fine is None else img_fine.copy(),
                                   "factor": 1 if img_fine is None else img_fine.shape[0] // img.shape[0],
