@@ -41,10 +41,25 @@ class Layout(NamedTuple):
         return 1 + 3 * self.m
 
 
-def unpack(theta, m):
-    """(log f, inverse focus distances in dioptres, log N, floors in px, log P) from the vector."""
+class Params(NamedTuple):
+    """The fit's parameters by name, read from the solver's flat vector (:func:`unpack`; where
+    each sits: :class:`Layout`): ``log f``; per setting the inverse focus distance in dioptres,
+    ``log N``, the blur floor in px and the field curvature in dioptres; ``log P``. A pytree of
+    the vector's backend's arrays."""
+
+    log_f: object
+    inv_focus_per_m: object
+    log_n: object
+    floor: object
+    log_p: object
+    curvature: object
+
+
+def unpack(theta, m) -> Params:
+    """The parameters of the flat vector ``theta`` for ``m`` settings, by name."""
     at = Layout(m)
-    return theta[at.LOG_F], theta[at.inv_focus_per_m()], theta[at.log_n()], theta[at.floor()], theta[at.log_p]
+    return Params(theta[at.LOG_F], theta[at.inv_focus_per_m()], theta[at.log_n()], theta[at.floor()],
+                  theta[at.log_p], theta[at.curvature()])
 
 
 def vector_size(m: int) -> int:
@@ -83,15 +98,15 @@ def blur_diameters_px(xp, theta, m, setting, w_nodes, pitch, fpx_cal, pose, fiel
     pose solved with the setting's calibrated ``fpx_cal`` (per setting; 0: none), and scale with
     it; ``field2`` its squared field (0 where unknown): field curvature moves its in-focus
     inverse distance to ``x + kappa field2``."""
-    log_f, inv_focus_per_m, log_n, floor, log_p = unpack(theta, m)
-    kappa = theta[Layout(m).curvature()] / 1000.0  # 1/mm
-    f = xp.exp(log_f)
-    x = inv_focus_per_m / 1000.0  # 1/mm
-    s = pinhole_distance(xp, f, x, xp.exp(log_p))
-    slope_px = f * s / xp.exp(log_n) / pitch  # K/p = A S / p
+    p = unpack(theta, m)
+    kappa = p.curvature / 1000.0  # 1/mm
+    f = xp.exp(p.log_f)
+    x = p.inv_focus_per_m / 1000.0  # 1/mm
+    s = pinhole_distance(xp, f, x, xp.exp(p.log_p))
+    slope_px = f * s / xp.exp(p.log_n) / pitch  # K/p = A S / p
     mu = 1.0 + pose * (_distance_scale(xp, s, pitch, fpx_cal)[setting] - 1.0)
     w = w_nodes * mu[:, None] - (kappa[setting] * field2)[:, None]
-    return _edge_blur(xp, slope_px[setting], x[setting], w, floor[setting]), s
+    return _edge_blur(xp, slope_px[setting], x[setting], w, p.floor[setting]), s
 
 
 def jax_blur(theta, m, setting, w_nodes, pitch, fpx_cal, pose, field2):

@@ -129,7 +129,8 @@ def _evaluate(theta, args, m: int):
 def _quantities(t, m: int):
     import jax.numpy as jnp
 
-    log_f, inv_focus_per_m, log_n, floor, log_p = unpack(t, m)
+    p = unpack(t, m)
+    log_f, inv_focus_per_m, log_n, floor, log_p = p.log_f, p.inv_focus_per_m, p.log_n, p.floor, p.log_p
     f = jnp.exp(log_f)
     s = pinhole_distance(jnp, f, inv_focus_per_m / 1000.0, jnp.exp(log_p))
     return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
