@@ -177,10 +177,14 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                 path, design_n = lens_files.get(name, (None, None))
                 lens = name if path is None else str(path)
                 n_far = f_number if f_number is not None else _wide_open(lens, design_n)
-                scene = scene_from_dict(lens_scene(lens, f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm,
-                                                   scale=scale),
-                                        f"<{name} bracket>")
-                folder = write_stack(render(scene), root / name)
+                try:
+                    scene = scene_from_dict(lens_scene(lens, f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm,
+                                                       scale=scale),
+                                            f"<{name} bracket>")
+                    folder = write_stack(render(scene), root / name)
+                except (InputError, SpecError) as exc:  # a design this bench cannot render so: a row saying why
+                    rows.append({"lens": name, "refused": f"not rendered: {exc}", "fits": {}})
+                    continue
                 t_render = time.perf_counter() - t0
             truth = json.loads((folder / "truth.json").read_text())
             say(f"{name}: measuring")

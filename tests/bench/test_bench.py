@@ -697,3 +697,15 @@ def test_a_case_other_code_measured_is_not_a_finished_case(monkeypatch):
     assert suites.case_id(task, case) == here
     monkeypatch.setattr(suites, "code_digest", lambda: "another version")
     assert suites.case_id(task, case) != here
+
+
+def test_bench_lenses_makes_a_design_it_cannot_render_a_row_saying_why():
+    """A design the bench cannot render as asked (here: an image 100 times the demo's, beyond the
+    scene schema's largest side) is a row naming the refusal, not the end of the whole run (an
+    optiland wide-angle's pixel pitch at half scale fell below the schema's least, and every
+    design's results before it were lost)."""
+    from lensfit.bench.lenses import run
+
+    rows = run(names=["cooke-triplet-50"], scale=100.0, spp=1)["rows"]
+    assert len(rows) == 1 and rows[0]["lens"] == "cooke-triplet-50" and rows[0]["fits"] == {}
+    assert rows[0]["refused"].startswith("not rendered: ") and "width_px" in rows[0]["refused"]
