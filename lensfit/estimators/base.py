@@ -103,7 +103,11 @@ class BlurEstimate:
     ``disk_diameter_px``, ``disk_sigma_px``: where the reading is not the uniform disk's (the
     ``edge`` estimator's shaped spot), the uniform disk's reading of the same edge and its sigma.
     ``line_cov_px2``: where ``line_px`` is given, the covariance (px^2) of its offsets across the
-    edge at its two points: (variance at the first, covariance, variance at the second)."""
+    edge at its two points: (variance at the first, covariance, variance at the second).
+    ``bright_side``: where ``line_px`` is given, the unit normal of the edge toward its bright
+    side (image coordinates): with the task's line it says how far the edge lies from the
+    target's corners toward its bright side, which a tone response the image's declared encoding
+    does not undo moves (``lensfit.measurement.processing``)."""
 
     coc_diameter_px: float | None
     sigma_px: float | None
@@ -114,6 +118,7 @@ class BlurEstimate:
     disk_diameter_px: float | None = None
     disk_sigma_px: float | None = None
     line_cov_px2: tuple[float, float, float] | None = None
+    bright_side: tuple[float, float] | None = None
 
 
 #: Model-error floor shared by the estimators: perspective across a segment and the limits of

@@ -486,4 +486,5 @@ def _reading(fitted: tuple, flags: list[Flag], npixels: int, line: tuple, profil
     d_c, d_rms, d_sigma = disk if shaped and not cut else (None, rms, None)
     return BlurEstimate(None if cut else c, None if cut else sigma, tuple(f), npixels, d_rms, line_px, d_c,
                         None if d_c is None else with_model_floor(d_sigma, d_c),
-                        line_end_covariance(np.asarray(cov, np.float64), half_len, Flag.SUB_PIXEL_BLUR in f)), *reach
+                        line_end_covariance(np.asarray(cov, np.float64), half_len, Flag.SUB_PIXEL_BLUR in f),
+                        tuple(float(x) for x in math.copysign(1.0, float(theta[3] - theta[2])) * n)), *reach

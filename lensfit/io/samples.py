@@ -89,6 +89,10 @@ class SampleTable:
     #: per sample, the blur estimator's RMS residual in units of the noise (None where it gives
     #: none); kept in memory for the diffraction test of ``lensfit.measurement.pipeline``, never written
     fit_rms: list[float | None] = field(default_factory=list)
+    #: per sample, its edge's offset toward the bright side from the line through the target's
+    #: corners as found (px; None where not read); in memory for the tone test of
+    #: ``lensfit.measurement.processing``, never written
+    bright_offset_px: list[float | None] = field(default_factory=list)
     #: per sample, the edge geometry its blur was read with (an ``EdgeTask`` with only the edge
     #: estimator's context, ``EDGE_CONTEXT``), in memory for ``Measurement.reread`` (lensfit.measurement.measure)
     edge_tasks: list[Any] = field(default_factory=list)

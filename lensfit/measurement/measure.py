@@ -226,6 +226,16 @@ class Measurement:
         self.profiles = None
 
 
+def _bright_offset(est: Any, task: EdgeTask) -> float | None:
+    """How far the edge ``est`` read lies from ``task``'s line (through the target's corners),
+    toward the edge's bright side, px (None where the estimator locates no line)."""
+    if est.line_px is None or est.bright_side is None:
+        return None
+    middle = 0.5 * (np.asarray(est.line_px[0], np.float64) + np.asarray(est.line_px[1], np.float64))
+    along = 0.5 * (np.asarray(task.start_px, np.float64) + np.asarray(task.end_px, np.float64))
+    return float(np.dot(middle - along, np.asarray(est.bright_side, np.float64)))
+
+
 def _same_objects(a: list[list[Any]], b: list[list[Any]]) -> bool:
     """Do two lists of lists hold the very same objects, in order?"""
     return len(a) == len(b) and all(len(x) == len(y) and all(p is q for p, q in zip(x, y)) for x, y in zip(a, b))
@@ -491,6 +501,7 @@ class _Run:
                 field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px))),
                 disk_diameter_px=est.disk_diameter_px, disk_sigma_px=est.disk_sigma_px))
             table.fit_rms.append(est.rms_residual)
+            table.bright_offset_px.append(_bright_offset(est, read_task))
             table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
                                              read_task.clear_right_px, {k: v for k, v in read_task.context.items()
                                                                         if k in EDGE_CONTEXT},

@@ -219,7 +219,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         ahead[0].join()
     warming = ahead[1] if len(ahead) > 1 else airy_ahead() if auto or wavelength_nm else None
     try:
-        found = assess(stack, measurement.profiles)  # (the halos where the edge estimator kept its profiles)
+        found = assess(stack, measurement.profiles, table)  # (the halos where the edge estimator kept its profiles)
         out = _fit_rounds(measurement, table, wavelength_nm, options, auto, warming)
     finally:
         if warming is not None:

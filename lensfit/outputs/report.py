@@ -84,6 +84,9 @@ def assumptions_text(table: SampleTable, document: dict[str, Any]) -> str:
     proc = document.get("processing") or {}
     if proc.get("developer") or proc.get("halos"):
         parts.append(f"developed images ({proc.get('developer') or 'sharpening halos'})")
+    elif proc.get("tone_mismatch"):
+        parts.append("a tone curve the declared encoding does not undo (edges "
+                     f"{proc.get('tone_offset'):+.3f} of a blur radius off the corners' lines)")
     elif proc:
         parts.append("images read as " + ("sRGB-encoded" if proc.get("encoded") else "linear"))
     return "assumptions: " + "; ".join(parts)

@@ -5,6 +5,7 @@ while faithful sRGB JPEGs and linear images keep their reading."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -172,3 +173,27 @@ def test_files_written_by_the_developers_name_them(tmp_path, capsys, name, devel
         assert code == 0 and "developed" in said.out and developer in said.out
     else:
         assert code == 2 and "--pixel-pitch" in said.err
+
+
+def test_a_tone_curve_the_declared_encoding_does_not_undo_is_named_and_refuses_n(calibration_stack, tmp_path):
+    """The same sRGB JPEGs declared sRGB (right) and linear (an sRGB curve left in the edges): the
+    target's corners stay where they are under any monotone curve, and in linear light the
+    edges lie on the lines through them (the offset within a few thousandths of a blur radius);
+    with the sRGB curve left in, every edge moves toward its dark side (the curve lifts the
+    midtones), which names the mismatch and refuses N, keeping f and the focus distance."""
+    from lensfit.measurement.processing import TONE_MIN_OFFSET
+
+    right = _jpeg_copy(calibration_stack, tmp_path / "right")
+    _, result, _ = measure_and_fit(right)
+    tone = result.processing
+    assert tone.tone_edges >= 20 and abs(tone.tone_offset) < TONE_MIN_OFFSET / 3, tone
+    assert not tone.tone_mismatch and result.settings["a"]["f_number"].value is not None
+    wrong = tmp_path / "wrong"
+    shutil.copytree(right, wrong)
+    (wrong / "stack.toml").write_text((wrong / "stack.toml").read_text().replace('"srgb"', '"linear"'))
+    _, result, _ = measure_and_fit(wrong)
+    tone = result.processing
+    assert tone.tone_mismatch and tone.tone_offset < -TONE_MIN_OFFSET, tone
+    n = result.settings["a"]["f_number"]
+    assert n.value is None and "declared encoding (linear)" in n.reason and 'encoding = "srgb"' in n.reason
+    assert result.focal_length_mm.value is not None and result.settings["a"]["focus_distance_mm"].value is not None
