@@ -447,11 +447,11 @@ def test_dng_round_trip_through_rawpy(tmp_path):
 
 
 def test_mosaic_without_colour_effects_renders_one_channel(monkeypatch):
-    import synth.rendering as R
+    import synth.convolve as C
 
     calls = []
-    real = R.render_convolve
-    monkeypatch.setattr(R, "render_convolve", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = C.render_convolve
+    monkeypatch.setattr(C, "render_convolve", lambda *a, **k: calls.append(1) or real(*a, **k))
     board = {"target": "checkerboard", "squares": [6, 4], "square_mm": 40.0, "distance_mm": 1500.0}
     res = render(scene([board], effects=("defocus", "mosaic"), w=64, h=48, method="convolve"))
     assert len(calls) == 1 and next(iter(res.images.values())).ndim == 2
