@@ -116,7 +116,8 @@ def row_passed(errors: dict[str, Any], processing: dict[str, Any] | None, contro
     for q in QUANTITIES:
         e = errors[q]
         if e["refused"]:
-            named = bool(processing and (processing.get("developer") or processing.get("halos")))
+            named = bool(processing and (processing.get("developer") or processing.get("halos")
+                                         or processing.get("tone_mismatch")))
             if control or q != "f_number" or not named:
                 return False
         elif abs(e["relative_error"]) > (CONTROL_TOLERANCE if control else TOLERANCE[q]) or not e["inside"]:
@@ -223,7 +224,9 @@ def markdown(doc: dict[str, Any]) -> str:
             out.append(f"| {r['stack']} | {r.get('missing') or r.get('error')} | | | | | {passed} |")
             continue
         e, proc = r["errors"], r.get("processing") or {}
-        named = proc.get("developer") or ("sharpening halos" if proc.get("halos") else "")
+        named = "; ".join(filter(None, (proc.get("developer"), "sharpening halos" if proc.get("halos") else "",
+                                        f"tone curve ({proc['tone_offset']:+.3f} of a radius)"
+                                        if proc.get("tone_mismatch") else "")))
         chi2 = "" if r.get("chi2_reduced") is None else f"{r['chi2_reduced']:.2f}"
         out.append(f"| {r['stack']} | {_cell(e['focal_length_mm'])} | {_cell(e['f_number'])} | "
                    f"{_cell(e['focus_distance_mm'])} | {named} | {chi2} | {'yes' if r['passed'] else '**no**'} |")

@@ -629,6 +629,7 @@ def test_bench_developed_judges_refusals_by_the_processing_named_and_strips_only
     errors = {"focal_length_mm": good, "f_number": refused, "focus_distance_mm": good}
     assert row_passed(errors, named, control=False)
     assert not row_passed(errors, {"developer": None, "halos": False}, control=False)
+    assert row_passed(errors, {"developer": None, "halos": False, "tone_mismatch": True}, control=False)
     assert not row_passed(errors, named, control=True)
     assert not row_passed(dict(errors, f_number={"refused": False, "relative_error": 0.06, "inside": False}), named,
                        control=False)
