@@ -259,3 +259,13 @@ def undistorted_blur(est: Any, scale: float, flags: list[Flag]) -> Any:
 
     return dataclasses.replace(est, coc_diameter_px=over(est.coc_diameter_px), sigma_px=over(est.sigma_px),
                                disk_diameter_px=over(est.disk_diameter_px), disk_sigma_px=over(est.disk_sigma_px))
+
+
+def bright_offset(est: Any, task: EdgeTask) -> float | None:
+    """How far the edge ``est`` read lies from ``task``'s line (through the target's corners),
+    toward the edge's bright side, px (None where the estimator locates no line)."""
+    if est.line_px is None or est.bright_side is None:
+        return None
+    middle = 0.5 * (np.asarray(est.line_px[0], np.float64) + np.asarray(est.line_px[1], np.float64))
+    along = 0.5 * (np.asarray(task.start_px, np.float64) + np.asarray(task.end_px, np.float64))
+    return float(np.dot(middle - along, np.asarray(est.bright_side, np.float64)))

@@ -26,7 +26,7 @@ from lensfit.estimators.base import Flag
 from lensfit.runtime.parallel import check_jobs, in_threads
 from lensfit.io.samples import Sample, SampleTable
 from lensfit.io.stack import Stack, load_stack
-from lensfit.measurement.edge_geometry import edge_tasks, refined_detections, undistorted_blur
+from lensfit.measurement.edge_geometry import bright_offset, edge_tasks, refined_detections, undistorted_blur
 from lensfit.calibration.targets import Detection, Target, detection_copies
 
 #: What of an edge task's context the edge estimator reads (the rest, the target's board and
@@ -224,16 +224,6 @@ class Measurement:
     def release(self) -> None:
         """Let the kept edge profiles go (no later read needs them)."""
         self.profiles = None
-
-
-def _bright_offset(est: Any, task: EdgeTask) -> float | None:
-    """How far the edge ``est`` read lies from ``task``'s line (through the target's corners),
-    toward the edge's bright side, px (None where the estimator locates no line)."""
-    if est.line_px is None or est.bright_side is None:
-        return None
-    middle = 0.5 * (np.asarray(est.line_px[0], np.float64) + np.asarray(est.line_px[1], np.float64))
-    along = 0.5 * (np.asarray(task.start_px, np.float64) + np.asarray(task.end_px, np.float64))
-    return float(np.dot(middle - along, np.asarray(est.bright_side, np.float64)))
 
 
 def _same_objects(a: list[list[Any]], b: list[list[Any]]) -> bool:
@@ -501,7 +491,7 @@ class _Run:
                 field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px))),
                 disk_diameter_px=est.disk_diameter_px, disk_sigma_px=est.disk_sigma_px))
             table.fit_rms.append(est.rms_residual)
-            table.bright_offset_px.append(_bright_offset(est, read_task))
+            table.bright_offset_px.append(bright_offset(est, read_task))
             table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
                                              read_task.clear_right_px, {k: v for k, v in read_task.context.items()
                                                                         if k in EDGE_CONTEXT},

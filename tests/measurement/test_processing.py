@@ -90,7 +90,8 @@ def test_a_developed_stack_refuses_n_with_the_cause_and_keeps_f_and_focus(calibr
     lo, hi = result.settings["a"]["focus_distance_mm"].ci95
     assert lo <= truth["settings"]["a"]["focus_distance_mm"] <= hi
     _, reported, _ = measure_and_fit(folder, processed="report")
-    assert any("reads high" in w for w in reported.warnings) and reported.processing.halos
+    assert any("sharpening halos" in w and "--processed report" in w for w in reported.warnings)
+    assert reported.processing.halos
 
 
 def test_exif_names_the_developer_and_linear_images_are_trusted(calibration_stack, tmp_path):
