@@ -123,7 +123,8 @@ def charuco_page(paper: str = "a4-landscape", squares: tuple[int, int] = (9, 6),
     ``square_mm`` defaults to the largest whole half-millimetre that fits ``squares`` inside the
     page's margins; ``marker_mm`` to ``MARKER_RATIO`` of it (a whole half-millimetre).
     """
-    from lensfit.calibration.targets import aruco_dictionary, aruco_dictionary_names, charuco_board, charuco_texels_per_square
+    from lensfit.calibration.targets import (aruco_dictionary, aruco_dictionary_names, charuco_board,
+                                             charuco_texels_per_square)
 
     page_w, page_h = paper_size(paper)
     cols, rows = (int(v) for v in squares)

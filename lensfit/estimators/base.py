@@ -13,7 +13,7 @@ import numpy as np
 
 class Flag(StrEnum):
     """How an edge's blur was read, or why it was not: a sample's ``flags`` (an ordered tuple of
-    these, no flag twice; written ``;``-separated in the samples files). Each is its own string
+    these, written ``;``-separated in the samples files and read back as written). Each is its own string
     value, so a flag read back from a file compares equal to its member."""
 
     #: within 2 degrees of a pixel axis: little super-sampling, unreliable below about 2 px
@@ -59,15 +59,13 @@ class Flag(StrEnum):
 
 
 def flags_from_text(text: str) -> tuple[Flag, ...]:
-    """A samples file's ``;``-separated flags as members (ValueError names an unknown one)."""
+    """A samples file's ``;``-separated flags as members, in order (ValueError names an unknown one)."""
     out: list[Flag] = []
     for name in filter(None, (part.strip() for part in text.split(";"))):
         try:
-            flag = Flag(name)
+            out.append(Flag(name))
         except ValueError:
             raise ValueError(f"flag {name!r} is not one lensfit writes (known: {', '.join(Flag)})") from None
-        if flag not in out:
-            out.append(flag)
     return tuple(out)
 
 

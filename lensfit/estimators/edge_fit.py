@@ -34,8 +34,8 @@ MAX_STEPS = 40
 #: the diffraction rounds, which amplify it, 1e-9 in f and N).
 SMALL_CHUNK = 4
 #: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.runtime.aot).
-AOT_MODULES = ("lensfit.estimators.edge_fit", "lensfit.estimators.edge_model", "lensfit.measurement.psf", "lensfit.fitting.lm",
-               "lensfit.measurement.diffraction")  # (the profile is data)
+AOT_MODULES = ("lensfit.estimators.edge_fit", "lensfit.estimators.edge_model", "lensfit.measurement.psf",
+               "lensfit.fitting.lm", "lensfit.measurement.diffraction")  # (the profile is data)
 #: The solver stops when a step gains less than this in chi-square (parameters within 1e-3
 #: standard errors of the minimum).
 FTOL = 1e-6

@@ -23,8 +23,9 @@ from lensfit.fitting.model import Layout, vector_size
 from lensfit.fitting.result import Estimate, FitResult, Outcome, parameter_labels
 from lensfit.fitting.solve import image_scatter, padded_size, predict_all
 from lensfit.fitting.spots import SPOT_SHAPE_MODES, disk_instead
-from lensfit.fitting.uncertainty import (StrataDof, arms_part, budget_parts, correlation, svd_covariance, derive_quantities,
-                                     images_part, image_spread, null_direction, positive_estimate, shares_of, student_z)
+from lensfit.fitting.uncertainty import (StrataDof, arms_part, budget_parts, correlation, svd_covariance,
+                                         derive_quantities, images_part, image_spread, null_direction,
+                                         positive_estimate, shares_of, student_z)
 
 
 def fit(samples: Any, *, pixel_pitch_mm: float | None = None,

@@ -130,13 +130,11 @@ def _quantities(t, m: int):
     import jax.numpy as jnp
 
     p = unpack(t, m)
-    log_f, inv_focus_per_m, log_n, floor, log_p = p.log_f, p.inv_focus_per_m, p.log_n, p.floor, p.log_p
-    f = jnp.exp(log_f)
-    s = pinhole_distance(jnp, f, inv_focus_per_m / 1000.0, jnp.exp(log_p))
-    return {"log_f": log_f, "log_N": log_n, "log_s": jnp.log(s), "log_A": log_f - log_n,
-            "log_K": log_f + jnp.log(s) - log_n, "inv_focus_per_m": inv_focus_per_m, "floor": floor, "s": s,
-            "N": jnp.exp(log_n),
-            "f": f, "log_P": log_p, "log_sx": log_p + jnp.log(s)}
+    f = jnp.exp(p.log_f)
+    s = pinhole_distance(jnp, f, p.inv_focus_per_m / 1000.0, jnp.exp(p.log_p))
+    return {"log_f": p.log_f, "log_N": p.log_n, "log_s": jnp.log(s), "log_A": p.log_f - p.log_n,
+            "log_K": p.log_f + jnp.log(s) - p.log_n, "inv_focus_per_m": p.inv_focus_per_m, "floor": p.floor, "s": s,
+            "N": jnp.exp(p.log_n), "f": f, "log_P": p.log_p, "log_sx": p.log_p + jnp.log(s)}
 
 
 def _derived(t, m: int):

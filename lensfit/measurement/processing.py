@@ -149,8 +149,8 @@ class Processing:
                 "encoded": self.encoded, "halos": self.halos,
                 "halo_amount": finite(self.halo_amount), "halo_sigma": finite(self.halo_sigma),
                 "halo_edges": self.halo_edges, "tone_offset": finite(self.tone_offset),
-                "tone_sigma": finite(self.tone_sigma), "tone_edges": self.tone_edges, "tone_mismatch": self.tone_mismatch,
-                "f_number_biased": self.biases_f_number}
+                "tone_sigma": finite(self.tone_sigma), "tone_edges": self.tone_edges,
+                "tone_mismatch": self.tone_mismatch, "f_number_biased": self.biases_f_number}
 
 
 def developer_of(path: Path, record: Any) -> str | None:
