@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
 from lensfit.estimators.base import Flag
 from lensfit.errors import InputError
+from lensfit.io.samples import Sample, SampleTable
 from lensfit.fitting.constants import (BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX,
                                    MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, SHAPE_ERROR_SHARE, SHAPE_ERROR_SHARE_RADIAL,
                                    SHAPE_SCALE_SHARE, UNREAD_SHAPE_MIN, NODES_T, disk_scale_sigma)
@@ -94,10 +96,15 @@ def inverse_distance_moments(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray
     return ratio / m, np.maximum(var, 0.0) / m**2
 
 
-def rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """Sample rows and context (pixel pitch, intrinsics) from any accepted input."""
-    from lensfit.io.samples import SampleTable
+#: The flags of a reading through a spot's shape, which a uniform disk's reading of the same edge
+#: taken instead no longer has.
+SHAPE_READ = frozenset({Flag.SHAPED_SPOT, Flag.RADIAL_PROFILE, Flag.MARKER_STRIPE})
 
+
+def samples_from(samples: Any) -> tuple[list[Sample], dict[str, Any]]:
+    """Samples (typed) and context (pixel pitch, intrinsics) from any accepted input: a
+    :class:`SampleTable`, a samples file, or a sequence of :class:`Sample` or of mappings of their
+    columns (:meth:`Sample.from_row`)."""
     if isinstance(samples, (str, Path)):
         samples = SampleTable.read(samples)
     if isinstance(samples, SampleTable):
@@ -114,11 +121,19 @@ def rows_from(samples: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]:
                                if v.source == "calibrated" and not any(v.distortion)},
                "distorted": {k for k, v in samples.intrinsics.items()
                              if v.source == "calibrated" and any(v.distortion)}}
-        return samples.rows(), ctx
-    rows = []
-    for s in samples:
-        rows.append(dict(s) if isinstance(s, dict) else dict(vars(s)))
-    return rows, {}
+        return list(samples.samples), ctx
+    out = []
+    for i, s in enumerate(samples):
+        if isinstance(s, Sample):
+            out.append(s)
+            continue
+        try:
+            out.append(Sample.from_row(s if isinstance(s, Mapping) else vars(s)))
+        except InputError as exc:
+            raise InputError(f"samples[{i}].{exc.argument}", exc.value, exc.requirement, exc.hint) from None
+        except TypeError:
+            raise InputError(f"samples[{i}]", s, "a Sample, or a mapping of its columns by name") from None
+    return out, {}
 
 
 #: Focus settings one fit takes at most: a photographer's bracket has a few, a careful study some
@@ -144,24 +159,19 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     """Validate samples and turn them into :class:`FitData` (see :func:`fit`). ``disk_readings``:
     the settings (labels; True: all) whose samples read through the shaped-spot model are taken
     at the uniform disk's reading where they give it (``disk_diameter_px``, ``disk_sigma_px``)."""
-    rows, ctx = rows_from(samples)
-    shaped = [i for i, r in enumerate(rows) if Flag.SHAPED_SPOT in _flags(r) and r.get("disk_diameter_px") is not None
-              and r.get("disk_sigma_px") is not None and r.get("coc_diameter_px") is not None]
-    swap = [i for i in shaped if disk_readings is True or str(rows[i].get("setting")) in disk_readings]
+    rows, ctx = samples_from(samples)
+    shaped = [i for i, r in enumerate(rows) if Flag.SHAPED_SPOT in r.flags and r.disk_diameter_px is not None
+              and r.disk_sigma_px is not None and r.coc_diameter_px is not None]
+    swap = [i for i in shaped if disk_readings is True or rows[i].setting in disk_readings]
     kept = set(shaped) - set(swap)  # shaped readings that stay so
     for i in swap:
-        rows[i] = {**rows[i], "coc_diameter_px": rows[i]["disk_diameter_px"], "sigma_px": rows[i]["disk_sigma_px"],
-                   "flags": ";".join(sorted(_flags(rows[i]) - {Flag.SHAPED_SPOT, Flag.RADIAL_PROFILE,
-                                                                 Flag.MARKER_STRIPE}))}
+        rows[i] = dataclasses.replace(rows[i], coc_diameter_px=rows[i].disk_diameter_px, sigma_px=rows[i].disk_sigma_px,
+                                      flags=tuple(f for f in rows[i].flags if f not in SHAPE_READ))
     pitch = _pixel_pitch(pixel_pitch_mm, ctx.get("pixel_pitch_mm"))
     used, used_rows, dropped, truncated = [], [], 0, 0
     for i, r in enumerate(rows):
-        c, sg = r.get("coc_diameter_px"), r.get("sigma_px")
-        d = r.get("distance_mm")
-        for name in ("distance_mm", "setting"):
-            if r.get(name) is None:
-                raise InputError(f"samples[{i}].{name}", None, "present")
-        if not (isinstance(d, (int, float)) and math.isfinite(d) and d > 0):
+        c, sg, d = r.coc_diameter_px, r.sigma_px, r.distance_mm
+        if not (math.isfinite(d) and d > 0):
             raise InputError(f"samples[{i}].distance_mm", d, "> 0 mm and finite")
         if not DISTANCE_RANGE_MM[0] <= d <= DISTANCE_RANGE_MM[1]:
             raise InputError(f"samples[{i}].distance_mm", d, f"between {DISTANCE_RANGE_MM[0]:g} and "
@@ -169,12 +179,12 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
         _check_optional(i, r)
         if c is not None and sg is not None and (c < 0 or sg <= 0):
             bad = "coc_diameter_px" if c < 0 else "sigma_px"
-            raise InputError(f"samples[{i}].{bad}", r[bad], "> 0 px" if bad == "sigma_px" else ">= 0 px",
+            raise InputError(f"samples[{i}].{bad}", getattr(r, bad), "> 0 px" if bad == "sigma_px" else ">= 0 px",
                              "a blur diameter and its sigma are never negative; leave both empty where an edge has "
                              "no measurement")
         if c is None or sg is None or not (math.isfinite(c) and math.isfinite(sg) and sg > 0 and c >= 0):
             dropped += 1  # the estimator could not measure this edge
-            truncated += Flag.WINDOW_TRUNCATED in _flags(r)
+            truncated += Flag.WINDOW_TRUNCATED in r.flags
             continue
         if c > MAX_BLUR_PX:
             raise InputError(f"samples[{i}].coc_diameter_px", c, f"at most {MAX_BLUR_PX:g} px",
@@ -195,16 +205,14 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
             fix = "measure a stack whose targets were detected (lensfit measure)"
         raise InputError("samples", f"{len(rows)} rows", "at least one sample with a measured coc_diameter_px and "
                          "sigma_px", fix)
-    labels = sorted({str(r["setting"]) for r in used})
+    labels = sorted({r.setting for r in used})
     if len(labels) > MAX_SETTINGS:
         raise InputError("samples.setting", f"{len(labels)} labels", f"at most {MAX_SETTINGS} focus settings in one "
                          "fit (each adds its own parameters)", "fit the settings in groups, or check the setting column")
     idx = {k: i for i, k in enumerate(labels)}
-    dist = np.array([float(r["distance_mm"]) for r in used])
-    from lensfit.io.samples import given_or
-
-    d0 = np.array([float(given_or(r.get("distance_start_mm"), r["distance_mm"])) for r in used])
-    d1 = np.array([float(given_or(r.get("distance_end_mm"), r["distance_mm"])) for r in used])
+    dist = np.array([r.distance_mm for r in used])
+    d0 = np.array([r.distance_start_mm for r in used])
+    d1 = np.array([r.distance_end_mm for r in used])
     w_mean, _ = inverse_distance_moments(d0, d1)
     w_nodes = 1.0 / (d0[:, None] + NODES_T[None, :] * (d1 - d0)[:, None])
     fpx = _per_setting(focal_length_px if focal_length_px is not None else ctx.get("focal_length_px"),
@@ -220,18 +228,18 @@ def prepare(samples: Any, *, pixel_pitch_mm: float | None = None,
     if bad.any():
         raise InputError("focal_length_sigma_px", float(fsg[bad][0]), f"between 0 and {MAX_FOCAL_LENGTH_PX:g} px")
     sigma, unread_share = _unread_shape_sigma(used, labels)
-    images = [str(r.get("image") or "") for r in used]  # "" = not known: no jackknife over images
+    images = [r.image for r in used]  # "" = not known: no jackknife over images
     image_index = {name: (i if name else -1) for i, name in enumerate(dict.fromkeys(images))}
-    return FitData(labels, np.array([idx[str(r["setting"])] for r in used]), dist, w_mean, w_nodes,
-                   np.array([float(r["coc_diameter_px"]) for r in used]),
+    return FitData(labels, np.array([idx[r.setting] for r in used]), dist, w_mean, w_nodes,
+                   np.array([r.coc_diameter_px for r in used]),
                    sigma, float(pitch), fpx, fsg, dropped,
                    np.array([image_index[name] for name in images], int), np.array(used_rows, int),
-                   np.array([str(r.get("distance_source") or "") == "pose" for r in used], bool),
+                   np.array([r.distance_source == "pose" for r in used], bool),
                    np.array([_scale_sigma(r, ctx.get("undistorted", frozenset()), ctx.get("distorted", frozenset()))
                              for r in used]), truncated,
-                   _field2(used, [fpx[idx[str(r["setting"])]] for r in used], used_rows),
+                   _field2(used, [fpx[idx[r.setting]] for r in used]),
                    np.array([i in kept for i in used_rows], bool),
-                   any(_flags(r) & {Flag.DIFFRACTION_MODELLED, Flag.AIRY_NOT_SEEN} for r in rows),
+                   any({Flag.DIFFRACTION_MODELLED, Flag.AIRY_NOT_SEEN} & set(r.flags) for r in rows),
                    np.array([_shape_error(r) if i in kept else math.nan for i, r in zip(used_rows, used)]),
                    fdof, unread_share)
 
@@ -243,55 +251,33 @@ OPTIONAL_RANGES = {"distance_start_mm": DISTANCE_RANGE_MM, "distance_end_mm": DI
                    "disk_sigma_px": (MIN_SIGMA_PX, MAX_BLUR_PX)}
 
 
-def _check_optional(i: int, row: dict[str, Any]) -> None:
+def _check_optional(i: int, row: Sample) -> None:
     """A sample's optional numbers (the edge's ends, its field radius, the uniform disk's reading)
     finite and in range where given: each is used, and a wrong one would bias the fit silently."""
     for name, (lo, hi) in OPTIONAL_RANGES.items():
-        value = row.get(name)
-        if value is None:
-            continue
-        try:
-            ok = lo <= float(value) <= hi  # (False for NaN)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
+        value = getattr(row, name)
+        if value is not None and not lo <= value <= hi:  # (NaN is out)
             unit = name.rsplit("_", 1)[1]
             raise InputError(f"samples[{i}].{name}", value, f"a finite number between {lo:g} and {hi:g} {unit}",
                              "write samples with lensfit measure, or leave the field out")
     for name in ("start_px", "end_px"):
-        value = row.get(name)
-        if value is None:
-            continue
-        try:
-            ok = len(value) == 2 and all(abs(float(v)) <= MAX_BLUR_PX for v in value)  # (False for NaN)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
+        value = getattr(row, name)
+        if not all(abs(v) <= MAX_BLUR_PX for v in value):  # (NaN is out)
             raise InputError(f"samples[{i}].{name}", value, f"two finite pixel coordinates within {MAX_BLUR_PX:g} px",
                              "write samples with lensfit measure, or leave the field out")
 
 
-def _field2(rows: list[dict[str, Any]], fpx: list[float], where: list[int]) -> np.ndarray:
-    """``(field_radius_px / f_px)^2`` per row, NaN where either is unknown; ``where``: each row's
-    index in the input, for the error a bad radius gets."""
+def _field2(rows: list[Sample], fpx: list[float]) -> np.ndarray:
+    """``(field_radius_px / f_px)^2`` per row (radii checked by :func:`_check_optional`), NaN
+    where either is unknown."""
     out = np.full(len(rows), math.nan)
-    for i, (r, f, row) in enumerate(zip(rows, fpx, where)):
-        radius = r.get("field_radius_px")
-        if radius is None:
-            continue
-        try:
-            value = float(radius)
-        except (TypeError, ValueError):
-            value = math.nan
-        if not (math.isfinite(value) and value >= 0):
-            raise InputError(f"samples[{row}].field_radius_px", radius, ">= 0 px and finite",
-                             "the distance of the edge's middle from the principal point in px, or leave it out")
-        if math.isfinite(f):
-            out[i] = (value / f) ** 2
+    for i, (r, f) in enumerate(zip(rows, fpx)):
+        if r.field_radius_px is not None and math.isfinite(f):
+            out[i] = (r.field_radius_px / f) ** 2
     return out
 
 
-def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), distorted: set[str] = frozenset()) -> float:
+def _scale_sigma(row: Sample, undistorted: set[str] = frozenset(), distorted: set[str] = frozenset()) -> float:
     """The estimator's shared scale error for one reading: the uniform disk's, and for a shaped
     spot's reading ``SHAPE_SCALE_SHARE`` of its relative difference from the uniform disk's beside
     it, in quadrature (an independent source)
@@ -300,8 +286,7 @@ def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), disto
     model, in a setting of ``undistorted`` (calibrated, no lens distortion found), or of
     ``distorted`` (calibrated with lens distortion) and taken through it (flag
     ``distortion_scaled``: ``lensfit.measurement.measure``)."""
-    c = float(row["coc_diameter_px"])
-    flags, setting = _flags(row), str(row.get("setting"))
+    c, flags, setting = row.coc_diameter_px, row.flags, row.setting
     plain = Flag.DIFFRACTION_MODELLED not in flags and (
         setting in undistorted or (setting in distorted and Flag.DISTORTION_SCALED in flags))
     if Flag.SHAPED_SPOT not in flags:
@@ -312,13 +297,13 @@ def _scale_sigma(row: dict[str, Any], undistorted: set[str] = frozenset(), disto
     return math.hypot(disk_scale_sigma(c, plain), SHAPE_SCALE_SHARE * departure)
 
 
-def _departure(row: dict[str, Any]) -> float | None:
+def _departure(row: Sample) -> float | None:
     """A shaped reading's relative difference from the uniform disk's reading of the same edge,
     ``|c - disk| / c``; None where the reading is not shaped or gives no disk reading."""
-    c, disk = float(row["coc_diameter_px"]), row.get("disk_diameter_px")
-    if Flag.SHAPED_SPOT not in _flags(row) or disk is None or not math.isfinite(float(disk)) or c <= 0:
+    c, disk = row.coc_diameter_px, row.disk_diameter_px
+    if Flag.SHAPED_SPOT not in row.flags or disk is None or not math.isfinite(disk) or c <= 0:
         return None
-    return abs(c - float(disk)) / c
+    return abs(c - disk) / c
 
 
 def _pixel_pitch(given: float | None, stated: Any) -> float:
@@ -335,17 +320,17 @@ def _pixel_pitch(given: float | None, stated: Any) -> float:
     return pitch
 
 
-def _shape_error(row: dict[str, Any]) -> float:
+def _shape_error(row: Sample) -> float:
     """A shaped reading's relative model error (1 sigma): ``SHAPE_ERROR_SHARE`` (two disks) or
     ``SHAPE_ERROR_SHARE_RADIAL`` (flag ``radial_profile``: the data rejected two disks; or
     ``marker_stripe``: read across a marker's stripe, where the symmetric profiles missed the
     spot's reach) of its relative difference from the uniform disk's reading of the same edge."""
     departure = _departure(row)
-    share = SHAPE_ERROR_SHARE_RADIAL if _flags(row) & {Flag.RADIAL_PROFILE, Flag.MARKER_STRIPE} else SHAPE_ERROR_SHARE
+    share = SHAPE_ERROR_SHARE_RADIAL if {Flag.RADIAL_PROFILE, Flag.MARKER_STRIPE} & set(row.flags) else SHAPE_ERROR_SHARE
     return math.nan if departure is None else share * departure
 
 
-def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[np.ndarray, dict]:
+def _unread_shape_sigma(used: list[Sample], labels: list[str]) -> tuple[np.ndarray, dict]:
     """Each reading's sigma, and per setting the model error its readings of unread shape carry.
 
     The uniform disk reads a real lens's spot (a core in a halo, a bright rim) small: by up to a
@@ -360,15 +345,15 @@ def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[
     ``m`` is the noise's few tenths of a percent and changes nothing; on a retrofocus at f/4 (m
     about 10 %) the readings near the focus, 2 px cores in a halo along the pixel axes read 15-25 %
     small, took the focus distance 1.1 % long at 2.4 of its sigmas."""
-    sigma = np.array([float(r["sigma_px"]) for r in used])
+    sigma = np.array([r.sigma_px for r in used])
     out: dict[str, tuple[float, int]] = {}
-    setting = np.array([str(r["setting"]) for r in used])
-    w = np.array([1.0 / float(r["distance_mm"]) for r in used])
+    setting = np.array([r.setting for r in used])
+    w = np.array([1.0 / r.distance_mm for r in used])
     departure = np.array([_departure(r) for r in used], dtype=float)  # NaN: no shape read
     is_shaped = np.isfinite(departure)
     read_shaped = {Flag.SHAPED_SPOT, Flag.DIFFRACTION_MODELLED, Flag.SUB_PIXEL_BLUR}
-    unread = np.array([not _flags(r) & read_shaped for r in used])
-    c = np.array([float(r["coc_diameter_px"]) for r in used])
+    unread = np.array([not read_shaped & set(r.flags) for r in used])
+    c = np.array([r.coc_diameter_px for r in used])
     for label in labels:
         mine = setting == label
         resolved = np.flatnonzero(mine & is_shaped)
@@ -387,10 +372,3 @@ def _unread_shape_sigma(used: list[dict[str, Any]], labels: list[str]) -> tuple[
         sigma[which] = np.hypot(sigma[which], shares * c[which])
         out[label] = (float(np.median(shares)), len(which))
     return sigma, out
-
-
-def _flags(row: dict[str, Any]) -> set[str]:
-    """A row's flags (:class:`lensfit.estimators.base.Flag`, or the same names as text from a
-    file), as a set that members and names alike are found in."""
-    f = row.get("flags") or ()
-    return set(f.split(";")) if isinstance(f, str) else set(f)

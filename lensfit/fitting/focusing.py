@@ -64,7 +64,7 @@ def with_lens(samples: Any, pupil_magnification: Any, focusing: str | None,
 
 def subset(samples: Any, label: str) -> Any:
     """The samples of setting ``label`` alone (a SampleTable keeps its intrinsics for that setting)."""
-    from lensfit.fitting.data import rows_from
+    from lensfit.fitting.data import samples_from
     from lensfit.io.samples import SampleTable
 
     if isinstance(samples, SampleTable):
@@ -75,8 +75,8 @@ def subset(samples: Any, label: str) -> Any:
             fit_rms=[samples.fit_rms[i] for i in keep] if len(samples.fit_rms) == len(samples.samples) else [],
             edge_tasks=[samples.edge_tasks[i] for i in keep] if len(samples.edge_tasks) == len(samples.samples)
             else [])
-    rows, _ = rows_from(samples)
-    return [r for r in rows if str(r.get("setting")) == label]
+    rows, _ = samples_from(samples)
+    return [r for r in rows if r.setting == label]
 
 
 def one_setting(value: Any, label: str) -> Any:

@@ -9,12 +9,12 @@ import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
 from lensfit.calibration.camera import Intrinsics, TargetPose
-from lensfit.errors import SpecError
+from lensfit.errors import InputError, SpecError
 from lensfit.estimators.base import Flag, flags_from_text
 from lensfit.io.samples_csv import SAMPLES_CSV_CALIBRATION, SAMPLES_CSV_COLUMNS, csv_calibration, read_samples_csv
 from lensfit.outputs.writers import provenance
@@ -43,6 +43,64 @@ class Sample:
     #: where the reading is a shaped spot's, the uniform disk's reading of the same edge and its sigma (px)
     disk_diameter_px: float | None = None
     disk_sigma_px: float | None = None
+
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> "Sample":
+        """A sample from its columns by name (a samples file's row, or a caller's mapping):
+        numbers as numbers or text, ``flags`` as members or ``;``-separated names, the end
+        points as pairs or ``"x y"`` text. Only ``setting`` and ``distance_mm`` are required; the
+        edge's ends default to its middle. An unreadable value raises
+        :class:`lensfit.errors.InputError` naming its column."""
+        for name in ("setting", "distance_mm"):
+            if given_or(row.get(name), None) is None:
+                raise InputError(name, None, "present")
+        distance = _number(row, "distance_mm")
+        flags = row.get("flags") or ()
+        try:
+            flags = flags_from_text(flags) if isinstance(flags, str) else tuple(Flag(f) for f in flags)
+        except (TypeError, ValueError) as exc:
+            raise InputError("flags", flags, "flags lensfit writes", str(exc)) from None
+        return cls(image=_text(row, "image"), setting=_text(row, "setting"), target=_text(row, "target"),
+                   edge=_text(row, "edge"), distance_mm=distance,
+                   distance_start_mm=_number(row, "distance_start_mm", distance),
+                   distance_end_mm=_number(row, "distance_end_mm", distance),
+                   coc_diameter_px=_number(row, "coc_diameter_px", None), sigma_px=_number(row, "sigma_px", None),
+                   estimator=_text(row, "estimator"), flags=flags, start_px=_point(row, "start_px"),
+                   end_px=_point(row, "end_px"), distance_source=_text(row, "distance_source"),
+                   field_radius_px=_number(row, "field_radius_px", None),
+                   disk_diameter_px=_number(row, "disk_diameter_px", None),
+                   disk_sigma_px=_number(row, "disk_sigma_px", None))
+
+
+_REQUIRED = object()
+
+
+def _text(row: Mapping[str, Any], name: str) -> str:
+    return str(given_or(row.get(name), ""))
+
+
+def _number(row: Mapping[str, Any], name: str, default: Any = _REQUIRED) -> Any:
+    """A column's value as a float (``default`` where it was left out)."""
+    value = given_or(row.get(name), default)
+    if value is default and default is not _REQUIRED:
+        return default
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(name, value, "a number" + ("" if default is _REQUIRED else ", or left out")) from None
+
+
+def _point(row: Mapping[str, Any], name: str) -> tuple[float, float]:
+    """An image point, ``(x, y)`` px, from a pair or ``"x y"`` text; (0, 0) where left out."""
+    value = given_or(row.get(name), (0.0, 0.0))
+    try:
+        point = tuple(float(v) for v in (value.split() if isinstance(value, str) else value))
+    except (TypeError, ValueError):
+        point = ()
+    if len(point) != 2:
+        raise InputError(name, value, "two pixel coordinates (x, y)")
+    return point
 
 
 def given_or(value: Any, default: Any) -> Any:
@@ -178,26 +236,15 @@ class SampleTable:
                                 "lensfit measure writes") from None
             _check_intrinsics(path, label, table.intrinsics[label])
         for i, r in enumerate(doc["samples"]):
+            if not isinstance(r, dict):
+                raise SpecError(path, f"samples[{i}]", f"got {r!r}: a sample's columns by name expected (as "
+                                "lensfit measure writes them)")
             try:
-                start = r.get("start_px") or (0.0, 0.0)
-                end = r.get("end_px") or (0.0, 0.0)
-                if isinstance(start, str):
-                    start, end = tuple(map(float, start.split())), tuple(map(float, end.split()))
-                table.samples.append(Sample(
-                    image=str(r.get("image", "")), setting=str(r["setting"]), target=str(r.get("target", "")),
-                    edge=str(r.get("edge", "")), distance_mm=float(r["distance_mm"]),
-                    distance_start_mm=float(given_or(r.get("distance_start_mm"), r["distance_mm"])),
-                    distance_end_mm=float(given_or(r.get("distance_end_mm"), r["distance_mm"])),
-                    coc_diameter_px=None if r.get("coc_diameter_px") is None else float(r["coc_diameter_px"]),
-                    sigma_px=None if r.get("sigma_px") is None else float(r["sigma_px"]),
-                    estimator=str(r.get("estimator", "")), flags=flags_from_text(str(r.get("flags", "") or "")),
-                    start_px=tuple(start), end_px=tuple(end), distance_source=str(r.get("distance_source", "")),
-                    field_radius_px=None if r.get("field_radius_px") is None else float(r["field_radius_px"]),
-                    disk_diameter_px=None if r.get("disk_diameter_px") is None else float(r["disk_diameter_px"]),
-                    disk_sigma_px=None if r.get("disk_sigma_px") is None else float(r["disk_sigma_px"])))
-            except (AttributeError, KeyError, TypeError, ValueError) as exc:
-                raise SpecError(path, f"samples[{i}]", f"unreadable sample ({exc!r}); expected the columns "
-                                "lensfit measure writes") from None
+                table.samples.append(Sample.from_row(r))
+            except InputError as exc:
+                hint = f" ({exc.hint})" if exc.hint else ""
+                raise SpecError(path, f"samples[{i}].{exc.argument}", f"got {exc.value!r}: {exc.requirement} "
+                                f"expected, as lensfit measure writes it{hint}") from None
         return table
 
     def write(self, path: str | Path) -> None:

@@ -465,6 +465,35 @@ def test_bad_input_is_a_typed_error_naming_the_argument():
     with pytest.raises(InputError, match="focal_length_px"):
         fit(good, pixel_pitch_mm=PITCH, focal_length_px={"b": 1000.0})
 
+    for column, value in (("distance_mm", "far"), ("flags", "sharpened_by_hand"), ("start_px", [1.0]),
+                          ("sigma_px", [0.1])):
+        with pytest.raises(InputError, match=rf"samples\[1\]\.{column}"):
+            fit([good[0], {**good[0], column: value}], pixel_pitch_mm=PITCH)
+    with pytest.raises(InputError, match=r"samples\[0\]\.setting"):
+        fit([{"distance_mm": 1000.0, "coc_diameter_px": 1.0, "sigma_px": 0.1}], pixel_pitch_mm=PITCH)
+
+
+def test_samples_fit_alike_whatever_form_they_come_in(tmp_path):
+    """Mappings (numbers as text too, as a CSV reader gives them), typed Samples and a samples file
+    written by lensfit and read back are one input to the fit: the same estimates."""
+    from lensfit.io.samples import Sample, SampleTable
+
+    rng = np.random.default_rng(11)
+    rows, fpx, fpx_sigma = simulate(50.0, 4.0, 2000.0, np.linspace(1200, 3500, 24), rng)
+    rows = [{**r, "flags": "axis_aligned"} for r in rows]
+    typed = [Sample.from_row(r) for r in rows]
+    as_text = [{k: str(v) for k, v in r.items()} for r in rows]
+    path = tmp_path / "samples.csv"
+    SampleTable(samples=typed, pixel_pitch_mm=PITCH).write(path)
+    results = [run_fit(form, fpx, fpx_sigma) for form in (rows, typed, as_text, SampleTable.read(path))]
+    first = results[0].settings["a"]
+    assert results[0].ok and abs(first["f_number"].value / 4.0 - 1) < 0.05
+    for other in results[1:]:
+        assert other.focal_length_mm.value == pytest.approx(results[0].focal_length_mm.value, rel=1e-12)
+        for name in ("f_number", "focus_distance_mm"):
+            a, b = first[name], other.settings["a"][name]
+            assert b.value == pytest.approx(a.value, rel=1e-12) and b.sigma == pytest.approx(a.sigma, rel=1e-9)
+
 
 # --------------------------------------------------------------------------- uncertainty
 
