@@ -24,7 +24,7 @@ demo's fronto-parallel shot: RMS error 21-24 % lower at 4-256 spp, and 1.5x the 
 second (per-sample hashes would be most of the arithmetic, which XLA repeats in each fused
 loop). Computation runs in float32 (the geometry in pixel and millimetre units stays well within
 its precision); compiled once per scene structure (target kinds) and image width, and kept as
-an executable (``lensfit.runtime.aot``) where the command-line tools keep a store.
+an executable (``lensfit.runtime.jaxcache``) where the command-line tools keep a store.
 
 Cost: proportional to the pixels traced x samples per pixel x objects. A pixel whose every ray
 meets one region of constant reflectance (inside a board's square, its margin, a uniform patch,
@@ -48,16 +48,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit.runtime import aot
+from lensfit.runtime import jaxcache
 from synth import flat, textures
 from synth.effects.aperture import sample as aperture_sample
 from synth.scene import Shot
 
 TILE_SAMPLES = 1 << 20  # lens samples per compiled call: measured fastest on 2 cores (synth bench)
 #: The modules whose source defines the compiled tracer of a thin lens (a change traces it afresh;
-#: lensfit.runtime.aot keeps its executable where the command-line tools switched the store on: a new
+#: lensfit.runtime.jaxcache keeps its executable where the command-line tools switched the store on: a new
 #: process then loads it instead of tracing and lowering it for JAX's persistent cache).
-AOT_MODULES = ("synth.raytrace", "synth.textures", "synth.effects.aperture")
+AOT_MODULES = ("synth.raytrace", "synth.textures", "synth.effects.aperture", "synth.lens.prescription",
+               "lensfit.optics.checks")
 
 
 def _pcg(v):
@@ -127,7 +128,7 @@ def compound_lens_ray(pixel_x, pixel_y, ux, uy, cam, reversed_rx):
     norm = jnp.sqrt(ddx * ddx + ddy * ddy + ddz * ddz)
     # Reversed lens frame: z' = z_last - z, so the ray travels +z'.
     (x, y, zr), (dx, dy, dz), passed, _ = trace(reversed_rx, (xs, ys, jnp.broadcast_to(z_last - z_sensor, xs.shape)),
-                                               (ddx / norm, ddy / norm, -ddz / norm), jnp)
+                                               (ddx / norm, ddy / norm, -ddz / norm))
     passed = passed & (dz > 1e-6)
     safe = jnp.where(passed, dz, 1.0)
     # Scene frame: depth = z_ep - z = z_ep - (z_last - z'), direction per unit depth (dx/dz', dy/dz').
@@ -402,8 +403,8 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
         tile_warp = None if warp_flat is None else warp_flat[pixels]
         # numpy scalars: a jnp scalar is an operation of its own (0.2 ms each, three per tile)
         args = (pixels, cam_arr, planes, rasters, np.float32(background), np.uint32(seed), tile_warp)
-        if compound is None:  # kept compiled (lensfit.runtime.aot) where the command-line tools keep a store
-            return aot.call("raytrace", _render_pixels, args, static, AOT_MODULES, kernels=False)
+        if compound is None:  # kept compiled (lensfit.runtime.jaxcache) where the command-line tools keep a store
+            return jaxcache.call("raytrace", _render_pixels, args, static, AOT_MODULES, kernels=False)
         return _render_pixels(*args, **static)  # (a lens prescription is no file name's part)
 
     # The next tile is dispatched before this one's result is waited for, so that the Python work

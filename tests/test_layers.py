@@ -224,3 +224,22 @@ def test_no_private_name_crosses_a_module():
                 crossing += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}" for a in node.names
                              if a.name.startswith("_") and not a.name.startswith("__")]
     assert not crossing, "\n".join(crossing)
+
+
+def test_one_array_backend_idiom():
+    """Code that runs on NumPy and JAX alike takes its namespace from its inputs
+    (``lensfit.optics.checks.namespace``): no function is handed the namespace as an argument, and
+    no setting holds it."""
+    handed = []
+    for name, path in MODULES.items():
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                args = node.args
+                names = [a.arg for a in (*args.posonlyargs, *args.args, *args.kwonlyargs)]
+                if "xp" in names:
+                    handed.append(f"{name}:{node.lineno} {getattr(node, 'name', 'lambda')}(xp)")
+            elif isinstance(node, ast.Call) and "ContextVar" in (getattr(node.func, "attr", None),
+                                                                    getattr(node.func, "id", None)):
+                handed.append(f"{name}:{node.lineno} ContextVar")
+    assert not handed, handed

@@ -190,7 +190,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
             say(f"{name}: measuring")
             t0 = time.perf_counter()
             # As `lensfit fit`: the images tested for the Airy pattern, which decides the readings
-            # (the spots' shapes, or the pattern modelled; lensfit.fitting.spots); its fit is the bracket's.
+            # (the spots' shapes, or the pattern modelled; lensfit.fitting.refits); its fit is the bracket's.
             try:
                 table, bracket, _ = measure_and_fit(folder, auto_diffraction=True)
             except (InputError, SpecError) as exc:  # the stack refused as a user's would be: a row saying why

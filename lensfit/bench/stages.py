@@ -6,7 +6,7 @@ linearise), detect (targets), calibrate (intrinsics, poses, edge geometry), meas
 of every edge), fit (the solver), uncertainty (covariance, jackknife, every reported quantity).
 
 Each configuration runs in a fresh process (``cold``: imports, loading the stored traces and
-compiled code of ``lensfit.runtime.aot`` / the persistent cache) and again ``warm_runs`` times in that
+compiled code of ``lensfit.runtime.jaxcache`` / the persistent cache) and again ``warm_runs`` times in that
 process (``warm``: each stage's median over them; one warm call alone scatters by a fifth).
 Sizes: the first k images of the stack, and the whole stack enlarged by a factor (bilinear, the
 pixel pitch divided by it: the same scene at more pixels). The OpenCV reference reads the same

@@ -184,7 +184,7 @@ def _even_along(profiles: list[tuple]) -> list[bool]:
     fits = fit_profiles(halves, False)
     for i in range(0, len(fits), 2):
         (t1, _, _, ok1, _), (t2, _, _, ok2, _) = fits[i], fits[i + 1]
-        c1, c2 = (2.0 * math.sqrt(squared_radius(np, float(t[1]))) for t in (t1, t2))
+        c1, c2 = (2.0 * math.sqrt(squared_radius(float(t[1]))) for t in (t1, t2))
         out[owner[i]] = bool(ok1 and ok2 and abs(c1 - c2) <= SHAPE_MAX_STRIP_SPREAD * 0.5 * (c1 + c2))
     return out
 
@@ -193,7 +193,7 @@ def _radius_terms(theta, cov) -> tuple[float, float, float, float]:
     """Of a fit: R^2, d R^2 / d rho, the variance of R^2, and 1 sigma of R from it,
     ``sqrt(R^2 + sigma_rho) - R`` (= sigma_rho / 2R when R is well determined, sqrt(sigma_rho) as
     R -> 0)."""
-    rho = float(squared_radius(np, float(theta[1])))
+    rho = float(squared_radius(float(theta[1])))
     slope = squared_radius_slope(float(theta[1]))
     var_rho = slope * slope * float(cov[1, 1])
     return rho, slope, var_rho, math.sqrt(rho + math.sqrt(max(var_rho, 0.0))) - math.sqrt(rho)
@@ -364,7 +364,7 @@ def _read_shapes(fits: list, tasks: list[EdgeTask], batch: list, banded: list, f
     weights, flags, whether the clean room narrowed its window, and its profile across a marker's
     stripe (``_stripe_profile``, or None)."""
     fits = list(fits)
-    diameter = [2.0 * math.sqrt(squared_radius(np, float(theta[1]))) for theta, *_ in fits]
+    diameter = [2.0 * math.sqrt(squared_radius(float(theta[1]))) for theta, *_ in fits]
     readable = [j for j, (_, _, _, ok, _) in enumerate(fits) if ok and diameter[j] >= SHAPE_MIN_PX]
     across = [j for j in readable if not _at_one_depth(tasks[j])]
     wide = [j for j in across if diameter[j] >= SHAPE_ACROSS_MIN_PX]

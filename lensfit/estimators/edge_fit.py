@@ -2,7 +2,7 @@
 edge profile of a stack solved by Levenberg-Marquardt (``lensfit.fitting.lm``) under ``jax.vmap``, in
 chunks of a fixed size padded to one of a few profile sizes, so that a few compiled shapes per
 kind of fit (uniform disk, two disks, with the Airy pattern) serve any stack; compiled once
-per installation (``lensfit.runtime.aot``) and loaded in the background (:func:`prewarm`). The model,
+per installation (``lensfit.runtime.jaxcache``) and loaded in the background (:func:`prewarm`). The model,
 its residuals and start grids are in ``lensfit.estimators.edge_model``."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lensfit.runtime import aot
+from lensfit.runtime import jaxcache
 from lensfit.measurement.diffraction import edge_kernel
 from lensfit.estimators.edge_model import (AIRY_START_SHARES, Profile, chunks, from_moment, grid_start,
                                            moment_residuals, residuals, shape_start, squared_radius, to_moment)
@@ -33,9 +33,9 @@ MAX_STEPS = 40
 #: agree to rounding (a problem may land in the other profile size: 1e-14 in a sigma, and after
 #: the diffraction rounds, which amplify it, 1e-9 in f and N).
 SMALL_CHUNK = 4
-#: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.runtime.aot).
-AOT_MODULES = ("lensfit.estimators.edge_fit", "lensfit.estimators.edge_model", "lensfit.measurement.psf",
-               "lensfit.fitting.lm", "lensfit.measurement.diffraction")  # (the profile is data)
+#: The modules whose source defines the compiled fit (a change traces it afresh; lensfit.runtime.jaxcache).
+AOT_MODULES = ("lensfit.estimators.edge_fit", "lensfit.estimators.edge_model", "lensfit.measurement.psf",  # (the
+               "lensfit.fitting.lm", "lensfit.measurement.diffraction", "lensfit.optics.checks")  # profile is data)
 #: The solver stops when a step gains less than this in chi-square (parameters within 1e-3
 #: standard errors of the minimum).
 FTOL = 1e-6
@@ -68,7 +68,7 @@ def _fit_batch(d, s, v, w, nx, ny, theta_disk, airy, shaped: bool, diffraction: 
         elif diffraction and warm:  # from the solution at a nearby Airy scale (an earlier round), its ramp 0
             start = jnp.concatenate([theta_disk, jnp.zeros(1)])
         elif diffraction:
-            radius = jnp.sqrt(squared_radius(jnp, theta_disk[1]))
+            radius = jnp.sqrt(squared_radius(theta_disk[1]))
             start = jnp.concatenate([grid_start(d, s, v, w, nx, ny, airy, radius * jnp.asarray(AIRY_START_SHARES)),
                                      jnp.zeros(1)])  # the ramp
         else:
@@ -141,7 +141,7 @@ class FitQueue:
         disk = [self.items[i][1] for i in members] if self.static["shaped"] or self.static["diffraction"] else None
         airy = [self.items[i][2] for i in members] if self.static["diffraction"] else None
         with jax.enable_x64(True):  # numpy in: no eager JAX operation between the compiled calls
-            self.calls.append((members, [aot.call("edge-fit", _fit_batch, chunk, self.static, AOT_MODULES)
+            self.calls.append((members, [jaxcache.call("edge-fit", _fit_batch, chunk, self.static, AOT_MODULES)
                                          for chunk in chunks(npix, self.chunk, samples, disk, airy)]))
 
     def results(self) -> list[tuple]:

@@ -3,7 +3,7 @@ describes the method): the uniform disk or two concentric disks, integrated over
 in closed form, convolved where diffraction is modelled with the edge's Airy kernel
 (``lensfit.measurement.diffraction.edge_kernel``); the residuals the batched Levenberg-Marquardt solve
 minimises and the grids it starts from. Pure JAX functions of one edge: the estimator maps
-them over chunks of edges (packed by :func:`chunks`) and compiles them once (``lensfit.runtime.aot``)."""
+them over chunks of edges (packed by :func:`chunks`) and compiles them once (``lensfit.runtime.jaxcache``)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import numpy as np
 
 from lensfit.measurement.diffraction import KERNEL_KNOTS, edge_kernel
 from lensfit.measurement.psf import disk_esf_integral2, pixel_edge_profile
+from lensfit.optics.checks import namespace
 
 RADIUS_GRID = np.geomspace(0.05, 200.0, 24)
 #: Where diffraction is modelled, the start's grid over the radius, as shares of the uniform
@@ -43,11 +44,11 @@ SHAPE_GRID = ((0.3, -0.5), (0.6, -0.5), (0.3, 0.5), (0.6, -1.5), (0.8, 0.0),
 MIN_VARIANCE_SHARE = 0.05
 
 
-def squared_radius(xp, rho):
+def squared_radius(rho):
     """R^2 from the solver's parameter: a smooth max(rho, 0) (within 1e-12 px^2 of rho for a blur
     over 0.01 px). A sharp edge has its least-squares minimum at R = 0; ``|rho|`` would put a
     kink there, on which the solver bounces instead of settling."""
-    return 0.5 * (rho + xp.sqrt(rho * rho + RHO_SMOOTH_PX2**2))
+    return 0.5 * (rho + namespace(rho).sqrt(rho * rho + RHO_SMOOTH_PX2**2))
 
 
 def squared_radius_slope(rho: float) -> float:
@@ -74,7 +75,7 @@ def model(theta, d, s, nx, ny, shaped: bool, airy=None):
     # line's own uncertainty is part of the covariance; when shaped, `a` is the inner disk's
     # share of the light and t = sigmoid(u) its radius over R (a = 0: the uniform disk).
     d0, rho, lo, hi, turn = (theta[i] for i in range(5))
-    R = jnp.sqrt(squared_radius(jnp, rho) + 1e-12)
+    R = jnp.sqrt(squared_radius(rho) + 1e-12)
     x = d - d0 - turn * s
     outer = profile(x, R, nx, ny, airy)
     if not shaped:
@@ -173,7 +174,7 @@ def shape_start(theta_disk, args):
     """The two-disk start: on a grid of shapes (a, logit t) around the uniform disk's solution,
     each with the outer radius that keeps the disk's second moment, the one of least cost."""
     fn = partial(residuals, shaped=True)
-    rho_disk = squared_radius(jnp, theta_disk[1])
+    rho_disk = squared_radius(theta_disk[1])
     starts = []
     for a, u in SHAPE_GRID:
         t = 1.0 / (1.0 + math.exp(-u))

@@ -33,7 +33,7 @@ def _model(theta, d, nx, ny):
     # The edge on a regular grid that reaches 4 sigma beyond the profile's bins, blurred by the
     # Gaussian as a matrix over that grid, both read at the bins (one evaluation of the edge).
     d0, rho, lo, hi, a = (theta[i] for i in range(5))
-    radius = jnp.sqrt(squared_radius(jnp, rho) + 1e-12)  # (as the edge estimator's model)
+    radius = jnp.sqrt(squared_radius(rho) + 1e-12)  # (as the edge estimator's model)
     reach = 4.0 * HALO_SIGMA_PX
     grid = jnp.linspace(jnp.min(d) - reach, jnp.max(d) + reach, _GRID)
     f = lo + (hi - lo) * pixel_edge_profile(grid - d0, radius, nx, ny)

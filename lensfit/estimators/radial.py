@@ -54,7 +54,7 @@ REACH_Z = 3.0
 
 def _two_disk_diameter(theta) -> float:
     """The two-disk fit's second-moment diameter, 2 R sqrt(1 - a (1 - t^2))."""
-    R = math.sqrt(float(squared_radius(np, float(theta[1]))) + 1e-12)
+    R = math.sqrt(float(squared_radius(float(theta[1]))) + 1e-12)
     t = 1.0 / (1.0 + math.exp(-float(np.clip(theta[6], -50.0, 50.0))))
     return 2.0 * R * math.sqrt(max(1.0 - float(theta[5]) * (1.0 - t * t), 0.0))
 

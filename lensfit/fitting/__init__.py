@@ -63,7 +63,7 @@ shared scale error (``BLUR_SCALE_SIGMA`` and ``BLUR_SCALE_BIAS_PX2 / c^2`` in qu
 every blur moves ``A``, ``N``, the slope and the floor alike, and nothing else) and the priors. The model covariance splits exactly as
 ``H^-1 J_g^T J_g H^-1`` over the row groups ``g`` of the Jacobian. Where every sample of a setting
 lies on one side of its focus distance and a floor above 0 was fitted, the difference from the
-fit without the floor is a term of its own (``floor_choice``, :mod:`lensfit.fitting.floor_choice`).
+fit without the floor is a term of its own (``floor_choice``, :mod:`lensfit.fitting.refits`).
 
 Solver: a closed-form start (for each candidate vertex on a grid spanning the data, linear
 least squares for the slope and floor in ``c^2``; the best vertex wins), then optimistix

@@ -15,14 +15,13 @@ from lensfit.fitting.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MODES, F
                                    MAX_CONDITION, MAX_RELATIVE_SIGMA, QUANTITIES, UNREAD_SHAPE_WARN)
 from lensfit.fitting.data import FitData, prepare
 from lensfit.fitting import nominal, stages
-from lensfit.fitting.curvature import curvature_estimate, field_spread
-from lensfit.fitting.floor_choice import floor_sensitive, widen
 from lensfit.fitting.focusing import merge, one_setting, subset, with_lens
-from lensfit.fitting.identifiability import capture_problems, one_sided, pupil_mode, second_vertex
+from lensfit.fitting.identifiability import (capture_problems, curvature_estimate, field_spread, one_sided, pupil_mode,
+                                             second_vertex)
 from lensfit.fitting.model import Layout, vector_size
 from lensfit.fitting.result import Estimate, FitResult, Outcome, parameter_labels
 from lensfit.fitting.solve import image_scatter, padded_size, predict_all
-from lensfit.fitting.spots import SPOT_SHAPE_MODES, disk_instead
+from lensfit.fitting.refits import SPOT_SHAPE_MODES, disk_instead, floor_sensitive, widen
 from lensfit.fitting.uncertainty import (StrataDof, arms_part, budget_parts, correlation, svd_covariance,
                                          derive_quantities, images_part, image_spread, null_direction,
                                          positive_estimate, shares_of, student_z)
@@ -77,7 +76,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         keeps kappa only where it differs from 0 by ``FIELD_CURVATURE_Z`` sigma.
     floor_choice : bool
         Where every sample of a setting lies on one side of its focus and its floor is above 0,
-        fit again without the floor and widen its intervals to span both (lensfit.fitting.floor_choice;
+        fit again without the floor and widen its intervals to span both (lensfit.fitting.refits;
         default True). The pipeline's diffraction rounds compare their own rounds instead.
     focusing : str, optional
         How the lens focuses (``lensfit.fitting.focusing``; default: the samples' ``lens``, what the
@@ -93,7 +92,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         "auto" (default), "shaped" or "disk": where a sample gives two readings, take its spot's
         second moment or the uniform disk's (``disk_diameter_px``); "auto" takes the disk's on
         settings where an Airy pattern the samples were not tested for may be in the blur
-        (lensfit.fitting.spots), with a warning.
+        (lensfit.fitting.refits), with a warning.
 
     Returns
     -------

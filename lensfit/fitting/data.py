@@ -55,7 +55,7 @@ class FitData:
     field2: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: True where the sample was read through the shaped-spot model and gives the uniform disk's
     #: reading too; whether the images were read through the Airy pattern or found without one
-    #: (flags ``diffraction_modelled``, ``airy_not_seen``; lensfit.fitting.spots)
+    #: (flags ``diffraction_modelled``, ``airy_not_seen``; lensfit.fitting.refits)
     shaped: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     airy_checked: bool = False
     #: each kept shaped reading's relative model error (1 sigma), NaN where the reading is not
@@ -326,7 +326,8 @@ def _shape_error(row: Sample) -> float:
     ``marker_stripe``: read across a marker's stripe, where the symmetric profiles missed the
     spot's reach) of its relative difference from the uniform disk's reading of the same edge."""
     departure = _departure(row)
-    share = SHAPE_ERROR_SHARE_RADIAL if {Flag.RADIAL_PROFILE, Flag.MARKER_STRIPE} & set(row.flags) else SHAPE_ERROR_SHARE
+    radial = {Flag.RADIAL_PROFILE, Flag.MARKER_STRIPE} & set(row.flags)
+    share = SHAPE_ERROR_SHARE_RADIAL if radial else SHAPE_ERROR_SHARE
     return math.nan if departure is None else share * departure
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from lensfit.fitting.constants import FLOOR_SADDLE_PX, FLOOR_START_PX, CAUCHY_C, HUBER_K
 from lensfit.fitting.data import FitData
-from lensfit.fitting.model import Layout, blur_diameters_px, jax_blur, pinhole_distance, unpack
+from lensfit.fitting.model import Layout, blur_diameters_px, pinhole_distance, unpack
 
 
 class Rows(NamedTuple):
@@ -51,8 +51,8 @@ def _residuals(theta_free, args: SolverArgs, m: int):
 
     rows = args.rows
     theta = jnp.asarray(args.theta).at[args.free_idx].set(theta_free)  # numpy where called eagerly
-    c, s = jax_blur(theta, m, rows.setting, rows.w_nodes, rows.pixel_pitch_mm, rows.focal_length_px, rows.pose,
-                    rows.field2)
+    c, s = blur_diameters_px(theta, m, rows.setting, rows.w_nodes, rows.pixel_pitch_mm, rows.focal_length_px, rows.pose,
+                             rows.field2)
     r_blur = (c - rows.coc_px) * rows.weight
     r_fpx = (s / rows.pixel_pitch_mm - rows.focal_length_px) * rows.focal_length_weight
     at = Layout(m)
@@ -61,8 +61,9 @@ def _residuals(theta_free, args: SolverArgs, m: int):
     return jnp.concatenate([r_blur, r_fpx, r_floor, r_p])
 
 
-#: The modules whose source defines the compiled solver (a change traces it afresh; lensfit.runtime.aot).
-AOT_MODULES = ("lensfit.fitting.solve", "lensfit.fitting.model", "lensfit.fitting.constants", "lensfit.fitting.lm")
+#: The modules whose source defines the compiled solver (a change traces it afresh; lensfit.runtime.jaxcache).
+AOT_MODULES = ("lensfit.fitting.solve", "lensfit.fitting.model", "lensfit.fitting.constants", "lensfit.fitting.lm",
+               "lensfit.optics.checks")
 
 
 #: Levenberg-Marquardt's tolerances. optimistix stops at an accepted step that moved every
@@ -131,7 +132,7 @@ def _quantities(t, m: int):
 
     p = unpack(t, m)
     f = jnp.exp(p.log_f)
-    s = pinhole_distance(jnp, f, p.inv_focus_per_m / 1000.0, jnp.exp(p.log_p))
+    s = pinhole_distance(f, p.inv_focus_per_m / 1000.0, jnp.exp(p.log_p))
     return {"log_f": p.log_f, "log_N": p.log_n, "log_s": jnp.log(s), "log_A": p.log_f - p.log_n,
             "log_K": p.log_f + jnp.log(s) - p.log_n, "inv_focus_per_m": p.inv_focus_per_m, "floor": p.floor, "s": s,
             "N": jnp.exp(p.log_n), "f": f, "log_P": p.log_p, "log_sx": p.log_p + jnp.log(s)}
@@ -145,7 +146,7 @@ def _derived(t, m: int):
 
 class _Solver:
     """The compiled functions for ``m`` settings, each traced once per installation where the CLI
-    keeps a store (``lensfit.runtime.aot``), else jit-compiled per process: ``solve(theta0, args) ->
+    keeps a store (``lensfit.runtime.jaxcache``), else jit-compiled per process: ``solve(theta0, args) ->
     (theta, converged)`` (optimistix Levenberg-Marquardt), ``evaluate(theta, args) ->
     (residuals, Jacobian)`` and ``derived(theta_full) -> (values, Jacobians)`` of the reported
     quantities; ``args`` a :class:`SolverArgs`."""
@@ -154,9 +155,9 @@ class _Solver:
         self.m = m
 
     def _call(self, name, fn, *args, **static):
-        from lensfit.runtime import aot
+        from lensfit.runtime import jaxcache
 
-        return aot.call(f"fit-{name}", fn, args, {"m": self.m, **static}, AOT_MODULES)
+        return jaxcache.call(f"fit-{name}", fn, args, {"m": self.m, **static}, AOT_MODULES)
 
     def solve(self, theta0, args):
         return self._call("solve", _optx_solve, theta0, args)
@@ -213,7 +214,7 @@ def prewarm(m: int, n: int) -> None:
     fit pads them) on data with nothing to fit, so that the caller can overlap their loading with
     other work: ``lensfit.measurement.pipeline`` runs it in a background thread once the stack's edges are
     known, while they are measured (a fresh process spent 0.3-0.5 s of the fit loading them;
-    ``lensfit.runtime.aot``). Which functions the fit then calls depends on its data
+    ``lensfit.runtime.jaxcache``). Which functions the fit then calls depends on its data
     (:func:`likely_free_counts` guesses); one it did not load here loads at its first call. SciPy's
     special functions, which the intervals take, are imported here too."""
     import jax
@@ -414,6 +415,6 @@ def solver_residual_fn(m: int):
 
 def predict_all(theta: np.ndarray, m: int, data: FitData) -> np.ndarray:
     """The model's blur of every sample (NumPy), all settings at once."""
-    return blur_diameters_px(np, np.asarray(theta, np.float64), m, data.setting, data.w_nodes, data.pixel_pitch_mm,
-                 np.nan_to_num(data.focal_length_px, nan=0.0), np.asarray(data.pose, float),
-                 np.nan_to_num(np.asarray(data.field2, float)))[0]
+    return blur_diameters_px(np.asarray(theta, np.float64), m, data.setting, data.w_nodes, data.pixel_pitch_mm,
+                             np.nan_to_num(data.focal_length_px, nan=0.0), np.asarray(data.pose, float),
+                             np.nan_to_num(np.asarray(data.field2, float)))[0]

@@ -21,10 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lensfit.fitting.constants import FLOOR_START_PX
-from lensfit.fitting.curvature import field_spread, significant_curvature
 from lensfit.fitting.data import FitData
 from lensfit.fitting.identifiability import (P_PRIOR_SIGMA_LOG, p_identifiable, p_start, PHOTOGRAPHIC_P_NOTE,
-                                         photographic_prior)
+                                         field_spread, photographic_prior, significant_curvature)
 from lensfit.fitting.model import Layout, vector_size
 from lensfit.fitting.solve import (floor_escape, padded_size, predict_all, robust_scale, robust_weights,
                                shared_sigma, solver_for, solver_args, solver_residual_fn)

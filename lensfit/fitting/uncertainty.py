@@ -43,7 +43,7 @@ def correlation(cov: np.ndarray) -> np.ndarray:
 #: estimator's shared scale error ("estimator_scale", ``BLUR_SCALE_SIGMA``); the spot-shape
 #: model's error on each side of the focus (:func:`arms_part`, "spot_shape"); the priors on the
 #: blur floor and the pupil magnification ("priors"). (A one-sided setting's "floor_choice" is
-#: added after the fit: lensfit.fitting.floor_choice.)
+#: added after the fit: lensfit.fitting.refits.)
 BUDGET_SOURCES = ("blur", "calibration", "images", "estimator_scale", "spot_shape", "priors")
 
 

@@ -394,7 +394,7 @@ class _Run:
         """Every edge of the stack in one batched solve per pass, images read when needed: per
         image (tasks, their meta, estimates)."""
         # The fits loading in the background (:func:`_prewarm`) are not waited for here: each
-        # compiled fit waits for its own loading (lensfit.runtime.aot's lock per function), so that the
+        # compiled fit waits for its own loading (lensfit.runtime.jaxcache's lock per function), so that the
         # first pass starts once its two fits are in and the shaped fits load while it runs (on
         # the demo the process waited 0.8 s for all four before the first pass).
         from lensfit.estimators import edge as edge_estimator

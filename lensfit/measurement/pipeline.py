@@ -39,8 +39,7 @@ import numpy as np
 from lensfit.measurement.diffraction import DEFAULT_WAVELENGTH_NM, MAX_AIRY_PX
 from lensfit.errors import InputError
 from lensfit.estimators.base import Flag
-from lensfit.fitting.floor_choice import floor_sensitive, widen
-from lensfit.fitting.spots import AUTO_MIN_AIRY_PX, airy_per_setting
+from lensfit.fitting.refits import AUTO_MIN_AIRY_PX, airy_per_setting, floor_sensitive, widen
 from lensfit.measurement.processing import POLICIES, apply, assess
 
 #: Re-measurements at most, and the change of every f-number below which they stop.
@@ -126,7 +125,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     (:func:`diffraction_test`; its evidence is left in the samples' ``diffraction``): the
     command line's default. Where the test finds no Airy pattern, the samples are flagged
     ``airy_not_seen`` and the fit reads the spots' shapes; where it cannot test, the fit
-    decides by itself (``lensfit.fitting.spots``). Forcing the model on a geometric render (which
+    decides by itself (``lensfit.fitting.refits``). Forcing the model on a geometric render (which
     has no Airy pattern) reads its f-number high.
 
     Parameters
@@ -252,7 +251,7 @@ def _fit_rounds(measurement: Any, table: Any, wavelength_nm: float | None, optio
     from lensfit.fitting import fit
 
     # Where the images are tested for the Airy pattern (or read through it), the first fit takes
-    # the spots' second moments as they are: the test decides (lensfit.fitting.spots).
+    # the spots' second moments as they are: the test decides (lensfit.fitting.refits).
     first = options.get("spot_shape", "auto")
     result = fit(table, **{**options, "spot_shape": "shaped" if first == "auto" and (auto or wavelength_nm)
                            else first})

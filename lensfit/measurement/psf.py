@@ -35,6 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lensfit.optics.checks import namespace
+
+
 def disk_esf(x):
     """Edge-spread function of the unit disk at x = t/R (any real x)."""
     xc = jnp.clip(x, -1.0, 1.0)
@@ -66,7 +69,8 @@ def _disk_g(xs):
     return 0.5 * xs + (xs * jnp.arcsin(xs) + jnp.sqrt(one_minus) - one_minus * jnp.sqrt(one_minus) / 3.0) / jnp.pi
 
 
-def _disk_h(xs, xp=jnp):
+def _disk_h(xs):
+    xp = namespace(xs)
     x2 = xs * xs
     root = xp.sqrt(1.0 - x2)
     return (0.25 * x2 + 1.0 / 16.0
@@ -126,7 +130,7 @@ def pixel_edge_profiles_np(d, radii, boxes) -> np.ndarray:
     def H(t):
         x = t / R
         inside = np.abs(x) < 1.0
-        core = _disk_h(np.where(inside, x, 0.0), np)
+        core = _disk_h(np.where(inside, x, 0.0))
         return R * R * np.where(inside, core, np.where(x >= 1.0, 0.5 * x * x + 0.125, 0.0))
 
     return over_pixel_boxes(H, np.asarray(d, np.float64)[:, None], boxes)

@@ -13,7 +13,7 @@ valid range is the caller's responsibility.
 
 from __future__ import annotations
 
-import contextvars
+import contextlib
 import functools
 import sys
 from typing import Any, Callable, TypeVar
@@ -24,13 +24,18 @@ from lensfit.errors import InputError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
-#: The namespace of the call in progress (numpy, or jax.numpy for JAX inputs).
-_XP: contextvars.ContextVar[Any] = contextvars.ContextVar("lensfit_xp", default=np)
 
+def namespace(*values: Any) -> Any:
+    """The array namespace of a computation on ``values``: ``jax.numpy`` where any of them is a JAX
+    array or tracer, else ``numpy`` (Python numbers included).
 
-def xp():
-    """The array namespace of the optics call in progress: ``numpy`` or ``jax.numpy``."""
-    return _XP.get()
+    The library's one array-backend rule: code that runs on NumPy and JAX alike takes its
+    namespace from its inputs with this function, never from an argument or a setting."""
+    if any(_jax_array(v) for v in values):
+        import jax.numpy as jnp
+
+        return jnp
+    return np
 
 
 def _jax_array(x: Any) -> bool:
@@ -43,31 +48,29 @@ def _is_traced(x: Any) -> bool:
     return jax is not None and isinstance(x, jax.core.Tracer)
 
 
+def _numeric(x: Any) -> bool:
+    return isinstance(x, (int, float, np.ndarray, np.generic)) and not isinstance(x, bool)
+
+
 def float64(fn: F) -> F:
-    """Run ``fn`` in float64: NumPy for NumPy/Python inputs, ``jax.numpy`` with 64-bit types
-    for JAX inputs (unless called inside a trace)."""
+    """Run ``fn`` in float64: NumPy for NumPy/Python inputs; for JAX inputs ``jax.numpy`` with
+    64-bit types (unless called inside a trace), every numeric input a JAX array, so that the
+    body's :func:`namespace` of any input is the call's."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        values = (*args, *kwargs.values())
-        if not any(_jax_array(a) for a in values):
-            token = _XP.set(np)
-            try:
-                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                    return fn(*args, **kwargs)
-            finally:
-                _XP.reset(token)
+        if namespace(*args, *kwargs.values()) is np:
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                return fn(*args, **kwargs)
         import jax
         import jax.numpy as jnp
 
-        token = _XP.set(jnp)
-        try:
-            if any(_is_traced(a) for a in values):
-                return fn(*args, **kwargs)
-            with jax.enable_x64(True):
-                return fn(*args, **kwargs)
-        finally:
-            _XP.reset(token)
+        traced = any(_is_traced(a) for a in (*args, *kwargs.values()))
+        with contextlib.nullcontext() if traced else jax.enable_x64(True):
+            dtype = jnp.float64 if jax.config.jax_enable_x64 else None
+            args = [jnp.asarray(a, dtype) if _numeric(a) else a for a in args]
+            kwargs = {k: jnp.asarray(a, dtype) if _numeric(a) else a for k, a in kwargs.items()}
+            return fn(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]
 
@@ -102,7 +105,7 @@ def arg(
                 raise InputError(name, float(a[a <= 0].flat[0]), "> 0" + (" (inf allowed)" if allow_inf else ""))
             if nonnegative and (a < 0).any():
                 raise InputError(name, float(a[a < 0].flat[0]), ">= 0" + (" (inf allowed)" if allow_inf else ""))
-    if xp() is np:
+    if namespace(value) is np:
         return np.asarray(value, dtype=np.float64)
     import jax
     import jax.numpy as jnp

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from lensfit.optics.checks import arg, float64, require, xp
+from lensfit.optics.checks import arg, float64, namespace, require
 
 
 def _dof_args(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_distance_mm):
@@ -121,8 +121,9 @@ def far_limit(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_dista
     H = f * f / (N * C) + f
     u = 1.0 / D
     beyond = D >= H
-    denom = xp().where(beyond, 1.0, f * f * u - N * C * (1.0 - f * u))
-    return xp().where(beyond, xp().inf, f * f / denom)
+    xp = namespace(f, N, C, D)
+    denom = xp.where(beyond, 1.0, f * f * u - N * C * (1.0 - f * u))
+    return xp.where(beyond, xp.inf, f * f / denom)
 
 
 @float64
@@ -181,7 +182,7 @@ def depth_of_field_approx(focal_length_mm, f_number, acceptable_coc_diameter_mm,
     1728.0
     """
     f, N, C, D = _dof_args(focal_length_mm, f_number, acceptable_coc_diameter_mm, focus_distance_mm)
-    require(xp().isfinite(D), "focus_distance_mm", D, "finite",
+    require(namespace(D).isfinite(D), "focus_distance_mm", D, "finite",
             "the approximation diverges at infinity; use depth_of_field")
     return 2.0 * N * C * D * D / (f * f)
 
@@ -211,4 +212,4 @@ def default_coc_diameter(sensor_width_mm, sensor_height_mm):
     """
     w = arg("sensor_width_mm", sensor_width_mm, positive=True)
     h = arg("sensor_height_mm", sensor_height_mm, positive=True)
-    return xp().hypot(w, h) / 1500.0
+    return namespace(w, h).hypot(w, h) / 1500.0

@@ -7,7 +7,7 @@ References: S. F. Ray, *Applied Photographic Optics*, 3rd ed., Focal Press 2002,
 
 from __future__ import annotations
 
-from lensfit.optics.checks import arg, float64, xp
+from lensfit.optics.checks import arg, float64, namespace
 
 __all__ = ["exposure_value", "equivalent_shutter_s", "equivalent_f_number", "equivalent_iso"]
 
@@ -49,7 +49,8 @@ def exposure_value(f_number, shutter_s, iso=100.0):
     N = arg("f_number", f_number, positive=True)
     t = arg("shutter_s", shutter_s, positive=True)
     S = arg("iso", iso, positive=True)
-    return xp().log2(N * N / t) - xp().log2(S / 100.0)
+    xp = namespace(N, t, S)
+    return xp.log2(N * N / t) - xp.log2(S / 100.0)
 
 
 @float64
@@ -111,7 +112,7 @@ def equivalent_f_number(f_number, shutter_s, iso, new_shutter_s, new_iso):
     S = arg("iso", iso, positive=True)
     t2 = arg("new_shutter_s", new_shutter_s, positive=True)
     S2 = arg("new_iso", new_iso, positive=True)
-    return N * xp().sqrt((t2 / t) * (S2 / S))
+    return N * namespace(N, t, t2, S, S2).sqrt((t2 / t) * (S2 / S))
 
 
 @float64

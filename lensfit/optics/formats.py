@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from lensfit.optics.checks import arg, float64, xp
+from lensfit.optics.checks import arg, float64, namespace
 from lensfit.optics.thin import FULL_FRAME_DIAGONAL_MM, sensor_distance
 
 
@@ -38,7 +38,8 @@ def field_of_view_deg(sensor_extent_mm, focal_length_mm, focus_distance_mm=math.
     """
     w = arg("sensor_extent_mm", sensor_extent_mm, positive=True)
     s = sensor_distance(focal_length_mm, focus_distance_mm)
-    return xp().degrees(2.0 * xp().arctan(w / (2.0 * s)))
+    xp = namespace(w, s)
+    return xp.degrees(2.0 * xp.arctan(w / (2.0 * s)))
 
 
 @float64
@@ -62,7 +63,7 @@ def crop_factor(sensor_width_mm, sensor_height_mm):
     """
     w = arg("sensor_width_mm", sensor_width_mm, positive=True)
     h = arg("sensor_height_mm", sensor_height_mm, positive=True)
-    return FULL_FRAME_DIAGONAL_MM / xp().hypot(w, h)
+    return FULL_FRAME_DIAGONAL_MM / namespace(w, h).hypot(w, h)
 
 
 @float64

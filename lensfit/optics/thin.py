@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from lensfit.optics.checks import arg, float64, require, xp
+from lensfit.optics.checks import arg, float64, namespace, require
 
 
 #: Diagonal of the 36 x 24 mm ("35 mm", full-frame) format, the reference of crop factors.
@@ -275,7 +275,7 @@ def coc_diameter_image_side(aperture_diameter_mm, sensor_distance_mm, image_dist
     s = arg("sensor_distance_mm", sensor_distance_mm, positive=True)
     z = arg("image_distance_mm", image_distance_mm, allow_inf=True)
     require(z != 0, "image_distance_mm", z, "!= 0")
-    return A * xp().abs(1.0 - s / z)
+    return A * namespace(s, z).abs(1.0 - s / z)
 
 
 @float64
@@ -314,7 +314,7 @@ def coc_diameter_object_side(aperture_diameter_mm, sensor_distance_mm, focus_dis
     s = arg("sensor_distance_mm", sensor_distance_mm, positive=True)
     D = arg("focus_distance_mm", focus_distance_mm, positive=True, allow_inf=True)
     d = arg("object_distance_mm", object_distance_mm, positive=True, allow_inf=True)
-    return A * s * xp().abs(1.0 / D - 1.0 / d)
+    return A * s * namespace(D, d).abs(1.0 / D - 1.0 / d)
 
 
 @float64
@@ -352,4 +352,4 @@ def coc_diameter(focal_length_mm, f_number, focus_distance_mm, object_distance_m
     d = arg("object_distance_mm", object_distance_mm, positive=True, allow_inf=True)
     require(D > f, "focus_distance_mm", D, "> focal_length_mm",
             "a camera can only focus on objects beyond the focal length")
-    return (f / N) * _conjugate(f, D) * xp().abs(1.0 / D - 1.0 / d)
+    return (f / N) * _conjugate(f, D) * namespace(D, d).abs(1.0 / D - 1.0 / d)

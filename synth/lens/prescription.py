@@ -8,6 +8,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from lensfit.optics.checks import namespace
+
 
 
 #: Fraunhofer lines (nm): d (helium, the reference of n and V), F and C (hydrogen).
@@ -240,7 +242,7 @@ def reverse(rx: Prescription) -> Prescription:
     return replace(rx, surfaces=tuple(out))
 
 
-def trace(rx: Prescription, origin, direction, xp=np, *, n_image: float = 1.0):
+def trace(rx: Prescription, origin, direction, *, n_image: float = 1.0):
     """Exact sequential trace of rays through every surface, front to back.
 
     Parameters
@@ -249,7 +251,6 @@ def trace(rx: Prescription, origin, direction, xp=np, *, n_image: float = 1.0):
     origin : (x, y, z) arrays, mm, points on the rays in front of the first surface (z from its
         vertex)
     direction : (dx, dy, dz) arrays, unit vectors with dz > 0
-    xp : numpy or jax.numpy
 
     Returns
     -------
@@ -259,6 +260,7 @@ def trace(rx: Prescription, origin, direction, xp=np, *, n_image: float = 1.0):
     """
     x, y, z = origin
     dx, dy, dz = direction
+    xp = namespace(*origin, *direction)  # numpy or jax.numpy, as the rays
     z_v = rx.vertices_mm()
     n_before = rx.indices_before()
     passed = xp.ones_like(x, dtype=bool)

@@ -1,5 +1,5 @@
 """The batched Levenberg-Marquardt (lensfit.fitting.lm) against scipy's independent solver and analytic
-minima, and the trace store (lensfit.runtime.aot): same numbers with it, without it, from its stored
+minima, and the trace store (lensfit.runtime.jaxcache): same numbers with it, without it, from its stored
 executables (in a new process too) and from corrupted files."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares as scipy_least_squares
 
-from lensfit.runtime import aot
+from lensfit.runtime import jaxcache
 
 from lensfit.fitting import lm
 
@@ -80,8 +80,8 @@ def test_trace_store_gives_the_same_numbers_and_survives_broken_files(tmp_path):
     plain = _affine(x, 2.0, shift=1.0)
 
     def in_a_new_process(shift=1.0):
-        aot.set_store(tmp_path)  # nothing loaded yet
-        return aot.call("affine", _affine, (x, 2.0), {"shift": shift}, ("tests.test_batched_solvers",))
+        jaxcache.set_store(tmp_path)  # nothing loaded yet
+        return jaxcache.call("affine", _affine, (x, 2.0), {"shift": shift}, ("tests.test_batched_solvers",))
 
     try:
         first = in_a_new_process()
@@ -94,17 +94,17 @@ def test_trace_store_gives_the_same_numbers_and_survives_broken_files(tmp_path):
         executables[0].unlink()
         traces[0].write_bytes(b"not an export")
         broken = in_a_new_process()  # traced afresh
-        other = aot.call("affine", _affine, (x, 2.0), {"shift": 5.0}, ("tests.test_batched_solvers",))
+        other = jaxcache.call("affine", _affine, (x, 2.0), {"shift": 5.0}, ("tests.test_batched_solvers",))
         # an executable that loads but does not run with these arguments (one for 3 values, not
         # 6): its first call fails, the file goes, and the traced function answers
         before = set(tmp_path.glob("affine-*.jaxexe"))
-        short = aot.call("affine", _affine, (jnp.arange(3.0), 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
+        short = jaxcache.call("affine", _affine, (jnp.arange(3.0), 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
         (short_exe,) = set(tmp_path.glob("affine-*.jaxexe")) - before
         executables[0].write_bytes(short_exe.read_bytes())
         mismatched = in_a_new_process()
         assert not executables[0].exists()  # removed after its first call failed
     finally:
-        aot.set_store(None)
+        jaxcache.set_store(None)
     for got in (first, loaded, recompiled, broken, mismatched):
         np.testing.assert_array_equal(np.asarray(got["y"]), np.asarray(plain["y"]))
         assert float(got["sum"]) == float(plain["sum"])
@@ -117,16 +117,16 @@ _LAPACK_SCRIPT = """
 import json, sys
 from pathlib import Path
 import jax, jax.numpy as jnp, numpy as np
-from lensfit.runtime import aot
+from lensfit.runtime import jaxcache
 
 def solve(a, b):
     return {"x": jnp.linalg.solve(a, b), "s": jnp.linalg.svd(a, compute_uv=False), "c": jnp.linalg.cholesky(a @ a.T)}
 
-aot.set_store(Path(sys.argv[1]))
+jaxcache.set_store(Path(sys.argv[1]))
 a = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
 b = np.array([1.0, 2.0, 3.0])
 with jax.enable_x64(True):
-    out = aot.call("lapack", solve, (a, b), {}, ())
+    out = jaxcache.call("lapack", solve, (a, b), {}, ())
 print(json.dumps({k: np.asarray(v).tolist() for k, v in out.items()}))
 """
 
@@ -157,7 +157,7 @@ _NO_KERNELS_SCRIPT = """
 import json, sys
 from pathlib import Path
 import jax.numpy as jnp, numpy as np
-from lensfit.runtime import aot
+from lensfit.runtime import jaxcache
 
 def scale(x):
     return {"y": 3.0 * x}
@@ -165,13 +165,13 @@ def scale(x):
 def solve(a, b):
     return {"y": jnp.linalg.solve(a, b)}
 
-aot.set_store(Path(sys.argv[1]))
+jaxcache.set_store(Path(sys.argv[1]))
 a = np.array([[4.0, 1.0], [1.0, 3.0]], np.float32)
 b = np.array([1.0, 2.0], np.float32)
-out = {"scale": np.asarray(aot.call("scale", scale, (b,), {}, (), kernels=False)["y"]).tolist()}
+out = {"scale": np.asarray(jaxcache.call("scale", scale, (b,), {}, (), kernels=False)["y"]).tolist()}
 linalg_for_scale = "scipy.linalg" in sys.modules
 if sys.argv[2] == "both":
-    out["solve"] = np.asarray(aot.call("solve", solve, (a, b), {}, (), kernels=False)["y"]).tolist()
+    out["solve"] = np.asarray(jaxcache.call("solve", solve, (a, b), {}, (), kernels=False)["y"]).tolist()
 print(json.dumps({**out, "scipy_linalg": linalg_for_scale}))
 """
 

@@ -206,7 +206,7 @@ def test_a_one_sided_focus_that_only_the_floor_locates_is_refused():
     fuzz's 8.7 mm stack: two vertices fitted it about equally; with the floor, 41 % near at 3.9
     sigma), the quantities it could not determine are refused, naming the floor and its reason."""
     from lensfit.fitting import Outcome
-    from lensfit.fitting.floor_choice import widen
+    from lensfit.fitting.refits import widen
 
     rng = np.random.default_rng(1)
     f, N, D = 50.0, 4.0, 3000.0

@@ -1,4 +1,4 @@
-"""Which reading the fit takes where a sample gives two (lensfit.fitting.spots): the spot's second
+"""Which reading the fit takes where a sample gives two (lensfit.fitting.refits): the spot's second
 moment through the shaped-spot model, or the uniform disk's reading of the same edge.
 
 Samples are simulated here from the thin-lens V: each edge's "shaped" reading is the true blur,

@@ -495,7 +495,7 @@ def test_the_airy_scale_of_an_aperture_the_fit_did_not_determine_is_none():
 
     from lensfit.measurement.diffraction import MAX_AIRY_PX
     from lensfit.fitting.model import Layout
-    from lensfit.fitting.spots import airy_per_setting
+    from lensfit.fitting.refits import airy_per_setting
 
     pitch, fpx, f_mm = 0.006, 3000.0, 18.0
     at = Layout(2)

@@ -506,7 +506,7 @@ def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack
     moved up a size: the 64-bin fits were never prewarmed). Recorded through the compiled
     calls' argument shapes; the fits themselves are stubbed (zero results, the shapes kept)."""
     import lensfit.estimators.edge_fit as edge_module
-    from lensfit.runtime import aot
+    from lensfit.runtime import jaxcache
 
     calls = set()
 
@@ -515,7 +515,7 @@ def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack
         calls.add((static["shaped"], static["diffraction"], args[0].shape[1]))
         return (np.zeros((n, 7)), np.zeros((n, 7, 7)), np.ones(n), np.zeros(n, bool), np.zeros(n))
 
-    monkeypatch.setattr(aot, "call", record)
+    monkeypatch.setattr(jaxcache, "call", record)
     edge_module.prewarm(shaped=True)
     warmed = set(calls)
     edge_module.prewarm_airy()
@@ -525,13 +525,13 @@ def test_prewarm_loads_every_compiled_fit_that_measuring_calls(calibration_stack
     # and a real measure's calls (the compiled fits run for real) are all among them
     monkeypatch.undo()
     used = set()
-    original = aot.call
+    original = jaxcache.call
 
     def spy(name, fn, args, static=None, modules=()):
         used.add((static["shaped"], static["diffraction"], args[0].shape[1]))
         return original(name, fn, args, static, modules)
 
-    monkeypatch.setattr(aot, "call", spy)
+    monkeypatch.setattr(jaxcache, "call", spy)
     measure_module = __import__("lensfit.measurement.measure", fromlist=["measure"])
     monkeypatch.setattr(measure_module, "_prewarm", lambda *a: None)
     measure_module.measure(calibration_stack)
@@ -617,7 +617,7 @@ def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkey
     dtypes and shapes that the loading had (an int32 where the fit passes int64, or a sample count
     padded otherwise, would make the loading useless and fails here)."""
     import lensfit.fitting.solve as solve_module
-    from lensfit.runtime import aot
+    from lensfit.runtime import jaxcache
     from lensfit.measurement.pipeline import measure_and_fit
 
     def signature(name, args, static):
@@ -626,7 +626,7 @@ def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkey
                 tuple(f"{getattr(a, 'dtype', type(a).__name__)}{list(getattr(a, 'shape', ()))}" for a in leaves))
 
     loaded, used, asked = set(), set(), []
-    original, load = aot.call, solve_module.prewarm
+    original, load = jaxcache.call, solve_module.prewarm
 
     def record(name, fn, args, static=None, modules=()):
         if name.startswith("fit-"):
@@ -639,7 +639,7 @@ def test_the_fit_loaded_ahead_is_the_one_the_fit_calls(calibration_stack, monkey
         asked.append("done")
 
     monkeypatch.setattr(solve_module, "prewarm", prewarm)
-    monkeypatch.setattr(aot, "call", record)
+    monkeypatch.setattr(jaxcache, "call", record)
     table, result, _ = measure_and_fit(calibration_stack)
     assert asked == [(1, len(table)), "done"]
     assert result.code == "ok" and used and loaded

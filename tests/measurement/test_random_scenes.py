@@ -80,7 +80,7 @@ SCENES = {
     # 13.2 mm f/4.07 on 3 um pixels, diffracting at 0.64 px, every board nearer than the focus: a
     # blur floor of 0.81 px was fitted, which bent the V's only arm, and the focus distance came
     # out 8.7 % near at 7.6 sigma (N -4.5 % at 3.9). Fitted without the floor, +0.4 % each; the
-    # intervals now span both fits (lensfit.fitting.floor_choice).
+    # intervals now span both fits (lensfit.fitting.refits).
     "a one-sided floor": scene(
         13.239, 4.0742, 7182.44, 0.003, [([3135.8, 3276.5, 3638.0, 3773.7, 3847.4],
                                           [[0.0, 0.0], [6.09, 15.25], [0.0, 0.0], [-8.76, -2.64], [0.0, 0.0]]),

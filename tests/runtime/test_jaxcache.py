@@ -12,9 +12,9 @@ import sys
 
 import pytest
 
-PROBE = ("import json, os, lensfit, lensfit.runtime.aot as aot\n"
+PROBE = ("import json, os, lensfit, lensfit.runtime.jaxcache as jaxcache\n"
          "print(json.dumps({'jax_dir': os.environ.get('JAX_COMPILATION_CACHE_DIR'),"
-         " 'store': None if aot._DIR[0] is None else str(aot._DIR[0])}))\n")
+         " 'store': None if jaxcache._DIR[0] is None else str(jaxcache._DIR[0])}))\n")
 
 
 def probe(env: dict[str, str]) -> dict:
