@@ -83,6 +83,12 @@ class ThinLensCamera:
     ==========================  ======  =========================================  ===========
     """
 
+    #: The lens's prescription (``CompoundLensCamera``: a real lens, ray traced surface by surface);
+    #: None for the thin lens. The renderers ask this, not which class they were given.
+    prescription = None
+    #: Spectral samples (nm) a compound lens is rendered at; () = one image at the d line.
+    wavelengths_nm = ()
+
     focal_length_mm: float
     f_number: float
     focus_distance_mm: float

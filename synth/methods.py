@@ -89,7 +89,7 @@ class RayTrace(RenderMethod):
     def estimate(self, shot, samples_per_pixel, supersampling):
         cam = shot.camera
         samples = cam.width_px * cam.height_px * samples_per_pixel
-        rx = getattr(cam, "prescription", None)
+        rx = cam.prescription
         if rx is not None:
             n = len(rx.surfaces)
             return (samples * n / COMPOUND_SURFACE_SAMPLES_PER_S,

@@ -132,9 +132,9 @@ def version(variant: str = "scalar_rgb") -> str:
 def unsupported(shot, effects) -> str | None:
     """Why Mitsuba cannot render this shot as the scene asks, or None."""
     cam = shot.camera
-    if getattr(cam, "prescription", None) is not None:
+    if cam.prescription is not None:
         return f"the compound lens {cam.prescription.name} (Mitsuba's thinlens camera is a thin lens)"
-    if getattr(cam, "wavelengths_nm", ()):
+    if cam.wavelengths_nm:
         return "lens.wavelengths_nm (spectral rendering through a compound lens)"
     if effects is not None:
         ca = effects.chromatic_aberration

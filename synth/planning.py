@@ -86,7 +86,7 @@ def _choose(shot: Shot, requested: str, effects: Effects | None, supersampling: 
         check(shot, effects)
         return "mitsuba", True, "requested; Mitsuba 3's thinlens camera, an independent renderer (synth/mitsuba.py)"
     only_raytrace = effects.needs_raytrace if effects is not None else None
-    if getattr(shot.camera, "prescription", None) is not None:
+    if shot.camera.prescription is not None:
         only_raytrace = f"the compound lens {shot.camera.prescription.name}"
     if only_raytrace:
         if requested == "convolve":
@@ -140,7 +140,7 @@ def _stages(scene: Scene, shot: Shot, method: str, geometric_s: float) -> list[t
     pixels = W * H
     ca = fx.chromatic_aberration
     renders = 3 if ca is not None and ca.longitudinal else 1  # channels the lens treats alike share a render
-    waves = getattr(cam, "wavelengths_nm", ())
+    waves = cam.wavelengths_nm
     if waves:
         renders = len(waves)
         detail = f", x{renders} wavelengths {'/'.join(f'{w:g}' for w in waves)} nm -> {'RGB' if C == 3 else 'grey'}"

@@ -300,7 +300,7 @@ def scene_arrays(shot: Shot):
 
 def camera_array(cam):
     cx, cy = cam.principal_point_px
-    if getattr(cam, "prescription", None) is None:
+    if cam.prescription is None:
         return jnp.asarray([cx, cy, cam.pixel_pitch_mm / cam.sensor_distance_mm, cam.inverse_focus_distance_per_mm,
                             cam.aperture_diameter_mm], jnp.float32)
     return jnp.asarray(compound_camera_values(cam), jnp.float32)
@@ -374,7 +374,7 @@ def render_raytrace(shot: Shot, background: float, spp: int, seed: int,
     structure, rasters, planes = scene_arrays(shot)
     cam_arr = camera_array(cam)
     compound = None
-    if getattr(cam, "prescription", None) is not None:
+    if cam.prescription is not None:
         from synth.lens import reverse
 
         compound = reverse(cam.stopped)

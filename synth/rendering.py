@@ -153,7 +153,7 @@ def render_shot(scene: Scene, sp: ShotPlan, k: int, tick: Callable[[int], None],
 
     cam = shot.camera
     ca = fx.chromatic_aberration
-    waves = getattr(cam, "wavelengths_nm", ())
+    waves = cam.wavelengths_nm
     if waves:  # one render per wavelength, mixed into grey or colour below (synth.spectral)
         cameras = cam.spectral_cameras()
     else:
@@ -354,7 +354,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
             "focus_distance_from_sensor_mm": finite_or_none(cam.focus_distance_mm + cam.sensor_distance_mm),
             "aperture_diameter_mm": cam.aperture_diameter_mm,
             "focal_length_px": cam.focal_length_px,
-            **(cam.truth() if getattr(cam, "prescription", None) is not None else {}),
+            **(cam.truth() if cam.prescription is not None else {}),
         })
         images_truth.append({
             "file": name, "shot": shot.name, "setting": shot.setting,

@@ -90,6 +90,7 @@ def merge(joint: Any, parts: dict[str, Any], focusing: str) -> Any:
     """``joint`` (the unit-focusing fit of every setting, kept for its diagnostics and plots)
     with each setting's quantities, warnings and refusals taken from its own fit, ``parts``;
     the shared focal length and P are replaced by a note that they are per setting."""
+    from lensfit.fitting.identifiability import P_NOT_DETERMINED
     from lensfit.fitting.result import Estimate, Outcome
 
     shared_f, shared_p = joint.focal_length_mm, joint.pupil_magnification
@@ -112,7 +113,7 @@ def merge(joint: Any, parts: dict[str, Any], focusing: str) -> Any:
         warnings += [f"setting {label!r}: {w}" if not w.startswith("setting") else w for w in part.warnings]
         reasons += [r if label in r else f"setting {label!r}: {r}" for r in part.reasons]
     # every setting's P warning says the same: once
-    p_notes = [w for w in warnings if "pupil magnification P not determined" in w]
+    p_notes = [w for w in warnings if P_NOT_DETERMINED in w]
     warnings = [w for w in warnings if w not in p_notes[1:]]
     if shared_f.value is not None:
         fs = ", ".join(f"{label} {part.settings[label]['focal_length_mm'].value:.4g}" for label, part in parts.items()

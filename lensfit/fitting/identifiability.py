@@ -76,11 +76,16 @@ PHOTOGRAPHIC_P_NOTE = ("not determined by the data: the spread of photographic l
                        f"sigma {PHOTOGRAPHIC_P_SIGMA_LOG:g} in log P) is carried into f and N")
 
 
+#: How the warning of a fit that carried P over the photographic range begins (said once for a
+#: bracket fitted setting by setting: lensfit.fitting.focusing.merge).
+P_NOT_DETERMINED = "pupil magnification P not determined"
+
+
 def photographic_prior(why_not: str) -> tuple[float, tuple[float, float], str]:
     """P's start, its prior (log mean, 1 / log sigma) and the warning where the data cannot
     determine P (``why_not``) and no value or range was given."""
     return 1.0, (0.0, 1.0 / PHOTOGRAPHIC_P_SIGMA_LOG), (
-        f"pupil magnification P not determined ({why_not}): carried over the range of photographic lenses "
+        f"{P_NOT_DETERMINED} ({why_not}): carried over the range of photographic lenses "
         "(telephotos about 0.5 to retrofocus wide angles 2.5), which widens f and N by about (f/X)|1/P - 1|; "
         "give the lens's P (pupil_magnification in stack.toml's [lens], or --pupil-magnification) as a value or "
         "a range, or add a second focus setting, to narrow them")
