@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,7 +25,7 @@ import numpy as np
 from lensfit.bench.suites import QUANTITIES
 from lensfit.fitting import fit
 from lensfit.measurement.measure import measure
-from lensfit.io.stack import Stack, load_stack
+from lensfit.io.stack import ImageHold, Stack, load_stack
 
 
 def _noisy_levels(linear: np.ndarray, rng: np.random.Generator, full_well_e: float, read_noise_e: float,
@@ -79,10 +80,10 @@ def noisy_stack(stack: Stack | Path, rng: np.random.Generator, full_well_e: floa
         return None
     # decoded as lensfit.io.stack reads a 16-bit PNG (levels / 65535): the levels are whole numbers,
     # which the file's uint16 keeps as they are
-    hold = {}
+    hold = ImageHold(sys.maxsize)
     for i in range(len(stack.images)):
         levels = _noisy_levels(stack.read(i), rng, full_well_e, read_noise_e, exposure)
-        hold[i] = np.divide(levels, 65535.0, out=levels)
+        hold.put(i, np.divide(levels, 65535.0, out=levels))
     return dataclasses.replace(stack, hold=hold)
 
 

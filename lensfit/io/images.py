@@ -9,9 +9,11 @@ budget before decoding the pixels.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import os
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -223,14 +225,51 @@ def _decode_tiff(path: Path, data: bytes | None = None) -> np.ndarray:
     return img
 
 
+def integers_to_linear(img: np.ndarray, black_level: float | None = None,
+                       white_level: float | None = None) -> np.ndarray:
+    """An integer raster in full-scale units, float64: over its type's maximum, or from
+    ``black_level`` to ``white_level`` (:func:`read_raster`)."""
+    if black_level is not None or white_level is not None:
+        black = float(black_level or 0.0)
+        white = float(white_level if white_level is not None else np.iinfo(img.dtype).max)
+        return (img.astype(np.float64) - black) / (white - black)
+    return np.divide(img, float(np.iinfo(img.dtype).max), dtype=np.float64)  # (one pass, no copy)
+
+
+@dataclass(frozen=True)
+class HeldRaster:
+    """A single-channel integer image as its file holds it (2 bytes a pixel for 16-bit, 1 for
+    8-bit, against 8 as float64), with what turns it into the linear image :func:`read_image`
+    returns: the same values, a fraction of a decode's time (:meth:`linear`)."""
+
+    values: np.ndarray
+    black_level: float | None = None
+    white_level: float | None = None
+    encoding: str = "linear"
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.values.nbytes)
+
+    def rotated(self, quarter_turns: int) -> "HeldRaster":
+        return dataclasses.replace(self, values=np.ascontiguousarray(np.rot90(self.values, quarter_turns)))
+
+    def linear(self) -> np.ndarray:
+        img = integers_to_linear(self.values, self.black_level, self.white_level)
+        return srgb_to_linear(np.clip(img, 0.0, 1.0)) if self.encoding == "srgb" else img
+
+
 def read_raster(path: Path, black_level: float | None = None, white_level: float | None = None, *,
-                max_pixels: int | None = None, data: bytes | None = None) -> np.ndarray:
+                max_pixels: int | None = None, data: bytes | None = None,
+                keep_integers: bool = False) -> np.ndarray | HeldRaster:
     """PNG/TIFF -> float64 in full-scale units (integers / max of their type; floats as stored).
 
     Every channel layout is read at its full bit depth (16-bit colour PNGs included). The size is
     checked from the header against ``max_pixels`` (default: ``lensfit.io.limits``) before decoding.
     With ``black_level``/``white_level`` (raw sensor values stored in an integer file, e.g.
     12-bit DN in a 16-bit PNG) integers map to ``(value - black) / (white - black)`` instead.
+    ``keep_integers``: a single-channel integer image comes back as its integers
+    (:class:`HeldRaster`), to be held compactly and made linear when used.
     """
     from lensfit.io.limits import DEFAULT_MAX_MEGAPIXELS, check_image_size
 
@@ -252,12 +291,9 @@ def read_raster(path: Path, black_level: float | None = None, white_level: float
     if img.dtype == np.bool_:
         img = img.astype(np.uint8)
     if img.dtype.kind in "ui":
-        if black_level is not None or white_level is not None:
-            black = float(black_level or 0.0)
-            white = float(white_level if white_level is not None else np.iinfo(img.dtype).max)
-            out = (img.astype(np.float64) - black) / (white - black)
-        else:
-            out = np.divide(img, float(np.iinfo(img.dtype).max), dtype=np.float64)  # (one pass, no copy)
+        if keep_integers and img.ndim == 2:
+            return HeldRaster(img, black_level, white_level)
+        out = integers_to_linear(img, black_level, white_level)
     elif img.dtype.kind == "f":
         out = img.astype(np.float64)
         if np.isnan(out).any():
@@ -300,13 +336,15 @@ def read_raw(path: Path, *, max_pixels: int | None = None, data: bytes | None = 
 
 def read_image(path: str | Path, encoding: str = "linear", *, black_level: float | None = None,
                white_level: float | None = None, max_pixels: int | None = None,
-               data: bytes | None = None) -> np.ndarray:
+               data: bytes | None = None, keep_integers: bool = False) -> np.ndarray | HeldRaster:
     """Read one image as linear float64 grey intensity (H, W), full scale 1.
 
     ``black_level``/``white_level``: raw integer levels of a PNG/TIFF (see ``read_raster``);
     RAW and DNG files carry their own. ``max_pixels``: the pixel budget, checked from the header
     before decoding (default ``lensfit.io.limits.DEFAULT_MAX_MEGAPIXELS``). ``data``: the file's
     bytes, where read already (:func:`read_inside`); ``path`` then names it and gives its type.
+    ``keep_integers``: a single-channel integer PNG/TIFF comes back as a :class:`HeldRaster`
+    (its :meth:`HeldRaster.linear` is what this function returns otherwise).
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -314,5 +352,7 @@ def read_image(path: str | Path, encoding: str = "linear", *, black_level: float
         return read_raw(path, max_pixels=max_pixels, data=data)
     if suffix not in RASTER_SUFFIXES:
         raise _unsupported(path, suffix)
-    img = read_raster(path, black_level, white_level, max_pixels=max_pixels, data=data)
+    img = read_raster(path, black_level, white_level, max_pixels=max_pixels, data=data, keep_integers=keep_integers)
+    if isinstance(img, HeldRaster):
+        return dataclasses.replace(img, encoding=encoding)
     return srgb_to_linear(np.clip(img, 0.0, 1.0)) if encoding == "srgb" else img

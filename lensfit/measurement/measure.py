@@ -49,8 +49,9 @@ def _hold_bytes() -> int:
 
 #: A stack whose images take at most this many bytes (float64) is held in memory between the
 #: stages (decoded once: a 12-shot 24 MP stack, 2.3 GB, was decoded eight times over its passes
-#: and diffraction rounds, 11 of its 35 s); a larger one (many RAW files) is read again where
-#: needed, a few images in memory at once.
+#: and diffraction rounds, 11 of its 35 s); of a larger one, the 16- and 8-bit grey images are
+#: held as their files' integers in part of it (``lensfit.io.stack.COMPACT_HOLD_SHARE``), the
+#: others (RAW files, colour) read again where needed, a few images in memory at once.
 HOLD_BYTES = _hold_bytes()
 #: Images searched for targets at once are bounded by memory as well as by ``jobs``: each holds
 #: about this many bytes per pixel while it is searched (the float64 image, a float32 and three
