@@ -45,10 +45,12 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
     Parameters
     ----------
     samples : SampleTable or str or Path or sequence
-        A :class:`~lensfit.measurement.measure.SampleTable`, the path of a samples JSON/CSV written
-        by ``lensfit measure``, or a sequence of rows (dicts or ``Sample``) with ``setting``,
+        A :class:`~lensfit.io.samples.SampleTable`, the path of a samples JSON/CSV written
+        by ``lensfit measure``, or a sequence of :class:`~lensfit.io.samples.Sample` or of
+        mappings of their columns (:meth:`~lensfit.io.samples.Sample.from_row`: ``setting``,
         ``distance_mm``, ``coc_diameter_px``, ``sigma_px`` and optionally
-        ``distance_start_mm``/``distance_end_mm`` (the edge's ends, for tilted edges)
+        ``distance_start_mm``/``distance_end_mm`` (the edge's ends, for tilted edges), ``flags``
+        and the other columns a samples file has)
     pixel_pitch_mm : float, optional
         Sensor pixel pitch (default: the SampleTable's)
     focal_length_px : float or dict, optional
