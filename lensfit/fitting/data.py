@@ -12,10 +12,10 @@ import numpy as np
 
 from lensfit.estimators.base import Flag
 from lensfit.errors import InputError
-from lensfit.io.samples import Sample, SampleTable
 from lensfit.fitting.constants import (BLUR_SCALE_SIGMA_SHAPED, DISTANCE_RANGE_MM, MAX_BLUR_PX, MAX_FOCAL_LENGTH_PX,
                                    MIN_SIGMA_PX, PIXEL_PITCH_RANGE_MM, SHAPE_ERROR_SHARE, SHAPE_ERROR_SHARE_RADIAL,
                                    SHAPE_SCALE_SHARE, UNREAD_SHAPE_MIN, NODES_T, disk_scale_sigma)
+from lensfit.io.samples import Sample, SampleTable
 
 
 @dataclass

@@ -44,7 +44,6 @@ class Sample:
     disk_diameter_px: float | None = None
     disk_sigma_px: float | None = None
 
-
     @classmethod
     def from_row(cls, row: Mapping[str, Any]) -> "Sample":
         """A sample from its columns by name (a samples file's row, or a caller's mapping):

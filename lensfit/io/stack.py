@@ -133,12 +133,6 @@ class ImageHold:
         self._bytes = 0
         self._lock = threading.Lock()
 
-    def __contains__(self, index: int) -> bool:
-        return index in self._images
-
-    def __len__(self) -> int:
-        return len(self._images)
-
     def get(self, index: int) -> Any:
         return self._images.get(index)
 
@@ -153,11 +147,6 @@ class ImageHold:
             self._images[index] = image
             self._bytes += image.nbytes
             return True
-
-    def clear(self) -> None:
-        with self._lock:
-            self._images.clear()
-            self._bytes = 0
 
 
 #: Squares along one side of a board at most: printed boards have up to a few dozen; more is a
