@@ -79,7 +79,8 @@ def pinhole_distance(f, x, P):
 def _edge_blur(slope_px, x, w_nodes, floor):
     """Blur an edge estimate reports: the power mean (``BLUR_POWER_MEAN``) over the edge of
     the local blur ``sqrt((K/p)^2 (x - 1/d)^2 + b^2)``, by Gauss-Legendre quadrature."""
-    local = namespace(slope_px, x, w_nodes, floor).sqrt(slope_px[:, None] ** 2 * (x[:, None] - w_nodes) ** 2 + floor[:, None] ** 2 + EPS_PX**2)
+    xp = namespace(slope_px, x, w_nodes, floor)
+    local = xp.sqrt(slope_px[:, None] ** 2 * (x[:, None] - w_nodes) ** 2 + floor[:, None] ** 2 + EPS_PX**2)
     return (local**BLUR_POWER_MEAN @ NODES_W) ** (1.0 / BLUR_POWER_MEAN)
 
 

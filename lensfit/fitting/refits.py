@@ -11,10 +11,10 @@ window (on exact edges of a disk and an Airy pattern of scale 0.5 px, 4-10 px sp
 large through two disks, against 2-7 % through the uniform disk). Where diffraction is modelled
 (the pipeline's readings through the Airy pattern) no spot shape is read; where the images were
 tested and show no Airy pattern (flag ``airy_not_seen``, ``lensfit.measurement.pipeline``) the
-shapes are the lens's. Elsewhere (samples measured without the test, e.g. ``lensfit measure`` then ``lensfit fit samples.csv``, or
-``fit(measure(stack))``) the fit looks at the Airy scale its own aperture implies: from
-``AUTO_MIN_AIRY_PX`` the pattern is large enough to matter, and the uniform disk's readings are
-fitted instead, with a warning that says so.
+shapes are the lens's. Elsewhere (samples measured without the test, e.g. ``lensfit measure``
+then ``lensfit fit samples.csv``, or ``fit(measure(stack))``) the fit looks at the Airy scale
+its own aperture implies: from ``AUTO_MIN_AIRY_PX`` the pattern is large enough to matter, and
+the uniform disk's readings are fitted instead, with a warning that says so.
 
 **A one-sided setting's blur floor**: its intervals widened to span the fit without the floor
 (:func:`widen`).

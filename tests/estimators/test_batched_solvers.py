@@ -98,7 +98,8 @@ def test_trace_store_gives_the_same_numbers_and_survives_broken_files(tmp_path):
         # an executable that loads but does not run with these arguments (one for 3 values, not
         # 6): its first call fails, the file goes, and the traced function answers
         before = set(tmp_path.glob("affine-*.jaxexe"))
-        short = jaxcache.call("affine", _affine, (jnp.arange(3.0), 2.0), {"shift": 1.0}, ("tests.test_batched_solvers",))
+        short = jaxcache.call("affine", _affine, (jnp.arange(3.0), 2.0), {"shift": 1.0},
+                              ("tests.test_batched_solvers",))
         (short_exe,) = set(tmp_path.glob("affine-*.jaxexe")) - before
         executables[0].write_bytes(short_exe.read_bytes())
         mismatched = in_a_new_process()
