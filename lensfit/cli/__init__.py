@@ -181,10 +181,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the lens has no aberrations (a renderer's thin-lens camera): report the blur's own f-number. "
                          "Default: stack.toml's [lens] ideal, else a real lens: the nominal f-number (EFL / entrance "
                          "pupil) with the spread of real designs' blur against it carried in its interval")
-    ft.add_argument("--processed", choices=("refuse", "report"), default="refuse",
-                    help="where sRGB-encoded images were developed (EXIF names a raw developer or a camera's JPEG "
-                         "engine) or sharpened (halos on the edges): refuse (default) the f-number, which such "
-                         "processing reads 5-20%% high, naming the cause and the fix; or report it with a warning")
+    ft.add_argument("--processed", choices=("model", "refuse", "report"), default="model",
+                    help="where images were developed (EXIF names a raw developer or a camera's JPEG engine), "
+                         "sharpened (halos on the edges) or hold a tone curve their encoding does not undo: model "
+                         "(default) reads the blur through a tone curve and unsharp mask fitted to the edges, the "
+                         "f-number's interval carrying their uncertainty, and refuses it where they do not hold the "
+                         "images; refuse the f-number outright, naming the cause and the fix; or report it with a "
+                         "warning")
     ft.add_argument("--field-curvature", choices=("auto", "on", "off"), default="auto",
                     help="a real lens focuses the edge of the field at another distance than the centre: per setting, "
                          "the in-focus inverse distance 1/X + kappa tan^2(field angle), the reported X on the axis; "

@@ -34,7 +34,7 @@ def _measure_with_progress(stack, args: argparse.Namespace, fit_options: dict | 
         mode = getattr(args, "diffraction", "off")
         return measure_and_fit(stack, args.estimator, wavelength_nm=mode if isinstance(mode, float) else None,
                                fit_options=fit_options, progress=progress, auto_diffraction=mode == "auto",
-                               processed=getattr(args, "processed", "refuse"), jobs=args.jobs)
+                               processed=getattr(args, "processed", "model"), jobs=args.jobs)
 
 
 def measure_command(args: argparse.Namespace) -> int:

@@ -51,6 +51,9 @@ class Flag(StrEnum):
     DISTORTION_EXTREME = "distortion_extreme"
     #: read through the Airy pattern: the defocus blur alone
     DIFFRACTION_MODELLED = "diffraction_modelled"
+    #: read through the tone curve and sharpening fitted to the stack's edges (a developed image;
+    #: ``lensfit.measurement.processing``)
+    PROCESSING_MODELLED = "processing_modelled"
     #: the pipeline's diffraction test found no Airy pattern in these images: the spots' shapes
     #: are the lens's
     AIRY_NOT_SEEN = "airy_not_seen"

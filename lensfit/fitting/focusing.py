@@ -74,6 +74,8 @@ def subset(samples: Any, label: str) -> Any:
             intrinsics={k: v for k, v in samples.intrinsics.items() if k == label},
             fit_rms=[samples.fit_rms[i] for i in keep] if len(samples.fit_rms) == len(samples.samples) else [],
             edge_tasks=[samples.edge_tasks[i] for i in keep] if len(samples.edge_tasks) == len(samples.samples)
+            else [],
+            blur_scale=[samples.blur_scale[i] for i in keep] if len(samples.blur_scale) == len(samples.samples)
             else [])
     rows, _ = samples_from(samples)
     return [r for r in rows if r.setting == label]

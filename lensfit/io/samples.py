@@ -153,6 +153,10 @@ class SampleTable:
     #: per sample, the edge geometry its blur was read with (an ``EdgeTask`` with only the edge
     #: estimator's context, ``EDGE_CONTEXT``), in memory for ``Measurement.reread`` (lensfit.measurement.measure)
     edge_tasks: list[Any] = field(default_factory=list)
+    #: per sample, the lens distortion's stretch across its edge that the reading was divided by
+    #: (1 where none; ``lensfit.measurement.edge_geometry.undistorted_blur``), in memory for the
+    #: processing model's readings (``lensfit.measurement.processing``)
+    blur_scale: list[float] = field(default_factory=list)
     #: what ``lensfit.measurement.pipeline``'s diffraction test found (None where it did not run)
     diffraction: dict[str, Any] | None = None
     #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``, ``ideal``), which the

@@ -481,8 +481,8 @@ class _Run:
                 z = np.full(3, float(entry.distance_mm))
                 source = "manifest"
             middle = 0.5 * (np.asarray(task.start_px, float) + task.end_px)
-            est = undistorted_blur(est, task.context.get("distortion_scale", 1.0) if self.estimator != "target"
-                                    else 1.0, flags)
+            scale = task.context.get("distortion_scale", 1.0) if self.estimator != "target" else 1.0
+            est = undistorted_blur(est, scale, flags)
             table.samples.append(Sample(
                 image=entry.file.name, setting=entry.setting, target=tid, edge=seg.id,
                 distance_mm=float(z[1]), distance_start_mm=float(z[0]), distance_end_mm=float(z[2]),
@@ -492,6 +492,7 @@ class _Run:
                 field_radius_px=float(np.hypot(*(middle - table.intrinsics[entry.setting].principal_point_px))),
                 disk_diameter_px=est.disk_diameter_px, disk_sigma_px=est.disk_sigma_px))
             table.fit_rms.append(est.rms_residual)
+            table.blur_scale.append(float(scale) if Flag.DISTORTION_SCALED in flags else 1.0)
             table.bright_offset_px.append(bright_offset(est, read_task))
             table.edge_tasks.append(EdgeTask(read_task.start_px, read_task.end_px, read_task.clear_left_px,
                                              read_task.clear_right_px, {k: v for k, v in read_task.context.items()

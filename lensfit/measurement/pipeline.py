@@ -40,7 +40,7 @@ from lensfit.measurement.diffraction import DEFAULT_WAVELENGTH_NM, MAX_AIRY_PX
 from lensfit.errors import InputError
 from lensfit.estimators.base import Flag
 from lensfit.fitting.refits import AUTO_MIN_AIRY_PX, airy_per_setting, floor_sensitive, widen
-from lensfit.measurement.processing import POLICIES, apply, assess
+from lensfit.measurement.processing import POLICIES, apply, assess, read_through
 
 #: Re-measurements at most, and the change of every f-number below which they stop.
 MAX_ROUNDS = 4
@@ -115,7 +115,7 @@ def diffraction_test(measurement: Any, table: Any, airy: dict[str, float]) -> di
 def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float | None = None,
                     fit_options: dict[str, Any] | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
-                    auto_diffraction: bool = False, processed: str = "refuse",
+                    auto_diffraction: bool = False, processed: str = "model",
                     jobs: int | None = None) -> tuple[Any, Any, list[dict[str, float]]]:
     """Measure ``stack`` and fit it: what ``lensfit fit`` runs.
 
@@ -145,9 +145,11 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         Test the images for the Airy pattern and model it where they show it (the command line's
         default).
     processed : str
-        Where sRGB-encoded images were developed (EXIF) or sharpened (halos on the edges;
-        ``lensfit.measurement.processing``): "refuse" (default) the f-number, naming the cause and the fix, or
-        "report" it with a warning.
+        Where sRGB-encoded images were developed (EXIF) or sharpened (halos on the edges), or
+        hold a tone curve their declared encoding does not undo (``lensfit.measurement.processing``):
+        "model" (default) reads the blur through a tone curve and sharpening fitted to the edges
+        and refuses the f-number where they do not hold the images; "refuse" the f-number
+        outright, naming the cause and the fix; or "report" it with a warning.
     jobs : int, optional
         Images read and searched for targets at once (``lensfit.measurement.measure.measure``; default the cores).
 
@@ -223,6 +225,13 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     finally:
         if warming is not None:
             warming.join()
+    if found.biases_f_number and processed == "model":
+        # (the first reading's table: the model holds no Airy pattern, the rounds' readings do)
+        if progress:
+            progress("processing", 0, 1)
+        through = read_through(measurement, table, found, options)
+        if through is not None:
+            out = (*through, [])
     apply(out[1], found, processed)
     measurement.release()  # the rounds' kept profiles: not held by the caller
     return out

@@ -57,7 +57,21 @@ FAITHFUL = re.compile(r"^lensfit\b", re.IGNORECASE)
 #: pipeline's 1 px mask +0.17 +- 0.016.
 HALO_MIN_AMOUNT = 0.05
 HALO_MIN_Z = 5.0
-POLICIES = ("refuse", "report")
+#: What to do where processing biases the blur readings: fit it (``model``: the tone curve and
+#: sharpening read from the edges, ``lensfit.estimators.tone``; N refused where they do not hold
+#: the images), refuse N outright, or report it with a warning.
+POLICIES = ("model", "refuse", "report")
+#: The tone curves' sine terms the processing is fitted with: the first gives the readings, the
+#: second's N differs by what the curve's form leaves open, which the interval carries.
+MODEL_TERMS = (4, 6)
+#: The processing model holds a stack's images where its joint reduced chi-square is at most
+#: this (the DNG control and linear renders read 0.6-1.5; darktable's default export 1.3 through
+#: the model, 7.5 without it; an in-camera pipeline with noise reduction 7.9 through it) and the
+#: two curves' f-numbers agree within ``MODEL_MAX_SPREAD``.
+MODEL_MAX_CHI2 = 3.0
+MODEL_MAX_SPREAD = 0.05
+#: A reading through the model less certain than this (px) is no reading.
+MAX_SIGMA_PX = 1e3
 #: A reduced chi-square above this is flagged with its likely causes (renders through a thin lens
 #: and real-ray renders of stopped-down lenses read about 1-3; an in-camera JPEG pipeline 8.9).
 MISFIT_CHI2 = 3.0
@@ -96,6 +110,11 @@ class Processing:
     tone_offset: float = math.nan
     tone_sigma: float = math.nan
     tone_edges: int = 0
+    #: the processing model fitted to the edges (``read_through``), a summary for the results
+    #: file; None where it was not fitted
+    model: dict[str, Any] | None = None
+    #: whether the f-number was read through that model (which then holds the images)
+    modelled: bool = False
 
     @property
     def halos(self) -> bool:
@@ -112,6 +131,12 @@ class Processing:
     @property
     def biases_f_number(self) -> bool:
         """Whether the blur readings, so the f-number, are biased by processing lensfit does not model."""
+        return not self.modelled and self.processed
+
+    @property
+    def processed(self) -> bool:
+        """Whether the evidence says the images went through processing the plain blur readings do
+        not model (whether or not the processing model then read them)."""
         return (self.encoded and (self.developer is not None or self.halos)) or self.tone_mismatch
 
     def describe(self) -> str:
@@ -132,6 +157,13 @@ class Processing:
 
     def reason(self) -> str:
         """The f-number's refusal: the cause and the fix."""
+        model = self.model or {}
+        if model.get("why"):
+            return (f"{self.describe()}; a tone curve and sharpening fitted to the edges do not hold these images "
+                    f"({model['why']}), and unmodelled processing reads N by percents off with an interval that "
+                    "does not hold it: fit the RAW files (lensfit init takes RAW where a camera wrote RAW + JPEG), "
+                    "or export linear TIFF without sharpening or noise reduction and declare it encoding = "
+                    "\"linear\"; the focal length and focus distance do not depend on it and are reported")
         if not (self.encoded and (self.developer is not None or self.halos)):  # the tone test alone
             return (f"{self.describe()}; a tone curve warps every edge, which moves N by percents with an interval "
                     "that does not hold it: declare the encoding the files hold (encoding = \"srgb\" for sRGB "
@@ -150,7 +182,8 @@ class Processing:
                 "halo_amount": finite(self.halo_amount), "halo_sigma": finite(self.halo_sigma),
                 "halo_edges": self.halo_edges, "tone_offset": finite(self.tone_offset),
                 "tone_sigma": finite(self.tone_sigma), "tone_edges": self.tone_edges,
-                "tone_mismatch": self.tone_mismatch, "f_number_biased": self.biases_f_number}
+                "tone_mismatch": self.tone_mismatch, "f_number_biased": self.biases_f_number,
+                "model": self.model, "f_number_modelled": self.modelled}
 
 
 def developer_of(path: Path, record: Any) -> str | None:
@@ -253,3 +286,139 @@ def apply(result: Any, found: Processing, policy: str = "refuse") -> None:
                                          else f"{reason}; besides, {before.reason}")
     result.reasons.append(f"f_number: {reason}")
     result.code = Outcome.NOT_IDENTIFIABLE
+
+
+def read_through(measurement: Any, table: Any, found: Processing, options: dict[str, Any]) -> tuple[Any, Any] | None:
+    """The stack's edges read through the processing fitted to them (``lensfit.estimators.tone``)
+    and fitted again: ``(samples, fit result)`` where the model holds the images, with the
+    f-number's interval carrying the model's uncertainty (the shared parameters' covariance and
+    the spread between the tone curves of ``MODEL_TERMS``); None where it does not hold them or
+    cannot be fitted (``found.model`` says why; the caller refuses N). ``measurement``: the
+    stack's ``Measurement``, its profiles kept; ``table``: its first reading; ``options``: the
+    CoC fit's."""
+    from lensfit.estimators import tone
+    from lensfit.fitting import fit
+
+    kept = measurement.profiles or {}
+    state, key = kept.get("state"), kept.get("key")
+    encodings = {im.encoding for im in measurement.stack.images}
+    if state is None or key is None or len(encodings) != 1 or len(table.edge_tasks) != len(table.samples):
+        found.model = {"why": "the edges' profiles were not kept" if state is None else
+                       "the images declare different encodings"}
+        return None
+    radius, batch, index = state[1], state[7], state[8]
+    by_task = {(tuple(key[i][1]), tuple(key[i][2])): j for j, i in enumerate(index)}
+    where = [by_task.get((tuple(float(v) for v in t.start_px), tuple(float(v) for v in t.end_px)))
+             for t in table.edge_tasks]
+    encoding, runs = next(iter(encodings)), []
+    for terms in MODEL_TERMS:
+        fitted, readings = tone.fit(batch, [radius[i] for i in index], encoding, terms)
+        through = _through(table, where, readings)
+        runs.append((fitted, readings, through, fit(through, **{**options, "spot_shape": "disk"})))
+    fitted, readings, through, result = runs[0]
+    n_values = [r[3].settings.get(label, {}).get("f_number") for r in runs for label in result.settings]
+    spread = 0.0
+    for label, quantities in result.settings.items():
+        mine, other = quantities.get("f_number"), runs[1][3].settings.get(label, {}).get("f_number")
+        if mine is not None and mine.value and other is not None and other.value:
+            spread = max(spread, abs(math.log(other.value / mine.value)))
+    tone_rel = _shared_sigma(through, where, readings, fitted)
+    found.model = {"tone_terms": fitted.terms, "tone_coefficients": [float(c) for c in fitted.shared[:fitted.terms]],
+                   "encoding": encoding, "sharpening_amount": fitted.amount,
+                   "sharpening_sigma_px": fitted.sigma_px, "chi2_reduced": fitted.chi2_reduced,
+                   "edges": fitted.edges, "f_number_spread": spread, "f_number_model_sigma": tone_rel,
+                   "tone_curve": _curve_table(fitted)}
+    if not math.isfinite(fitted.chi2_reduced) or fitted.chi2_reduced > MODEL_MAX_CHI2:
+        found.model["why"] = (f"their profiles scatter about the model {math.sqrt(fitted.chi2_reduced):.1f} times "
+                              f"their noise, reduced chi-square {fitted.chi2_reduced:.1f} > {MODEL_MAX_CHI2:g}: "
+                              "processing beyond a tone curve and an unsharp mask, such as noise reduction")
+        return None
+    if spread > MODEL_MAX_SPREAD or not all(v is not None and v.value for v in n_values):
+        found.model["why"] = (f"tone curves of {MODEL_TERMS[0]} and {MODEL_TERMS[1]} terms read N "
+                              f"{100 * spread:.1f} % apart, more than {100 * MODEL_MAX_SPREAD:g} %")
+        return None
+    widening = math.hypot(spread, tone_rel)
+    for quantities in result.settings.values():
+        for q in ("f_number", "f_number_effective", "aperture_diameter_mm", "aperture_diameter_effective_mm"):
+            est = quantities.get(q)
+            if est is not None and est.value is not None:
+                quantities[q] = est.widened(widening, "processing")
+    found.modelled = True
+    result.warnings.append(
+        f"the blur was read through a tone curve and sharpening fitted to the edges ({found.describe()}): "
+        f"unsharp-mask amount {fitted.amount:.2f} at {fitted.sigma_px:.2f} px, reduced chi-square "
+        f"{fitted.chi2_reduced:.2f} over {fitted.edges} edges; the f-number's interval carries the model's "
+        f"uncertainty ({100 * widening:.1f} %, variance source processing). The RAW files give a tighter N")
+    return through, result
+
+
+def _through(table: Any, where: list[int | None], readings: Any) -> Any:
+    """``table`` with each sample's blur read through the processing model (``readings``, the
+    edges' of ``where``); samples the model did not read, or whose window was truncated, get no
+    value."""
+    import dataclasses
+
+    from lensfit.estimators.base import Flag
+
+    dropped = (Flag.SHAPED_SPOT, Flag.RADIAL_PROFILE, Flag.MARKER_STRIPE)
+    scales = table.blur_scale if len(table.blur_scale) == len(table.samples) else [1.0] * len(table.samples)
+    samples = []
+    for smp, j, scale in zip(table.samples, where, scales):
+        flags = tuple(f for f in smp.flags if f not in dropped) + (Flag.PROCESSING_MODELLED,)
+        if smp.coc_diameter_px is None:
+            samples.append(smp)
+            continue
+        if j is None or not readings.ok[j] or Flag.WINDOW_TRUNCATED in smp.flags:
+            samples.append(dataclasses.replace(smp, coc_diameter_px=None, sigma_px=None, flags=flags + (
+                Flag.NOT_MEASURED,), disk_diameter_px=None, disk_sigma_px=None))
+            continue
+        rho, s_rho = float(readings.theta[j, 1]), float(readings.rho_sigma[j])
+        R = math.sqrt(max(rho, 0.0))
+        sigma = min(s_rho / R if R > 0 else math.inf, 2.0 * math.sqrt(s_rho))  # (c = 2 sqrt(rho))
+        if not (math.isfinite(sigma) and 1e-6 < sigma < MAX_SIGMA_PX):  # a profile that does not determine it
+            samples.append(dataclasses.replace(smp, coc_diameter_px=None, sigma_px=None, flags=flags + (
+                Flag.BLUR_UNDETERMINED,), disk_diameter_px=None, disk_sigma_px=None))
+            continue
+        samples.append(dataclasses.replace(smp, coc_diameter_px=2.0 * R / scale, sigma_px=sigma / scale, flags=flags,
+                                           disk_diameter_px=None, disk_sigma_px=None))
+    return dataclasses.replace(table, samples=samples)
+
+
+def _shared_sigma(table: Any, where: list[int | None], readings: Any, fitted: Any) -> float:
+    """The f-number's relative uncertainty from the curve and mask's covariance: along each of its
+    principal directions, one sigma moves every edge's reading; the blurs' weighted mean relative
+    move (edges over 2 px, where N is read) is what N moves by, added in quadrature."""
+    import numpy as np
+
+    rows = [j for smp, j in zip(table.samples, where) if j is not None and smp.coc_diameter_px is not None
+            and smp.sigma_px and smp.coc_diameter_px >= 2.0]
+    if not rows:
+        return 0.0
+    rho = readings.theta[rows, 1]
+    c = 2.0 * np.sqrt(np.maximum(rho, 1e-12))
+    weight = (c / np.maximum(readings.rho_sigma[rows] / np.sqrt(np.maximum(rho, 1e-12)), 1e-12)) ** 2
+    values, vectors = np.linalg.eigh(fitted.shared_cov)
+    total = 0.0
+    for value, vector in zip(values, vectors.T):
+        moved = readings.rho_slope[rows] @ (vector * math.sqrt(max(value, 0.0))) / (2.0 * rho)  # d c / c
+        total += float(np.sum(weight * moved) / np.sum(weight)) ** 2
+    return math.sqrt(total)
+
+
+def _curve_table(fitted: Any, points: int = 11) -> list[list[float]]:
+    """The fitted tone curve as ``[light, file value, declared encoding's value]`` rows."""
+    import numpy as np
+
+    light = np.linspace(0.0, 1.0, points)
+    curve, plain = fitted.curve(light), tone_base(light, fitted.srgb)
+    return [[float(a), float(b), float(c)] for a, b, c in zip(light, curve, plain)]
+
+
+def tone_base(light: Any, srgb: bool) -> Any:
+    """The declared encoding's curve (sRGB or the identity) at linear ``light``."""
+    import numpy as np
+
+    light = np.asarray(light, np.float64)
+    if not srgb:
+        return light
+    return np.where(light <= 0.0031308, 12.92 * light, 1.055 * np.clip(light, 0, None) ** (1 / 2.4) - 0.055)
