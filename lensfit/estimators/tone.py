@@ -97,7 +97,9 @@ def _edge_model(p, g, x_scale, d, s, nx, ny, terms: int, srgb: bool):
     grid = jnp.linspace(-reach, reach, GRID_POINTS, endpoint=False)
     on_grid = tone_curve(lo + (hi - lo) * pixel_edge_profile(grid, R, nx, ny), c, srgb)
     frequency = jnp.fft.rfftfreq(GRID_POINTS, d=grid[1] - grid[0])
-    blurred = jnp.fft.irfft(jnp.fft.rfft(on_grid) * jnp.exp(-2.0 * (jnp.pi * sigma * frequency) ** 2), n=GRID_POINTS)
+    spectrum = jnp.fft.rfft(on_grid)
+    gauss = jnp.exp(-2.0 * (jnp.pi * sigma * frequency) ** 2).astype(spectrum.dtype)
+    blurred = jnp.fft.irfft(spectrum * gauss, n=GRID_POINTS)
     return here + amount * (here - jnp.interp(x, grid, blurred))
 
 

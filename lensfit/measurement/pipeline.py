@@ -229,7 +229,7 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         # (the first reading's table: the model holds no Airy pattern, the rounds' readings do)
         if progress:
             progress("processing", 0, 1)
-        through = read_through(measurement, table, found, options)
+        through = read_through(measurement, table, found, options, airy_per_setting(out[1], DEFAULT_WAVELENGTH_NM))
         if through is not None:
             out = (*through, [])
     apply(out[1], found, processed)

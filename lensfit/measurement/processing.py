@@ -64,12 +64,17 @@ POLICIES = ("model", "refuse", "report")
 #: The tone curves' sine terms the processing is fitted with: the first gives the readings, the
 #: second's N differs by what the curve's form leaves open, which the interval carries.
 MODEL_TERMS = (4, 6)
-#: The processing model holds a stack's images where its joint reduced chi-square is at most
-#: this (the DNG control and linear renders read 0.6-1.5; darktable's default export 1.3 through
-#: the model, 7.5 without it; an in-camera pipeline with noise reduction 7.9 through it) and the
-#: two curves' f-numbers agree within ``MODEL_MAX_SPREAD``.
-MODEL_MAX_CHI2 = 3.0
-MODEL_MAX_SPREAD = 0.05
+#: The processing model holds a stack's images where the two curves' f-numbers agree within
+#: ``MODEL_MAX_SPREAD`` (what the curve's form leaves open: darktable's default export 0.9 %; an
+#: in-camera pipeline with noise reduction 5.7 %, refused) and its joint reduced chi-square is at
+#: most ``MODEL_MAX_CHI2``: a misfit beyond that is processing of another kind. A reduced
+#: chi-square above 1 alone does not refuse: on renders with little noise a curve and mask that
+#: read N within 0.3 % leave one of 16.
+MODEL_MAX_CHI2 = 25.0
+MODEL_MAX_SPREAD = 0.04
+#: The Airy scale (lambda N / pixel pitch at 550 nm) above which the model, which holds no Airy
+#: pattern, does not read a stack: on a linear stack at 1.04 px it read blurs 3.5-4 % large.
+MODEL_MAX_AIRY_PX = 0.4
 #: A reading through the model less certain than this (px) is no reading.
 MAX_SIGMA_PX = 1e3
 #: A reduced chi-square above this is flagged with its likely causes (renders through a thin lens
@@ -157,22 +162,18 @@ class Processing:
 
     def reason(self) -> str:
         """The f-number's refusal: the cause and the fix."""
-        model = self.model or {}
-        if model.get("why"):
-            return (f"{self.describe()}; a tone curve and sharpening fitted to the edges do not hold these images "
-                    f"({model['why']}), and unmodelled processing reads N by percents off with an interval that "
-                    "does not hold it: fit the RAW files (lensfit init takes RAW where a camera wrote RAW + JPEG), "
-                    "or export linear TIFF without sharpening or noise reduction and declare it encoding = "
-                    "\"linear\"; the focal length and focus distance do not depend on it and are reported")
+        why = (self.model or {}).get("why")
+        model = f"; a tone curve and sharpening fitted to the edges do not hold these images ({why})" if why else ""
         if not (self.encoded and (self.developer is not None or self.halos)):  # the tone test alone
-            return (f"{self.describe()}; a tone curve warps every edge, which moves N by percents with an interval "
-                    "that does not hold it: declare the encoding the files hold (encoding = \"srgb\" for sRGB "
-                    "files, \"linear\" for linear ones) or fit the RAW files; the focal length and focus distance "
-                    "do not depend on it and are reported")
-        return (f"{self.describe()}; a developer's tone curve and sharpening narrow every edge, which reads N "
+            return (f"{self.describe()}{model}; a tone curve warps every edge, which moves N by percents with an "
+                    "interval that does not hold it: declare the encoding the files hold (encoding = \"srgb\" for "
+                    "sRGB files, \"linear\" for linear ones) or fit the RAW files; the focal length and focus "
+                    "distance do not depend on it and are reported")
+        return (f"{self.describe()}{model}; a developer's tone curve and sharpening narrow every edge, which reads N "
                 "5-20 % high with an interval that does not hold it: fit the RAW files (lensfit init takes RAW "
-                "where a camera wrote RAW + JPEG), or export linear TIFF without sharpening and declare it "
-                "encoding = \"linear\"; the focal length and focus distance do not depend on it and are reported")
+                "where a camera wrote RAW + JPEG), or export linear TIFF without sharpening or noise reduction and "
+                "declare it encoding = \"linear\"; the focal length and focus distance do not depend on it and are "
+                "reported")
 
     def to_json_dict(self) -> dict[str, Any]:
         """The results file's ``processing`` object."""
@@ -288,14 +289,16 @@ def apply(result: Any, found: Processing, policy: str = "refuse") -> None:
     result.code = Outcome.NOT_IDENTIFIABLE
 
 
-def read_through(measurement: Any, table: Any, found: Processing, options: dict[str, Any]) -> tuple[Any, Any] | None:
+def read_through(measurement: Any, table: Any, found: Processing, options: dict[str, Any],
+                 airy_px: dict[str, float] | None = None) -> tuple[Any, Any] | None:
     """The stack's edges read through the processing fitted to them (``lensfit.estimators.tone``)
     and fitted again: ``(samples, fit result)`` where the model holds the images, with the
     f-number's interval carrying the model's uncertainty (the shared parameters' covariance and
     the spread between the tone curves of ``MODEL_TERMS``); None where it does not hold them or
     cannot be fitted (``found.model`` says why; the caller refuses N). ``measurement``: the
     stack's ``Measurement``, its profiles kept; ``table``: its first reading; ``options``: the
-    CoC fit's."""
+    CoC fit's; ``airy_px``: each setting's Airy scale at 550 nm from the plain fit (px): the model
+    holds no Airy pattern, so a stack where it reaches ``MODEL_MAX_AIRY_PX`` is not read."""
     from lensfit.estimators import tone
     from lensfit.fitting import fit
 
@@ -305,6 +308,12 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
     if state is None or key is None or len(encodings) != 1 or len(table.edge_tasks) != len(table.samples):
         found.model = {"why": "the edges' profiles were not kept" if state is None else
                        "the images declare different encodings"}
+        return None
+    airy = max((airy_px or {}).values(), default=0.0)
+    if airy > MODEL_MAX_AIRY_PX:
+        found.model = {"why": f"their Airy pattern ({airy:.2f} px at 550 nm) shapes the edges beside the processing, "
+                              "and the model holds the pattern and the processing together only below "
+                              f"{MODEL_MAX_AIRY_PX:g} px"}
         return None
     radius, batch, index = state[1], state[7], state[8]
     by_task = {(tuple(key[i][1]), tuple(key[i][2])): j for j, i in enumerate(index)}
