@@ -237,7 +237,7 @@ def test_the_processing_model_reads_n_through_a_curve_and_mask_it_was_not_given(
     found = result.processing
     assert found.modelled and not found.biases_f_number, found.model
     assert 0.3 < found.model["sharpening_amount"] < 0.7 and 0.7 < found.model["sharpening_sigma_px"] < 1.4
-    n = result.settings["a"]["f_number_effective"]
+    n = result.settings["a"]["f_number"]
     assert abs(n.value / truth["f_number"] - 1) < 0.02, n
     assert n.ci95[0] <= truth["f_number"] <= n.ci95[1], n
     assert n.shares and n.shares.get("processing", 0) > 0
