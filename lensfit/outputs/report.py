@@ -82,7 +82,13 @@ def assumptions_text(table: SampleTable, document: dict[str, Any]) -> str:
     if definition.get("note"):
         parts.append(f"f-number {definition.get('reported')}: {definition['note']}")
     proc = document.get("processing") or {}
-    if proc.get("developer") or proc.get("halos"):
+    if proc.get("f_number_modelled"):
+        model = proc.get("model") or {}
+        share = 100 * math.hypot(model.get("f_number_spread", 0.0), model.get("f_number_model_sigma", 0.0))
+        parts.append(f"developed images read through a tone curve and an unsharp mask fitted to the edges (amount "
+                     f"{model.get('sharpening_amount', 0.0):.2f} at {model.get('sharpening_sigma_px', 0.0):.2f} px; "
+                     f"N's interval carries {share:.1f} % for the model)")
+    elif proc.get("developer") or proc.get("halos"):
         parts.append(f"developed images ({proc.get('developer') or 'sharpening halos'})")
     elif proc.get("tone_mismatch"):
         parts.append("a tone curve the declared encoding does not undo (edges "
@@ -96,6 +102,29 @@ def assumptions_text(table: SampleTable, document: dict[str, Any]) -> str:
 OVERLAY_WIDTH_PX = 1400
 #: |residual| / sigma above which an edge is listed as suspicious.
 SUSPICIOUS_SIGMAS = 3.0
+
+
+def tone_figure(model: dict[str, Any]):
+    """The tone curve fitted to a developed stack's edges against the encoding its files declare,
+    and the unsharp mask's profile across an edge (``processing.model`` of the results)."""
+    import matplotlib.pyplot as plt
+
+    curve = np.asarray(model["tone_curve"], np.float64)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.4))
+    left.plot(curve[:, 0], curve[:, 2], "--", color="grey", label=f"declared ({model.get('encoding', '')})")
+    left.plot(curve[:, 0], curve[:, 1], color="C0", label="fitted to the edges")
+    left.set(xlabel="linear light", ylabel="file value", title="tone curve")
+    left.legend(loc="lower right")
+    x = np.linspace(-5.0, 5.0, 401)
+    sigma, amount = max(model["sharpening_sigma_px"], 1e-3), model["sharpening_amount"]
+    step = (x > 0).astype(float)
+    from scipy.special import erf
+
+    blurred = 0.5 * (1.0 + erf(x / (sigma * math.sqrt(2.0))))
+    right.plot(x, step + amount * (step - blurred), color="C1")
+    right.set(xlabel="px across an edge", ylabel="file value", title=f"unsharp mask: {amount:.2f} at {sigma:.2f} px")
+    fig.tight_layout()
+    return fig
 
 
 def _png(fig) -> str:
@@ -365,6 +394,12 @@ def write_fit_report(path: str | Path, result: FitResult, document: dict[str, An
         parts.append(f"<p class='bad'>{html.escape(reason)}</p>")
     for warning in [*table.warnings, *result.warnings]:
         parts.append(f"<p class='warn'>warning: {html.escape(warning)}</p>")
+    model = (document.get("processing") or {}).get("model") or {}
+    if model.get("tone_curve"):
+        fig = tone_figure(model)
+        parts.append("<h2>The processing fitted to the edges</h2>"
+                     f"<img alt='tone curve and sharpening' src='data:image/png;base64,{_png(fig)}'>")
+        plt.close(fig)
     buf = io.BytesIO()
     plot_fit(result, buf, title=f"{title}: {result.code}", image_format="png")
     parts.append("<h2>Blur versus inverse distance</h2>")
