@@ -414,7 +414,7 @@ def _shared_sigma(table: Any, where: list[int | None], readings: Any, fitted: An
     return math.sqrt(total)
 
 
-def _curve_table(fitted: Any, points: int = 11) -> list[list[float]]:
+def _curve_table(fitted: Any, points: int = 21) -> list[list[float]]:
     """The fitted tone curve as ``[light, file value, declared encoding's value]`` rows."""
     import numpy as np
 

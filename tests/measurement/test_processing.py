@@ -246,4 +246,4 @@ def test_the_processing_model_reads_n_through_a_curve_and_mask_it_was_not_given(
     assert any("tone curve and sharpening fitted" in w for w in result.warnings)
     assert all("processing_modelled" in s.flags for s in samples.samples if s.coc_diameter_px is not None)
     doc = result.to_json_dict()["processing"]
-    assert doc["f_number_modelled"] and not doc["f_number_biased"] and len(doc["model"]["tone_curve"]) == 11
+    assert doc["f_number_modelled"] and not doc["f_number_biased"] and len(doc["model"]["tone_curve"]) == 21
