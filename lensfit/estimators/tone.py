@@ -127,7 +127,7 @@ def _cost(P, g, X, D, S, U, W, NX, NY, terms: int, srgb: bool):
 
 
 @dataclass
-class Processing:
+class ToneFit:
     """The processing fitted to a stack's edges.
 
     Attributes
@@ -282,7 +282,7 @@ def _ridged_inverse(M: np.ndarray) -> np.ndarray:
     return out
 
 
-def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int) -> tuple[Processing, EdgeReadings]:
+def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int) -> tuple[ToneFit, EdgeReadings]:
     """The processing of ``profiles`` (the edge estimator's, ``(d, s, values, standard errors,
     normal)``, values linear as decoded by ``encoding``) with a tone curve of ``terms`` sine
     terms, and every edge read through it. ``radii``: each edge's first-pass radius (px), the
@@ -325,5 +325,5 @@ def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int) ->
         edge_chi[j] = edge_chi2[k]
         slope[j] = dP[k, 1]
         ok[j] = bool(np.all(np.isfinite(P[k])) and bins_each[k] > 5)
-    found = Processing(terms, g, shared_cov, chi2, len(joint), bins_joint, srgb, converged)
+    found = ToneFit(terms, g, shared_cov, chi2, len(joint), bins_joint, srgb, converged)
     return found, EdgeReadings(theta, rho_sigma, edge_chi, ok, slope)

@@ -208,9 +208,10 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
     try:
         # The edges' profiles are kept for the rounds, which solve them again with the Airy pattern
         # (the Measurement's ``keep_profiles``: the same readings, a quarter less time a round).
-        # (and for the halo test of sRGB-encoded images)
+        # They serve the halo test of sRGB-encoded images and the processing model of any stack the
+        # tone test flags too (about 4 kB an edge, references to what the measuring made anyway).
         measurement = Measurement(stack, estimator, progress=progress, jobs=jobs, on_edges=on_edges,
-                                  keep_profiles=auto or wavelength_nm is not None or stack.encoded)
+                                  keep_profiles=True)
         table = measurement.read()
     except BaseException:
         for thread in ahead:

@@ -184,7 +184,18 @@ class Processing:
                 "halo_edges": self.halo_edges, "tone_offset": finite(self.tone_offset),
                 "tone_sigma": finite(self.tone_sigma), "tone_edges": self.tone_edges,
                 "tone_mismatch": self.tone_mismatch, "f_number_biased": self.biases_f_number,
-                "model": self.model, "f_number_modelled": self.modelled}
+                "model": _finite(self.model), "f_number_modelled": self.modelled}
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every non-finite number (which JSON cannot hold) made None, inside lists and dicts."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def developer_of(path: Path, record: Any) -> str | None:
@@ -325,26 +336,29 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
         through = _through(table, where, readings)
         runs.append((fitted, readings, through, fit(through, **{**options, "spot_shape": "disk"})))
     fitted, readings, through, result = runs[0]
-    n_values = [r[3].settings.get(label, {}).get("f_number") for r in runs for label in result.settings]
     spread = 0.0
     for label, quantities in result.settings.items():
         mine, other = quantities.get("f_number"), runs[1][3].settings.get(label, {}).get("f_number")
         if mine is not None and mine.value and other is not None and other.value:
             spread = max(spread, abs(math.log(other.value / mine.value)))
+        elif mine is not None and mine.value:  # (the other curve cannot read it: no agreement to show)
+            spread = math.inf
     tone_rel = _shared_sigma(through, where, readings, fitted)
     found.model = {"tone_terms": fitted.terms, "tone_coefficients": [float(c) for c in fitted.shared[:fitted.terms]],
                    "encoding": encoding, "sharpening_amount": fitted.amount,
                    "sharpening_sigma_px": fitted.sigma_px, "chi2_reduced": fitted.chi2_reduced,
-                   "edges": fitted.edges, "f_number_spread": spread, "f_number_model_sigma": tone_rel,
+                   "edges": fitted.edges, "f_number_spread": spread if math.isfinite(spread) else None,
+                   "f_number_model_sigma": tone_rel,
                    "tone_curve": _curve_table(fitted)}
     if not math.isfinite(fitted.chi2_reduced) or fitted.chi2_reduced > MODEL_MAX_CHI2:
         found.model["why"] = (f"their profiles scatter about the model {math.sqrt(fitted.chi2_reduced):.1f} times "
                               f"their noise, reduced chi-square {fitted.chi2_reduced:.1f} > {MODEL_MAX_CHI2:g}: "
                               "processing beyond a tone curve and an unsharp mask, such as noise reduction")
         return None
-    if spread > MODEL_MAX_SPREAD or not all(v is not None and v.value for v in n_values):
+    if spread > MODEL_MAX_SPREAD:
         found.model["why"] = (f"tone curves of {MODEL_TERMS[0]} and {MODEL_TERMS[1]} terms read N "
-                              f"{100 * spread:.1f} % apart, more than {100 * MODEL_MAX_SPREAD:g} %")
+                              + (f"{100 * spread:.1f} % apart" if math.isfinite(spread) else "one not at all")
+                              + f", more than {100 * MODEL_MAX_SPREAD:g} % apart")
         return None
     widening = math.hypot(spread, tone_rel)
     for quantities in result.settings.values():
