@@ -323,7 +323,7 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
     airy = max((airy_px or {}).values(), default=0.0)
     if airy > MODEL_MAX_AIRY_PX:
         found.model = {"why": f"their Airy pattern ({airy:.2f} px at 550 nm) shapes the edges beside the processing, "
-                              "and the model holds the pattern and the processing together only below "
+                              f"and the model, which holds no Airy pattern, reads them only below "
                               f"{MODEL_MAX_AIRY_PX:g} px"}
         return None
     radius, batch, index = state[1], state[7], state[8]
