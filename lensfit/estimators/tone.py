@@ -28,7 +28,7 @@ radius moves with them, are returned so that their uncertainty reaches the f-num
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 
 import jax
@@ -136,7 +136,7 @@ class ToneFit:
     shared : (c_1..c_terms, mask amount, log mask sigma)
     shared_cov : their covariance (widened by the reduced chi-square where above 1)
     chi2_reduced : the joint fit's reduced chi-square
-    edges, bins : what it rests on
+    edges : the edges it rests on
     srgb : whether the curve is a warp of the sRGB encoding (else of the identity)
     """
 
@@ -145,10 +145,7 @@ class ToneFit:
     shared_cov: np.ndarray
     chi2_reduced: float
     edges: int
-    bins: int
     srgb: bool
-    converged: bool = True
-    notes: list[str] = field(default_factory=list)
 
     @property
     def amount(self) -> float:
@@ -158,22 +155,23 @@ class ToneFit:
     def sigma_px(self) -> float:
         return float(math.exp(self.shared[self.terms + 1]))
 
-    def curve(self, light: np.ndarray) -> np.ndarray:
-        """The fitted tone curve at linear ``light`` (the file's scale, 0-1)."""
+    def curve(self, light: np.ndarray, warped: bool = True) -> np.ndarray:
+        """The fitted tone curve at linear ``light`` (the file's scale, 0-1); ``warped=False``: the
+        declared encoding it warps."""
+        coefficients = self.shared[:self.terms] if warped else np.zeros(self.terms)
         with jax.enable_x64(True):
-            return np.asarray(tone_curve(jnp.asarray(light, jnp.float64),
-                                         jnp.asarray(self.shared[:self.terms]), self.srgb))
+            return np.asarray(tone_curve(jnp.asarray(light, jnp.float64), jnp.asarray(coefficients), self.srgb))
 
 
 @dataclass
 class EdgeReadings:
     """Each edge's reading through the fitted processing: parameters (x0, R^2, lo, hi, turn), the
-    standard error of R^2 (the shared parameters held), each edge's reduced chi-square, whether
-    the edge was fitted, and d(R^2)/d(shared) (how the reading moves with the curve and mask)."""
+    standard error of R^2 (the shared parameters held, widened by the edge's reduced chi-square
+    where above 1), whether the edge was fitted, and d(R^2)/d(shared) (how the reading moves with
+    the curve and mask)."""
 
     theta: np.ndarray
     rho_sigma: np.ndarray
-    chi2_reduced: np.ndarray
     ok: np.ndarray
     rho_slope: np.ndarray
 
@@ -197,7 +195,7 @@ def _pack(profiles: list[tuple], starts: list[np.ndarray], encoding: str) -> dic
     return A
 
 
-def _starts(profiles: list[tuple], radii: list[float], encoding: str) -> list[np.ndarray]:
+def _starts(profiles: list[tuple], radii: list[float]) -> list[np.ndarray]:
     out = []
     for (d, _s, v, _se, _n), r in zip(profiles, radii):
         d = np.asarray(d, np.float64)
@@ -215,9 +213,9 @@ def _normal_equations(A, P, g, terms, srgb):
             np.einsum("nij,nik->jk", Jg, Jg), np.einsum("nij,ni->nj", Jp, r), np.einsum("nij,ni->j", Jg, r))
 
 
-def _priors(g: np.ndarray, terms: int) -> tuple[np.ndarray, np.ndarray]:
+def _priors(terms: int) -> tuple[np.ndarray, np.ndarray]:
     """The shared parameters' prior residuals' centre and 1 sigma."""
-    centre = np.zeros_like(g)
+    centre = np.zeros(terms + 2)
     centre[terms + 1] = math.log(SIGMA_PRIOR_PX)
     width = np.array([WARP_PRIOR] * terms + [AMOUNT_PRIOR, LOG_SIGMA_PRIOR])
     return centre, width
@@ -235,7 +233,7 @@ def solve(A: dict[str, np.ndarray], terms: int, srgb: bool, shared: bool = True,
     for (``shared``) or held at ``g``. Returns the edges' parameters, the shared ones, the cost
     (with the priors) and whether it converged."""
     P = A["P"].copy()
-    centre, width = _priors(np.zeros(terms + 2), terms)
+    centre, width = _priors(terms)
     g = centre.copy() if g is None else np.asarray(g, np.float64).copy()
     args = (A["X"], A["D"], A["S"], A["U"], A["W"], A["NX"], A["NY"])
 
@@ -291,8 +289,7 @@ def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int) ->
     (``ok`` False)."""
     srgb = encoding == "srgb"
     use = [j for j, r in enumerate(radii) if r is not None and math.isfinite(r) and len(profiles[j][0]) >= 16]
-    A = _pack([profiles[j] for j in use], _starts([profiles[j] for j in use], [radii[j] for j in use], encoding),
-              encoding)
+    A = _pack([profiles[j] for j in use], _starts([profiles[j] for j in use], [radii[j] for j in use]), encoding)
     n = len(use)
     joint = np.unique(np.linspace(0, n - 1, min(n, JOINT_EDGES)).round().astype(int)) if n else np.zeros(0, int)
     with jax.enable_x64(True):
@@ -300,12 +297,12 @@ def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int) ->
         # joint edges, then every edge with them held
         A["P"], _, _, _ = solve(A, terms, srgb, shared=False)
         J = _pack([profiles[use[k]] for k in joint], [A["P"][k] for k in joint], encoding)
-        PJ, g, _, converged = solve(J, terms, srgb)
+        PJ, g, _, _ = solve(J, terms, srgb)
         rj = _normal_equations(J, PJ, g, terms, srgb)
         A["P"][joint] = PJ[:len(joint)]
         P, _, _, _ = solve(A, terms, srgb, shared=False, g=g)
         r, Ap, B, _, _, _ = _normal_equations(A, P, g, terms, srgb)
-    _, width = _priors(g, terms)
+    _, width = _priors(terms)
     rJ, ApJ, BJ, CJ = rj[:4]
     schur = CJ + np.diag(1.0 / width**2) - np.einsum("nji,njk,nkl->il", BJ, _ridged_inverse(ApJ), BJ)
     bins_joint = int(np.sum(J["W"] > 0))
@@ -315,15 +312,13 @@ def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int) ->
     bins_each = np.sum(A["W"] > 0, axis=1)
     edge_chi2 = np.sum(r * r, axis=1) / np.maximum(bins_each - 5, 1)
     theta = np.full((len(profiles), 5), np.nan)
-    rho_sigma, edge_chi = np.full(len(profiles), np.nan), np.full(len(profiles), np.nan)
+    rho_sigma = np.full(len(profiles), np.nan)
     slope = np.full((len(profiles), len(g)), np.nan)
     ok = np.zeros(len(profiles), bool)
     dP = -np.einsum("njk,nkl->njl", Ai, B)  # how each edge's parameters follow the shared ones
     for k, j in enumerate(use):
         theta[j] = P[k]
         rho_sigma[j] = math.sqrt(max(Ai[k, 1, 1], 0.0) * max(edge_chi2[k], 1.0))
-        edge_chi[j] = edge_chi2[k]
         slope[j] = dP[k, 1]
         ok[j] = bool(np.all(np.isfinite(P[k])) and bins_each[k] > 5)
-    found = ToneFit(terms, g, shared_cov, chi2, len(joint), bins_joint, srgb, converged)
-    return found, EdgeReadings(theta, rho_sigma, edge_chi, ok, slope)
+    return ToneFit(terms, g, shared_cov, chi2, len(joint), srgb), EdgeReadings(theta, rho_sigma, ok, slope)

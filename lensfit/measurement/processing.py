@@ -177,12 +177,11 @@ class Processing:
 
     def to_json_dict(self) -> dict[str, Any]:
         """The results file's ``processing`` object."""
-        finite = (lambda x: x if math.isfinite(x) else None)
         return {"developer": self.developer, "developed_files": list(self.developed_files),
                 "encoded": self.encoded, "halos": self.halos,
-                "halo_amount": finite(self.halo_amount), "halo_sigma": finite(self.halo_sigma),
-                "halo_edges": self.halo_edges, "tone_offset": finite(self.tone_offset),
-                "tone_sigma": finite(self.tone_sigma), "tone_edges": self.tone_edges,
+                "halo_amount": _finite(self.halo_amount), "halo_sigma": _finite(self.halo_sigma),
+                "halo_edges": self.halo_edges, "tone_offset": _finite(self.tone_offset),
+                "tone_sigma": _finite(self.tone_sigma), "tone_edges": self.tone_edges,
                 "tone_mismatch": self.tone_mismatch, "f_number_biased": self.biases_f_number,
                 "model": _finite(self.model), "f_number_modelled": self.modelled}
 
@@ -433,15 +432,5 @@ def _curve_table(fitted: Any, points: int = 21) -> list[list[float]]:
     import numpy as np
 
     light = np.linspace(0.0, 1.0, points)
-    curve, plain = fitted.curve(light), tone_base(light, fitted.srgb)
+    curve, plain = fitted.curve(light), fitted.curve(light, warped=False)
     return [[float(a), float(b), float(c)] for a, b, c in zip(light, curve, plain)]
-
-
-def tone_base(light: Any, srgb: bool) -> Any:
-    """The declared encoding's curve (sRGB or the identity) at linear ``light``."""
-    import numpy as np
-
-    light = np.asarray(light, np.float64)
-    if not srgb:
-        return light
-    return np.where(light <= 0.0031308, 12.92 * light, 1.055 * np.clip(light, 0, None) ** (1 / 2.4) - 0.055)
