@@ -197,8 +197,10 @@ def test_a_tone_curve_the_declared_encoding_does_not_undo_is_named_and_refuses_n
     assert tone.tone_mismatch and tone.tone_offset < -TONE_MIN_OFFSET, tone
     n = result.settings["a"]["f_number"]
     assert n.value is None and "declared encoding (linear)" in n.reason and 'encoding = "srgb"' in n.reason
-    # at f/8 on 6 um pixels the Airy pattern (0.7 px) shapes the edges too: the model does not read them
-    assert "Airy pattern" in n.reason and result.processing.model["why"] and not result.processing.modelled
+    # the model's curve warps the declared encoding (here none) with a few sine terms, which do not
+    # hold the sRGB curve's steep start: it says why it does not read N
+    why = result.processing.model["why"]
+    assert why and why in n.reason and not result.processing.modelled, why
     assert result.focal_length_mm.value is not None and result.settings["a"]["focus_distance_mm"].value is not None
 
 
@@ -237,7 +239,7 @@ def test_the_processing_model_reads_n_through_a_curve_and_mask_it_was_not_given(
     assert refused.settings["a"]["f_number"].value is None
     samples, result, _ = measure_and_fit(folder)
     found = result.processing
-    assert found.modelled and not found.biases_f_number, found.model
+    assert found.modelled and not found.biases_f_number, found.model.get("why")
     assert 0.3 < found.model["sharpening_amount"] < 0.7 and 0.7 < found.model["sharpening_sigma_px"] < 1.4
     n = result.settings["a"]["f_number"]
     assert abs(n.value / truth["f_number"] - 1) < 0.02, n
