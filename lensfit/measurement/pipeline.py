@@ -227,12 +227,15 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         if warming is not None:
             warming.join()
     if found.biases_f_number and processed == "model":
-        # (the first reading's table: the model holds no Airy pattern, the rounds' readings do)
+        # (the first reading's table, whose kept profiles the model reads: it holds the Airy
+        # pattern itself, at the scale of the f-number the rounds fitted)
         if progress:
             progress("processing", 0, 1)
         through = read_through(measurement, table, found, options, airy_per_setting(out[1], DEFAULT_WAVELENGTH_NM))
         if through is not None:
             out = (*through, [])
+        if progress:
+            progress("processing", 1, 1)
     apply(out[1], found, processed)
     measurement.release()  # the rounds' kept profiles: not held by the caller
     return out

@@ -206,8 +206,8 @@ def test_a_tone_curve_the_declared_encoding_does_not_undo_is_named_and_refuses_n
 
 @pytest.fixture(scope="module")
 def fast_stack(tmp_path_factory):
-    """The calibration stack's scene at f/2.8 (Airy pattern 0.26 px at 550 nm: below what the
-    processing model needs to hold alongside it)."""
+    """The calibration stack's scene at f/2.8 (Airy pattern 0.26 px at 550 nm, which the
+    processing model holds)."""
     from helpers import calibration_scene
     from synth.rendering import render
     from synth.scene import scene_from_dict
