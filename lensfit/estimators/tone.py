@@ -355,7 +355,9 @@ def _mask_start(A: dict[str, np.ndarray], terms: int, srgb: bool) -> np.ndarray:
     """The shared parameters to start from: the declared encoding and the best of ``MASK_STARTS``
     on ``START_EDGES`` of the edges of ``A``."""
     n = int(np.sum(np.any(A["W"] > 0, axis=1)))
-    pick = np.unique(np.linspace(0, max(n - 1, 0), min(n, START_EDGES)).round().astype(int))
+    if n == 0:
+        return _priors(terms)[0]
+    pick = np.unique(np.linspace(0, n - 1, min(n, START_EDGES)).round().astype(int))
     rows = np.concatenate([pick, np.full(BLOCK - len(pick) % BLOCK if len(pick) % BLOCK else 0, pick[0])])
     few = {k: (v[rows] if isinstance(v, np.ndarray) else v) for k, v in A.items()}
     few["W"][len(pick):] = 0.0  # (padding to the compiled block: edges of no weight)
@@ -395,15 +397,11 @@ def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int,
     stack, each edge first read alone through the declared encoding."""
     srgb = encoding == "srgb"
     use = _usable(profiles, radii)
-    airy = None if airy_px is None else [airy_px[j] for j in use]
-    A = _pack([profiles[j] for j in use], _starts([profiles[j] for j in use], [radii[j] for j in use]), encoding,
-              airy)
-    n = len(use)
-    joint = np.unique(np.linspace(0, n - 1, min(n, JOINT_EDGES)).round().astype(int)) if n else np.zeros(0, int)
+    joint = [use[k] for k in np.unique(np.linspace(0, len(use) - 1, min(len(use), JOINT_EDGES)).round().astype(int))]
+    J = _pack([profiles[j] for j in joint], _starts([profiles[j] for j in joint], [radii[j] for j in joint]), encoding,
+              None if airy_px is None else [airy_px[j] for j in joint])
     with jax.enable_x64(True):
-        A["P"], _ = solve_edges(A, terms, srgb, _priors(terms)[0])
-        J = _pack([profiles[use[k]] for k in joint], [A["P"][k] for k in joint], encoding,
-                  None if airy is None else [airy[k] for k in joint])
+        J["P"], _ = solve_edges(J, terms, srgb, _priors(terms)[0])
         PJ, g, _, _ = solve(J, terms, srgb, _mask_start(J, terms, srgb))
         r, ApJ, BJ, CJ, _, _ = _normal_equations(J, PJ, g, terms, srgb)
     _, width = _priors(terms)
