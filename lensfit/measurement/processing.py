@@ -345,13 +345,15 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
         fitted, readings = tone.fit(batch, radii, encoding, terms, scales(airy_px))
         through = _through(table, where, readings)
         result = fit(through, **{**options, "spot_shape": "disk"})
-        if scales(airy_px) is not None:  # (read again at the Airy scale of the N read through the model)
-            readings = tone.read(fitted, batch, radii, encoding, scales(airy_per_setting(result)))
+        if _misfits(fitted):
+            runs.append((fitted, readings, through, result))
+            break  # (refused whatever the other curve reads)
+        again = scales(airy_per_setting(result)) if scales(airy_px) is not None else None
+        if again is not None:  # (read again at the Airy scale of the N read through the model)
+            readings = tone.read(fitted, batch, radii, encoding, again)
             through = _through(table, where, readings)
             result = fit(through, **{**options, "spot_shape": "disk"})
         runs.append((fitted, readings, through, result))
-        if _misfits(fitted):
-            break  # (refused whatever the other curve reads)
     fitted, readings, through, result = runs[0]
     spread = math.nan if len(runs) < 2 else 0.0
     for label, quantities in result.settings.items() if len(runs) > 1 else ():
