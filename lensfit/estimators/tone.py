@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lensfit.measurement.diffraction import circular_mtf
 from lensfit.measurement.psf import pixel_edge_profile
 
 #: The grid the mask's blurred copy (and the Airy pattern) is computed on, per edge: this many
@@ -124,13 +125,6 @@ def _cubic(x, grid, y):
     return w0 * y[i - 1] + w1 * y[i] + w2 * y[i + 1] + w3 * y[i + 2]
 
 
-def _airy_mtf(v):
-    """The diffraction-limited MTF of a circular pupil at ``v`` = frequency x lambda N (the
-    transform of the Airy pattern's line spread function)."""
-    vc = jnp.clip(jnp.abs(v), 0.0, 1.0)
-    return (2.0 / jnp.pi) * (jnp.arccos(vc) - vc * jnp.sqrt(jnp.maximum(1.0 - vc * vc, 0.0)))
-
-
 def _edge_model(p, g, x_scale, d, s, nx, ny, airy, terms: int, srgb: bool, diffraction: bool):
     # p = (x0, rho = R^2, lo, hi, turn, ramp): the edge estimator's uniform disk and a ramp;
     # g = (c_1..c_terms, amount, log sigma); x_scale: the half-width of the edge's grid (px);
@@ -152,7 +146,7 @@ def _edge_model(p, g, x_scale, d, s, nx, ny, airy, terms: int, srgb: bool, diffr
         # wrap the edge onto itself), summed back.
         steps = jnp.diff(light, prepend=light[:1])
         spectrum = jnp.fft.rfft(steps)
-        mtf = _airy_mtf(frequency * airy).astype(spectrum.dtype)
+        mtf = circular_mtf(frequency * airy, jnp).astype(spectrum.dtype)
         light = light[0] + jnp.cumsum(jnp.fft.irfft(spectrum * mtf, n=GRID_POINTS))
         here = tone_curve(_cubic(x, grid, light) + ramp * x, c, srgb)
     else:

@@ -71,16 +71,18 @@ def airy_scale_px(wavelength_nm: float, working_f_number: float, pixel_pitch_mm:
     return wavelength_nm * 1e-6 * working_f_number / pixel_pitch_mm
 
 
-def _otf(v: np.ndarray) -> np.ndarray:
-    vc = np.clip(np.abs(v), 0.0, 1.0)
-    return (2.0 / np.pi) * (np.arccos(vc) - vc * np.sqrt(1.0 - vc * vc))
+def circular_mtf(v, xp: Any = np):
+    """The diffraction-limited MTF of a circular pupil at ``v`` = frequency x lambda N (the
+    transform of the Airy pattern's line spread function), in the array namespace ``xp``."""
+    vc = xp.clip(xp.abs(v), 0.0, 1.0)
+    return (2.0 / math.pi) * (xp.arccos(vc) - vc * xp.sqrt(xp.maximum(1.0 - vc * vc, 0.0)))
 
 
 def airy_esf(x: np.ndarray, nodes: int = 20000) -> np.ndarray:
     """Edge-spread function of the Airy pattern at ``x`` (units of a), by the midpoint rule."""
     x = np.asarray(x, np.float64)
     v = (np.arange(nodes) + 0.5) / nodes
-    g = _otf(v) / (np.pi * v) / nodes
+    g = circular_mtf(v) / (np.pi * v) / nodes
     out = np.empty(x.size)
     flat = x.ravel()
     for i in range(0, flat.size, 512):
@@ -93,7 +95,7 @@ def airy_lsf(x: np.ndarray, nodes: int = 20000) -> np.ndarray:
     rule: ``2 int_0^1 OTF(v) cos(2 pi v x) dv``."""
     x = np.asarray(x, np.float64)
     v = (np.arange(nodes) + 0.5) / nodes
-    g = 2.0 * _otf(v) / nodes
+    g = 2.0 * circular_mtf(v) / nodes
     return (np.cos(2.0 * np.pi * np.outer(x.ravel(), v)) @ g).reshape(x.shape)
 
 

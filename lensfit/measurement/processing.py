@@ -340,15 +340,15 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
         typical = sorted(per_setting.values())[len(per_setting) // 2]
         return [per_setting.get(setting_of.get(j, ""), typical) for j in range(len(batch))]
 
-    encoding, runs = next(iter(encodings)), []
+    encoding, runs, held = next(iter(encodings)), [], scales(airy_px)
     for terms in MODEL_TERMS:
-        fitted, readings = tone.fit(batch, radii, encoding, terms, scales(airy_px))
+        fitted, readings = tone.fit(batch, radii, encoding, terms, held)
         through = _through(table, where, readings)
         result = fit(through, **{**options, "spot_shape": "disk"})
         if _misfits(fitted):
             runs.append((fitted, readings, through, result))
             break  # (refused whatever the other curve reads)
-        again = scales(airy_per_setting(result)) if scales(airy_px) is not None else None
+        again = scales(airy_per_setting(result)) if held is not None else None
         if again is not None:  # (read again at the Airy scale of the N read through the model)
             readings = tone.read(fitted, batch, radii, encoding, again)
             through = _through(table, where, readings)
@@ -369,7 +369,7 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
                    "misfit": fitted.misfit,
                    "edges": fitted.edges, "f_number_spread": spread if math.isfinite(spread) else None,
                    "f_number_model_sigma": tone_rel,
-                   "airy_px": None if scales(airy_px) is None else max(airy_px.values()),
+                   "airy_px": None if held is None else max(airy_px.values()),
                    "tone_curve": _curve_table(fitted)}
     if _misfits(fitted):
         found.model["why"] = (f"their profiles scatter about the model {math.sqrt(fitted.chi2_reduced):.1f} times "
