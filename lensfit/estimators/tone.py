@@ -146,7 +146,7 @@ def _edge_model(p, g, x_scale, d, s, nx, ny, airy, terms: int, srgb: bool, diffr
         # wrap the edge onto itself), summed back.
         steps = jnp.diff(light, prepend=light[:1])
         spectrum = jnp.fft.rfft(steps)
-        mtf = circular_mtf(frequency * airy, jnp).astype(spectrum.dtype)
+        mtf = circular_mtf(frequency * airy).astype(spectrum.dtype)
         light = light[0] + jnp.cumsum(jnp.fft.irfft(spectrum * mtf, n=GRID_POINTS))
         here = tone_curve(_cubic(x, grid, light) + ramp * x, c, srgb)
     else:

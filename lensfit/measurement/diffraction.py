@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+from lensfit.optics.checks import namespace
+
 #: Default wavelength (nm): the middle of the visible band, where a grey or green-weighted
 #: image has its effective wavelength.
 DEFAULT_WAVELENGTH_NM = 550.0
@@ -71,9 +73,10 @@ def airy_scale_px(wavelength_nm: float, working_f_number: float, pixel_pitch_mm:
     return wavelength_nm * 1e-6 * working_f_number / pixel_pitch_mm
 
 
-def circular_mtf(v, xp: Any = np):
+def circular_mtf(v):
     """The diffraction-limited MTF of a circular pupil at ``v`` = frequency x lambda N (the
-    transform of the Airy pattern's line spread function), in the array namespace ``xp``."""
+    transform of the Airy pattern's line spread function), NumPy or JAX as ``v`` is."""
+    xp = namespace(v)
     vc = xp.clip(xp.abs(v), 0.0, 1.0)
     return (2.0 / math.pi) * (xp.arccos(vc) - vc * xp.sqrt(xp.maximum(1.0 - vc * vc, 0.0)))
 
