@@ -8,7 +8,8 @@ machine develops the DNGs with its default profile into JPEGs, as a photographer
 darktable (``darktable-cli``: its defaults for a new image). The JPEGs alone are copied into a
 folder; ``lensfit init`` drafts its stack.toml from their EXIF (the board's entry from the
 rendered stack) and ``lensfit fit`` fits it, each a fresh process as a user runs them. The DNGs
-fitted as they are are the control. Two more cases show what the pixels alone tell: darktable's
+fitted as they are are the control; the drafted stacks are given the control's ``[lens]`` table (an
+ideal lens: :func:`declare_lens`), so that they differ from it in their processing alone. Two more cases show what the pixels alone tell: darktable's
 JPEGs without their Software tag, and a camera-like pipeline written here (an S curve and an
 unsharp mask over sRGB, 4:2:0 JPEG, no EXIF).
 
@@ -97,6 +98,22 @@ def without_software(src: Path, dst: Path) -> None:
             im.save(dst / jpeg.name, "JPEG", quality="keep", exif=exif)
 
 
+def declare_lens(control: Path, drafted: Path) -> None:
+    """Give the drafted stack.toml the control's ``[lens]`` table (an ideal lens, unit focusing,
+    P = 1), as the photographer who rendered the scene knows it: the DNG control and the developed
+    stacks then differ in their processing alone, which is what the suite measures. (Undeclared,
+    the f-number reported is the nominal one of a real design, ``lensfit.fitting.nominal``, about
+    1.5 % below a thin lens's, and P's prior widens every interval.)"""
+    import tomllib
+
+    lens = tomllib.loads(control.read_text()).get("lens", {})
+    if not lens:
+        return
+    lines = ["", "[lens]"] + [f"{k} = {json.dumps(v)}" for k, v in lens.items()]
+    with drafted.open("a") as out:
+        out.write("\n".join(lines) + "\n")
+
+
 def _lensfit(*argv: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "lensfit", *argv], capture_output=True, text=True, timeout=3600)
 
@@ -172,6 +189,7 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
                     row["error"] = (made.stderr.strip().splitlines() or ["lensfit init failed"])[-1]
                     rows.append(row)
                     continue
+                declare_lens(root / "dng" / "stack.toml", folder / "stack.toml")
                 # (the truth beside the photos: lensfit fit compares with it in results.json, never reads it
                 # otherwise)
                 shutil.copy(root / "dng" / "truth.json", folder / "truth.json")

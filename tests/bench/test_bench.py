@@ -647,6 +647,23 @@ def test_bench_developed_judges_refusals_by_the_processing_named_and_strips_only
         assert np.abs(np.asarray(im, float) - np.asarray(Image.open(src / "a.jpg"), float)).max() <= 4
 
 
+def test_bench_developed_declares_the_controls_lens_in_the_drafted_stack(tmp_path):
+    """The drafted stack.toml gains the control's [lens] table as TOML that reads back to the same
+    values, and keeps everything init wrote."""
+    import tomllib
+
+    from lensfit.bench.developed import declare_lens
+
+    control, drafted = tmp_path / "control.toml", tmp_path / "drafted.toml"
+    control.write_text('[camera]\npixel_pitch_mm = 0.006\n\n[lens]\nfocusing = "unit"\n'
+                       'pupil_magnification = 1.0\nideal = true\n')
+    drafted.write_text('[camera]\npixel_pitch_mm = 0.006\n\n[[image]]\nfile = "a.jpg"\nencoding = "srgb"\n')
+    declare_lens(control, drafted)
+    got = tomllib.loads(drafted.read_text())
+    assert got["lens"] == {"focusing": "unit", "pupil_magnification": 1.0, "ideal": True}
+    assert got["image"] == [{"file": "a.jpg", "encoding": "srgb"}] and got["camera"] == {"pixel_pitch_mm": 0.006}
+
+
 def test_bench_lenses_coverage_counts_both_settings_and_takes_wilsons_interval():
     """Counted per quantity over both settings, a refusal apart from the intervals, with Wilson's
     score interval (1 of 2: 0.095-0.905, worked by hand from the score formula)."""
