@@ -125,6 +125,7 @@ def validation_markdown() -> str:
     # the other benchmarks' records, each shown by its own module's markdown()
     for name, module in (("api_vs_cli", "lensfit.bench.api"), ("developed", "lensfit.bench.developed"),
                          ("stages", "lensfit.bench.stages"), ("plan_costs", "synth.plan_costs"),
+                         ("synth_vs_mitsuba", "synth.bench"),
                          ("hostile", "lensfit.bench.hostile")):
         record = folder / f"{name}.json"
         if record.is_file():

@@ -6,6 +6,8 @@ value, and what would be valid, so that the CLI can print it as one line.
 
 from __future__ import annotations
 
+import re
+
 from typing import Any
 
 
@@ -42,8 +44,8 @@ class InputError(ValueError):
         options, so that the message names what the user typed)."""
         names = names or {}
         requirement = self.requirement
-        for argument, shown in names.items():
-            requirement = requirement.replace(argument, shown)
+        for argument, shown in names.items():  # whole words only ("out" is not in "without")
+            requirement = re.sub(rf"(?<![\w-]){re.escape(argument)}(?![\w-])", shown, requirement)
         text = f"{names.get(self.argument, self.argument)} must be {requirement}, got {_show(self.value)}"
         return f"{text}; {self.hint}" if self.hint else text
 

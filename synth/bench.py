@@ -192,5 +192,84 @@ def against_mitsuba(scene_path: str | Path | None = None, samples_per_pixel: int
             "machine": {"cores": os.cpu_count(), "python": sys.version.split()[0]}}
 
 
+#: Designs whose cost per lens sample the record sets beside the thin lens's: (what, prescription).
+COMPOUND_DESIGNS = (("Cooke triplet, 6 surfaces", "cooke-triplet-50"), ("telephoto, 7 surfaces", "telephoto-250"),
+                    ("double Gauss, 11 surfaces", "double-gauss-50"), ("retrofocus, 13 surfaces", "retrofocus-24"))
+
+
+def lens_sample_costs(samples_per_pixel: int = 16, repeats: int = 3, progress=None) -> list[dict]:
+    """Nanoseconds per lens sample of the ray tracer's kernel (warm, every pixel traced, the best
+    of ``repeats``) through the thin lens (the demo scene's first shot) and through each of
+    ``COMPOUND_DESIGNS`` (the compound-lens scene's first shot with that prescription), at
+    ``samples_per_pixel``, one wavelength."""
+    from synth.plan_costs import scene_with
+    from synth.raytrace import render_raytrace
+    from synth.scene import load_scene
+
+    cases = [("thin lens", load_scene(specs_dir() / "scenes" / "demo.toml"))]
+    cases += [(what, scene_with("compound_lens.toml", {"lens.prescription": name})) for what, name in COMPOUND_DESIGNS]
+    rows = []
+    for what, scene in cases:
+        if progress is not None:
+            progress(f"lens samples: {what}")
+        shot = scene.shots[0]
+        bg = scene.background_value
+        render_raytrace(shot, bg, samples_per_pixel, 0, constant_regions=False)  # compilation
+        seconds = _best(lambda: render_raytrace(shot, bg, samples_per_pixel, 1, constant_regions=False), repeats)
+        samples = shot.camera.width_px * shot.camera.height_px * samples_per_pixel
+        rows.append({"lens": what, "surfaces": 0 if shot.camera.prescription is None else
+                     len(shot.camera.prescription.surfaces), "image_px": [shot.camera.width_px, shot.camera.height_px],
+                     "samples_per_pixel": samples_per_pixel, "seconds": seconds,
+                     "ns_per_lens_sample": 1e9 * seconds / samples})
+    thin = rows[0]["ns_per_lens_sample"]
+    for r in rows:
+        r["cost_over_thin_lens"] = r["ns_per_lens_sample"] / thin
+    return rows
+
+
+def mitsuba_record(rows: list[dict], pairs: int, progress=None) -> dict:
+    """The record ``synth bench --against-mitsuba --record``: ``rows``, :func:`against_mitsuba`'s
+    results on the demo scene (one per samples-per-pixel), and the kernel's cost per lens sample,
+    thin lens beside compound ones (:func:`lens_sample_costs`)."""
+    import platform
+    from datetime import UTC, datetime
+
+    spp = " ".join(str(r["samples_per_pixel"]) for r in rows)
+    return {"benchmark": "synth_vs_mitsuba", "date": datetime.now(UTC).strftime("%Y-%m-%d"),
+            "command": f"synth bench --against-mitsuba --spp {spp} --pairs {pairs} --record docs/validation/records",
+            "system": f"{platform.system()} {platform.machine()}", "cores": os.cpu_count(), "rows": rows,
+            "lens_samples": lens_sample_costs(progress=progress)}
+
+
+def markdown(doc: dict) -> str:
+    """The record as the validation page's section."""
+    out = ["### synth against Mitsuba 3 (`synth bench --against-mitsuba`)", "",
+           f"`{doc['command']}`, {doc['date']}, {doc['system']}, {doc['cores']} cores. Whole processes on the demo "
+           "scene (12 shots of 1200 x 800 px), back to back: `synth render --method raytrace` (start-up, JAX, the "
+           "stored tracer, rendering, 16-bit PNGs, truth maps) against a process that imports Mitsuba 3, builds "
+           "each shot's scene (thin-lens camera, box filter, independent sampler), renders it and writes an EXR. "
+           "synth takes pixels whose every ray meets one uniform region at that region's value without "
+           "sampling them (exact); the rest get the samples asked for.", "",
+           "| samples per pixel | synth s (median) | Mitsuba s (median) | synth's time over Mitsuba's |",
+           "|---|---|---|---|"]
+    for r in doc["rows"]:
+        out.append(f"| {r['samples_per_pixel']} | {r['synth_median_s']:.2f} | {r['mitsuba_median_s']:.2f} "
+                   f"({r['mitsuba_variant']}) | {r['synth_median_s'] / r['mitsuba_median_s']:.2f}x |")
+    out += ["", "The tracer's kernel alone (warm, every pixel traced, one wavelength): its cost per lens sample "
+            "through the thin lens and through compound designs, each ray traced through every surface.", "",
+            "| lens | surfaces | ns per lens sample | over the thin lens |", "|---|---|---|---|"]
+    for r in doc["lens_samples"]:
+        out.append(f"| {r['lens']} | {r['surfaces']} | {r['ns_per_lens_sample']:.1f} | "
+                   f"{r['cost_over_thin_lens']:.1f}x |")
+    return "\n".join(out)
+
+
+def record(doc: dict, folder: str | Path) -> Path:
+    """Write the record ``folder/synth_vs_mitsuba.json``."""
+    from lensfit.bench.records import write_json
+
+    return write_json(folder, "synth_vs_mitsuba", doc)
+
+
 if __name__ == "__main__":  # python -m synth.bench
     print(json.dumps(run_bench(), indent=1))

@@ -157,30 +157,48 @@ def _bench_command(args: argparse.Namespace) -> int:
         print(f"{result['passed']} of {result['total']} within {result['within_factor']:g}x")
         return EXIT_OK
     if args.against_mitsuba:
-        from synth.bench import against_mitsuba
+        from synth.bench import against_mitsuba, mitsuba_record, record
         from synth.rendering import check_overrides
 
-        check_overrides(samples_per_pixel=args.spp)
+        for spp in args.spp:
+            check_overrides(samples_per_pixel=spp)
         if args.pairs < 1:
             raise InputError("pairs", args.pairs, ">= 1")
+        if args.record and args.scene:
+            raise InputError("--scene", args.scene, "given only without --record", "a record is always the demo scene's")
 
         with console.status("benchmarking") as status:
-            result = against_mitsuba(args.scene, args.spp, args.pairs, args.mitsuba_variant,
-                                     progress=lambda msg: status.update(f"benchmarking: {msg}"))
+            def progress(msg):
+                status.update(f"benchmarking: {msg}")
+            results = [against_mitsuba(args.scene, spp, args.pairs, args.mitsuba_variant, progress=progress)
+                       for spp in args.spp]
+            doc = mitsuba_record(results, args.pairs, progress) if args.record else None
+        if doc is not None:
+            console.print(f"wrote {record(doc, args.record)}")
         if args.json:
-            print(json.dumps(result, indent=1))
+            print(json.dumps(doc or results, indent=1))
             return EXIT_OK
-        table = Table(title=f"whole processes, {result['scene']}: {result['shots']} shots at "
-                            f"{result['samples_per_pixel']} spp ({result['lens_samples'] / 1e6:.0f} M lens samples), "
-                            f"{result['machine']['cores']} cores")
-        for col in ("renderer", "seconds (median)", "runs", "M lens samples/s"):
-            table.add_column(col, justify="right")
-        table.add_row("synth render --method raytrace", f"{result['synth_median_s']:.2f}",
-                      " ".join(f"{t:.2f}" for t in result["synth_s"]), f"{result['synth_mega_samples_per_s']:.0f}")
-        table.add_row(f"Mitsuba 3 {result['mitsuba_variant']}", f"{result['mitsuba_median_s']:.2f}",
-                      " ".join(f"{t:.2f}" for t in result["mitsuba_s"]), f"{result['mitsuba_mega_samples_per_s']:.0f}")
-        Console().print(table)
-        print(f"synth is {result['ratio']:.1f}x faster (median of the pairs' ratios)")
+        for result in results:
+            table = Table(title=f"whole processes, {result['scene']}: {result['shots']} shots at "
+                                f"{result['samples_per_pixel']} spp ({result['lens_samples'] / 1e6:.0f} M lens "
+                                f"samples), {result['machine']['cores']} cores")
+            for col in ("renderer", "seconds (median)", "runs", "M lens samples/s"):
+                table.add_column(col, justify="right")
+            table.add_row("synth render --method raytrace", f"{result['synth_median_s']:.2f}",
+                          " ".join(f"{t:.2f}" for t in result["synth_s"]), f"{result['synth_mega_samples_per_s']:.0f}")
+            table.add_row(f"Mitsuba 3 {result['mitsuba_variant']}", f"{result['mitsuba_median_s']:.2f}",
+                          " ".join(f"{t:.2f}" for t in result["mitsuba_s"]),
+                          f"{result['mitsuba_mega_samples_per_s']:.0f}")
+            Console().print(table)
+            print(f"synth is {result['ratio']:.1f}x faster (median of the pairs' ratios)")
+        if doc is not None:
+            table = Table(title="the tracer's kernel per lens sample (warm, every pixel traced)")
+            for col in ("lens", "surfaces", "ns per lens sample", "over the thin lens"):
+                table.add_column(col, justify="right")
+            for r in doc["lens_samples"]:
+                table.add_row(r["lens"], str(r["surfaces"]), f"{r['ns_per_lens_sample']:.1f}",
+                              f"{r['cost_over_thin_lens']:.1f}x")
+            Console().print(table)
         return EXIT_OK
     enable_compilation_cache()
     with console.status("benchmarking") as status:
@@ -261,10 +279,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--plan-costs", action="store_true",
                    help="instead: synth plan's time estimates against warm renders of shipped scenes (thin and "
                         "compound lenses, several wavelengths)")
-    b.add_argument("--record", metavar="DIR", help="--plan-costs: also write the record DIR/plan_costs.json "
-                                                   "(the documentation's is docs/validation/records)")
-    b.add_argument("--scene", metavar="TOML", help="--against-mitsuba: the scene (default: the demo scene)")
-    b.add_argument("--spp", type=int, default=32, metavar="N", help="--against-mitsuba: samples per pixel (default 32)")
+    b.add_argument("--record", metavar="DIR", help="--plan-costs or --against-mitsuba: also write the record "
+                                                   "DIR/plan_costs.json or DIR/synth_vs_mitsuba.json (the "
+                                                   "documentation's are in docs/validation/records)")
+    b.add_argument("--scene", metavar="TOML", help="--against-mitsuba: the scene (default: the demo scene; a "
+                                                   "record is always the demo's)")
+    b.add_argument("--spp", type=int, nargs="+", default=[32], metavar="N",
+                   help="--against-mitsuba: samples per pixel, one comparison each (default 32)")
     b.add_argument("--pairs", type=int, default=3, metavar="K", help="--against-mitsuba: process pairs (default 3)")
     b.add_argument("--mitsuba-variant", choices=["llvm_ad_rgb", "scalar_rgb"], default="llvm_ad_rgb",
                    help="--against-mitsuba: Mitsuba's variant (default llvm_ad_rgb, which needs libLLVM 20 or later: "

@@ -33,7 +33,8 @@ CASES: list[tuple[str, str, dict[str, Any]]] = [
 WITHIN = 2.0
 
 
-def _scene(name: str, changes: dict[str, Any]):
+def scene_with(name: str, changes: dict[str, Any]):
+    """The shipped scene ``name`` with ``changes`` (dotted keys) made to its TOML."""
     from synth.scene import scene_from_dict
 
     path = specs_dir() / "scenes" / name
@@ -55,7 +56,7 @@ def run(progress: Callable[[str], None] = lambda m: None) -> dict[str, Any]:
     rows = []
     for what, name, changes in CASES:
         progress(what)
-        scene = _scene(name, changes)
+        scene = scene_with(name, changes)
         plans = plan(scene)
         estimated = float(sum(p.estimated_s for p in plans))
         synth.render(scene)  # compilation, which the plan leaves out

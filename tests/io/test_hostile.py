@@ -812,3 +812,13 @@ def test_a_disk_full_while_the_lock_is_written_leaves_no_lock(tmp_path, capsys, 
     monkeypatch.undo()
     code, _, err = run_cli(capsys, lensfit_main, "target", "--out", out / "board.png")
     assert code == 0, err
+
+
+def test_an_error_names_the_option_typed_only_for_the_whole_argument_name():
+    """A CLI maps argument names to its options in a message; a word that merely contains one
+    ("without" holds "out") is left as written."""
+    err = InputError("scene", "a.toml", "given only without out", "see seed_list and seed")
+    text = err.describe({"out": "--out", "seed": "--seed", "scene": "--scene"})
+    assert text.startswith("--scene must be given only without --out, got")
+    assert InputError("x", 1, "in seed_list or seed").describe({"seed": "--seed"}).startswith(
+        "x must be in seed_list or --seed, got")

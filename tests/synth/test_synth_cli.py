@@ -230,6 +230,9 @@ def test_preview_contact_sheet_is_the_render_in_srgb(tmp_path, capsys):
     (["--spp", "0"], "--spp must be between 1 and 65536, got 0"),
     (["--pairs", "0"], "--pairs must be >= 1, got 0"),
     (["--scene", str(specs_dir() / "scenes" / "slanted_edges.toml")], "Mitsuba cannot render target 'edge-1200'"),
+    (["--spp", "16", "70000"], "--spp must be between 1 and 65536, got 70000"),
+    (["--scene", str(specs_dir() / "scenes" / "demo.toml"), "--record", "records"],
+     "--scene must be given only without --record"),
 ])
 def test_bench_against_mitsuba_refuses_bad_arguments_in_one_line(argv, says, capsys):
     # Refused before any process is started: exit 2 and one line naming the option and the value.
