@@ -151,7 +151,7 @@ def subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
 
 def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[float, ...] = (1.0, 1.5, 2.0),
         progress=None, repeat: int = 3, warm_runs: int = 3, jobs: tuple[int, ...] = (1,),
-        shots: int | None = None) -> dict:
+        shots: tuple[int, ...] = ()) -> dict:
     """Rows of seconds per stage (cold and warm) per configuration; the OpenCV ratio per scale.
 
     Returns {"rows": [...], "provenance": ...}; each row: images, megapixels, edges, cold and warm
@@ -163,17 +163,18 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
     (``lensfit_fit_process_s_by_jobs``, the medians of ``repeat`` runs taken in turn), the speed-up
     of the most over one (``jobs_speedup``) and whether every run's results were the same
     (``jobs_identical``, provenance aside); the ratio to OpenCV is then the most jobs' run.
-    ``shots``: the whole-stack rows take this many images (the stack's own again, in turn, where
-    it has fewer); each whole ``lensfit fit`` process's peak resident memory is in
+    ``shots``: whole-stack rows of each of these many images at every scale (the stack's own
+    again, in turn, where it has fewer; default: the stack's own count); each whole ``lensfit fit`` process's peak resident memory is in
     ``lensfit_fit_peak_mib`` (the largest over its runs)."""
     from lensfit.outputs.writers import provenance
 
     stack = Path(stack)
-    n_all = shots or len(tomllib.loads((stack / "stack.toml").read_text())["image"])
-    configs = [(c, 1.0) for c in counts if c < n_all] + [(n_all, s) for s in scales]
+    wholes = sorted(set(shots)) or [len(tomllib.loads((stack / "stack.toml").read_text())["image"])]
+    # (images, scale, whether the whole-process comparison runs on it)
+    configs = [(c, 1.0, False) for c in counts if c < wholes[0]] + [(n, s, True) for s in scales for n in wholes]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (count, scale) in enumerate(configs):
+        for k, (count, scale, whole) in enumerate(configs):
             if progress:
                 progress(f"{count} images x{scale:g}", k, len(configs))
             folder = subset(stack, Path(tmp) / f"s{k}", count, scale)
@@ -185,7 +186,7 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
                    "warm": {s: statistics.median(r.get(s, 0.0) for r in child["warm_runs"])
                             for s in (*STAGES, "total")},
                    "warm_runs": len(child["warm_runs"])}
-            if count == n_all:  # whole process: lensfit fit against OpenCV's detect + calibrate
+            if whole:  # whole process: lensfit fit against OpenCV's detect + calibrate
                 pairs, by_jobs, documents, peak = [], {n: [] for n in jobs}, [], 0.0
                 for j in range(max(repeat, 1)):
                     for n in jobs:

@@ -303,9 +303,10 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--jobs", type=jobs_arg, nargs="+", default=[1], metavar="N",
                     help="also run the whole `lensfit fit` at each --jobs N (e.g. 1 2) and report the speed-up and "
                          "whether the results are identical (default 1)")
-    bs.add_argument("--shots", type=int, metavar="N",
-                    help="the whole-stack rows with N images (the stack's own again, in turn, where it has fewer; "
-                         "e.g. 30 at --scale 6.85: a 30-shot 45 MP stack from the demo)")
+    bs.add_argument("--shots", type=int, nargs="+", default=[], metavar="N",
+                    help="whole-stack rows of N images at each --scale, one per N (the stack's own again, in turn, "
+                         "where it has fewer; e.g. 12 30 at --scale 6.85: 12- and 30-shot 45 MP stacks from the "
+                         "demo; default: the stack's own count)")
     bs.add_argument("--record", metavar="DIR", help="also write the record DIR/stages.json the validation page "
                                                    "shows (docs/validation/records)")
     bs.add_argument("--json", action="store_true", help="print JSON")

@@ -27,13 +27,13 @@ def bench_stages_command(args: argparse.Namespace) -> int:
         raise CliError(f"STACK {folder}: targets {sorted(str(k) for k in kinds)}; bench-stages compares with OpenCV's "
                        "ChArUco detection and needs ChArUco targets only (e.g. out/demo after make demo)")
     if (any(k < 1 for k in args.images) or any(x <= 0 for x in args.scale) or args.repeat < 1 or args.warm_runs < 1
-            or (args.shots is not None and not 1 <= args.shots <= 5000)):
+            or any(not 1 <= n <= 5000 for n in args.shots)):
         raise CliError("--images, --scale, --repeat, --warm-runs and --shots must be positive (--shots at most 5000)")
     _check_record_folder(args.record)
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
         report = run(folder, tuple(args.images), tuple(args.scale), repeat=args.repeat, warm_runs=args.warm_runs,
-                     jobs=tuple(args.jobs), shots=args.shots,
+                     jobs=tuple(args.jobs), shots=tuple(args.shots),
                      progress=lambda m, k, n: status.update(f"benchmarking: {m} ({k + 1}/{n})"))
     report["provenance"]["command"] = " ".join(["lensfit", *sys.argv[1:]])
     if args.record:
