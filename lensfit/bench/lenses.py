@@ -110,10 +110,18 @@ def _errors(result, truth: dict[str, Any], label: str) -> dict[str, Any]:
         # the blur's own f-number where the fit reports the nominal one beside it (a lens not
         # declared ideal), else the one it reports
         e = result.settings[label].get(q) or result.settings[label]["f_number"]
-        out[key] = {"estimate": e.value, "truth": tv, "relative_error": None if e.value is None else e.value / tv - 1,
-                  "within_ci95": None if e.ci95 is None else bool(
-                      (e.ci95[0] is None or e.ci95[0] <= tv) and (e.ci95[1] is None or tv <= e.ci95[1]))}
+        out[key] = _judged(e, tv)
     return out
+
+
+def _judged(e, truth: float) -> dict[str, Any]:
+    """An estimate against its truth: the relative error, whether its 95 % interval holds the
+    truth, and the interval's half-width relative to the truth (None where a bound is open)."""
+    bounded = e.ci95 is not None and e.ci95[0] is not None and e.ci95[1] is not None
+    return {"estimate": e.value, "truth": truth, "relative_error": None if e.value is None else e.value / truth - 1,
+            "within_ci95": None if e.ci95 is None else bool(
+                (e.ci95[0] is None or e.ci95[0] <= truth) and (e.ci95[1] is None or truth <= e.ci95[1])),
+            "half_width_relative": (e.ci95[1] - e.ci95[0]) / 2 / truth if bounded and e.value is not None else None}
 
 
 def spectral_designs() -> list[str]:
@@ -215,7 +223,10 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                    "seconds_render": t_render, "seconds_measure": t_measure,
                    "calibration": calibration, "fits": {}}
             for how, res in fits.items():
-                row["fits"][how] = {"errors": _errors(res, truth, "near"), "result": res.code,
+                errors = _errors(res, truth, "near")
+                if res.pupil_magnification.value is not None and (res.pupil_magnification.sigma or 0) > 0:
+                    errors["pupil_magnification"] = _judged(res.pupil_magnification, P)  # (estimated, not given)
+                row["fits"][how] = {"errors": errors, "result": res.code,
                                     "errors_far": _errors(res, truth, "far") if "far" in res.settings else None,
                                     "pupil_magnification": res.pupil_magnification.value,
                                     "pupil_magnification_sigma": res.pupil_magnification.sigma,
@@ -258,14 +269,17 @@ def _wide_open(lens: str, design_n: float | None) -> float:
 
 
 #: The quantities whose 95 % intervals the coverage counts, each against its truth.
-COVERED = ("focal_length_mm", "f_number", "f_number_real_ray", "focus_distance_mm")
+COVERED = ("focal_length_mm", "f_number", "f_number_real_ray", "focus_distance_mm", "pupil_magnification")
 
 
 def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per fit and quantity over the lenses (both settings where the fit has both): how many
     95 % intervals held the truth of how many reported, the refusals, and the Wilson 95 %
-    interval of the rate."""
+    interval of the rate; and the mean absolute relative error beside the mean relative 95 %
+    half-width of the bounded intervals (an honest interval is wider than the typical error, but
+    not by much: about 2x for a Gaussian's)."""
     out: dict[str, dict[str, Any]] = {}
+    errors_of: dict[tuple[str, str], list[tuple[float, float]]] = {}
     for row in rows:
         for how, fr in row["fits"].items():
             per = out.setdefault(how, {q: {"held": 0, "reported": 0, "refused": 0} for q in COVERED})
@@ -279,8 +293,68 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
                     else:
                         per[q]["reported"] += 1
                         per[q]["held"] += bool(e["within_ci95"])
-    for per in out.values():
-        for c in per.values():
+                        if e.get("half_width_relative") is not None:
+                            errors_of.setdefault((how, q), []).append((abs(e["relative_error"]),
+                                                                       e["half_width_relative"]))
+    for how, per in out.items():
+        for q, c in per.items():
             c["rate"] = c["held"] / c["reported"] if c["reported"] else None
             c["wilson95"] = wilson_interval(c["held"], c["reported"]) if c["reported"] else None
+            pairs = errors_of.get((how, q), [])
+            c["mean_abs_error"] = sum(a for a, _ in pairs) / len(pairs) if pairs else None
+            c["mean_half_width"] = sum(h for _, h in pairs) / len(pairs) if pairs else None
     return out
+
+
+#: How the record's tables name the quantities.
+QUANTITY_NAMES = {"focal_length_mm": "f", "f_number": "N (nominal)", "f_number_real_ray": "N (real rays)",
+                  "focus_distance_mm": "focus distance", "pupil_magnification": "P"}
+
+
+def markdown(doc: dict[str, Any]) -> str:
+    """The record as the validation page's section: coverage per fit and quantity, then each
+    design's errors."""
+    what = ("each wide open (far), two stops down (near)" if doc.get("f_number") is None else
+            f"far f/{doc['f_number']:g}, near f/{doc['near_f_number']:g}")
+    out = [f"### Real lenses (`lensfit bench-lenses`, {doc.get('designs', 'shipped')} designs)", "",
+           f"`{doc.get('command', 'lensfit bench-lenses')}`, {doc.get('date', '')}, {doc.get('cores', '?')} cores. "
+           f"The demo stack scaled to each design and ray traced through it ({what}, {doc['samples_per_pixel']} "
+           "spp, scale " f"{doc['scale']:g}); fitted as a user would (default: one setting, P and the nominal f-number "
+           "carried by their priors) and as the two-setting bracket (P fitted). The 95 % intervals holding the truth "
+           "(Wilson's 95 % interval of the rate), and the mean absolute error beside the mean 95 % half-width, both "
+           "relative to the truth.", "",
+           "| fit | quantity | intervals holding the truth | refused | mean error | mean 95 % half-width |",
+           "|---|---|---|---|---|---|"]
+    for how, per in doc["coverage"].items():
+        for q, c in per.items():
+            if not c["reported"] and not c["refused"]:
+                continue
+            held = (f"{c['held']} of {c['reported']} ({100 * c['wilson95'][0]:.0f}-{100 * c['wilson95'][1]:.0f} %)"
+                    if c["reported"] else "")
+            err = "" if c.get("mean_abs_error") is None else f"{100 * c['mean_abs_error']:.2f} %"
+            half = "" if c.get("mean_half_width") is None else f"{100 * c['mean_half_width']:.2f} %"
+            out.append(f"| {how} | {QUANTITY_NAMES.get(q, q)} | {held} | {c['refused']} | {err} | {half} |")
+
+    def cell(e):
+        if e is None:
+            return ""
+        if e["relative_error"] is None:
+            return "refused"
+        return f"{100 * e['relative_error']:+.2f} %" + ("" if e["within_ci95"] else " (outside)")
+
+    out += ["", "| design | fit | f | N (nominal) | N (real rays) | focus distance | P |", "|---|---|---|---|---|---|---|"]
+    for row in doc["rows"]:
+        if row.get("refused"):
+            out.append(f"| {row['lens']} | refused: {row['refused'][:160]} | | | | | |")
+            continue
+        for how in ("default (one setting)", "thick (bracket, P fitted)"):
+            fr = row["fits"].get(how)
+            if fr is None:
+                continue
+            for label, e in (("near", fr["errors"]), ("far", fr.get("errors_far"))):
+                if e is None:
+                    continue
+                p = cell(fr["errors"].get("pupil_magnification")) if label == "near" else ""
+                out.append(f"| {row['lens']} | {how}, {label} | {cell(e['focal_length_mm'])} | {cell(e['f_number'])} | "
+                           f"{cell(e.get('f_number_real_ray'))} | {cell(e['focus_distance_mm'])} | {p} |")
+    return "\n".join(out)

@@ -273,6 +273,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "--f-number")
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
+    bl.add_argument("--record", metavar="DIR", help="also write the record DIR/lenses.json the validation page "
+                                                   "shows (docs/validation/records)")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=bench_lenses_command, prog="lensfit bench-lenses")
 

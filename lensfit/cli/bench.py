@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -169,6 +170,7 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
         raise CliError(f"--spp must be between 1 and 65536, got {args.spp}")
     if not 0.1 <= args.scale <= 4:
         raise CliError(f"--scale must be between 0.1 and 4, got {args.scale:g}")
+    _check_record_folder(args.record)
     enable_compilation_cache()
     console = Console(stderr=True)
     try:
@@ -179,6 +181,16 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
                          designs=args.designs)
     except InputError as exc:
         raise fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
+    if args.record:
+        import platform
+        from datetime import UTC, datetime
+
+        from lensfit.bench.records import write_json
+
+        result.update(benchmark="lenses", command=" ".join(["lensfit", *sys.argv[1:]]),
+                      date=datetime.now(UTC).strftime("%Y-%m-%d"), system=f"{platform.system()} {platform.machine()}",
+                      cores=os.cpu_count())
+        console.print(f"wrote {write_json(args.record, 'lenses', result)}")
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK

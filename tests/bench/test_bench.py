@@ -680,6 +680,28 @@ def test_bench_lenses_coverage_counts_both_settings_and_takes_wilsons_interval()
     assert got["focus_distance_mm"]["rate"] is None
 
 
+def test_bench_lenses_record_sets_the_mean_error_beside_the_mean_half_width():
+    """Means over the bounded intervals only (an open one has no width), worked by hand; P
+    counted where the fit estimated it; the record's table shows both and the coverage."""
+    from lensfit.bench.lenses import coverage, markdown
+    a = {"relative_error": 0.01, "within_ci95": True, "half_width_relative": 0.03}
+    b = {"relative_error": -0.03, "within_ci95": False, "half_width_relative": 0.02}
+    open_ = {"relative_error": 0.02, "within_ci95": True, "half_width_relative": None}
+    p = {"relative_error": 0.1, "within_ci95": True, "half_width_relative": 0.2}
+    rows = [{"lens": "x", "fits": {"bracket": {"errors": {"focal_length_mm": a, "pupil_magnification": p},
+                                               "errors_far": {"focal_length_mm": b}}}},
+            {"lens": "y", "fits": {"bracket": {"errors": {"focal_length_mm": open_}}}}]
+    got = coverage(rows)["bracket"]
+    assert (got["focal_length_mm"]["held"], got["focal_length_mm"]["reported"]) == (2, 3)
+    assert got["focal_length_mm"]["mean_abs_error"] == pytest.approx(0.02)
+    assert got["focal_length_mm"]["mean_half_width"] == pytest.approx(0.025)
+    assert (got["pupil_magnification"]["held"], got["pupil_magnification"]["mean_half_width"]) == (1, 0.2)
+    text = markdown({"coverage": {"bracket": got}, "rows": [], "samples_per_pixel": 16, "scale": 0.5,
+                     "f_number": None, "designs": "optiland"})
+    assert "| bracket | f | 2 of 3 (" in text and "| 2.00 % | 2.50 % |" in text
+    assert "| bracket | P | 1 of 1 (" in text
+
+
 def test_optiland_designs_written_as_lens_files_keep_optilands_paraxial_data(tmp_path):
     """The lens files bench-lenses --designs optiland renders through: read back by synth, each
     design's EFL and pupil magnification are optiland's own (its paraxial solver, not ours)."""
