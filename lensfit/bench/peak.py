@@ -11,8 +11,8 @@ import sys
 import time
 from dataclasses import dataclass
 
-#: Runs a command, its standard output discarded, and writes its exit status and peak resident
-#: memory (kB) as JSON.
+#: Runs a command, its standard output discarded, and writes its exit status, peak resident
+#: memory (kB) and CPU seconds (user and system) as JSON.
 _LAUNCHER = """
 import json, os, signal, subprocess, sys, time
 proc = subprocess.Popen(sys.argv[2:], stdout=subprocess.DEVNULL, start_new_session=True)
@@ -27,19 +27,21 @@ while True:
         break
     time.sleep(0.02)
 proc.returncode = 0
-print(json.dumps([os.waitstatus_to_exitcode(status), usage.ru_maxrss]))
+print(json.dumps([os.waitstatus_to_exitcode(status), usage.ru_maxrss, usage.ru_utime + usage.ru_stime]))
 """
 
 
 @dataclass(frozen=True)
 class Peak:
     """How a command ended: exit status (None where the launcher said nothing), seconds, peak
-    resident memory in bytes, and what it wrote to standard error."""
+    resident memory in bytes, what it wrote to standard error, and the CPU seconds it used (user
+    and system, every thread: over ``seconds``, how many cores it kept busy)."""
 
     status: int | None
     seconds: float
     peak_bytes: int
     stderr: str
+    cpu_seconds: float = 0.0
 
 
 def run_with_peak(argv: list[str], timeout_s: float) -> Peak:
@@ -49,7 +51,7 @@ def run_with_peak(argv: list[str], timeout_s: float) -> Peak:
                           errors="replace")
     seconds = time.perf_counter() - start
     try:
-        status, peak_kb = json.loads(done.stdout.strip().splitlines()[-1])
+        status, peak_kb, cpu = json.loads(done.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
-        status, peak_kb = None, 0
-    return Peak(status, seconds, int(peak_kb) * 1024, done.stderr)  # (ru_maxrss: kilobytes on Linux)
+        status, peak_kb, cpu = None, 0, 0.0
+    return Peak(status, seconds, int(peak_kb) * 1024, done.stderr, float(cpu))  # (ru_maxrss: kilobytes on Linux)

@@ -99,14 +99,15 @@ def _same_numpy_env() -> dict[str, str]:
     return {**NUMPY_ENV, **os.environ}
 
 
-def _run_measured(*argv: str) -> tuple[float, float]:
-    """Seconds and peak resident memory (MiB, the process's own) of ``python -m lensfit ARGV``."""
+def _run_measured(*argv: str) -> tuple[float, float, float]:
+    """Seconds, peak resident memory (MiB, the process's own) and CPU seconds of ``python -m
+    lensfit ARGV``."""
     from lensfit.bench.peak import run_with_peak
 
     ran = run_with_peak([_python(), "-m", "lensfit", *argv], timeout_s=24 * 3600)
     if ran.status != 0:
         raise subprocess.CalledProcessError(ran.status if ran.status is not None else -1, argv, "", ran.stderr)
-    return ran.seconds, ran.peak_bytes / 2**20
+    return ran.seconds, ran.peak_bytes / 2**20, ran.cpu_seconds
 
 
 def subset(src: Path, dst: Path, count: int | None, scale: float) -> Path:
@@ -188,11 +189,13 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
                    "warm_runs": len(child["warm_runs"])}
             if whole:  # whole process: lensfit fit against OpenCV's detect + calibrate
                 pairs, by_jobs, documents, peak = [], {n: [] for n in jobs}, [], 0.0
+                busy: dict[int, list[float]] = {n: [] for n in jobs}
                 for j in range(max(repeat, 1)):
                     for n in jobs:
                         out_json = Path(tmp) / f"r{k}-{j}-{n}.json"
-                        t_fit, mib = _run_measured("fit", str(folder), "--out", str(out_json), "--jobs", str(n))
+                        t_fit, mib, cpu = _run_measured("fit", str(folder), "--out", str(out_json), "--jobs", str(n))
                         peak = max(peak, mib)
+                        busy[n].append(cpu / t_fit)
                         by_jobs[n].append(t_fit)
                         document = json.loads(out_json.read_text())
                         document.pop("provenance", None)
@@ -206,6 +209,7 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
                 if len(jobs) > 1:
                     medians = {n: statistics.median(v) for n, v in by_jobs.items()}
                     row.update(lensfit_fit_process_s_by_jobs=medians,
+                               lensfit_fit_cores_busy_by_jobs={n: statistics.median(v) for n, v in busy.items()},
                                jobs_speedup=medians[jobs[0]] / medians[jobs[-1]],
                                jobs_identical=all(d == documents[0] for d in documents))
             rows.append(row)
@@ -234,14 +238,17 @@ def table(report: dict) -> str:
         lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {r['edges']} | " + " | ".join(cells + extra) + " |")
     jobs = report.get("jobs") or [1]
     if len(jobs) > 1:
-        lines += ["", "| images | MP | " + " | ".join(f"`--jobs {n}`" for n in jobs) + " | speed-up | results |",
-                  "|" + "---|" * (len(jobs) + 4)]
+        lines += ["", "| images | MP | " + " | ".join(f"`--jobs {n}`" for n in jobs) + " | speed-up | results |"
+                  " cores busy (CPU seconds over wall seconds) |", "|" + "---|" * (len(jobs) + 5)]
         for r in report["rows"]:
             if "jobs_speedup" in r:
                 by_jobs = {int(k): v for k, v in r["lensfit_fit_process_s_by_jobs"].items()}  # (JSON keys are text)
                 times = " | ".join(f"{by_jobs[n]:.1f} s" for n in jobs)
                 same = "identical" if r["jobs_identical"] else "DIFFER"
-                lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {times} | {r['jobs_speedup']:.2f}x | {same} |")
+                cores = {int(k): v for k, v in r.get("lensfit_fit_cores_busy_by_jobs", {}).items()}
+                busy = " / ".join(f"{cores[n]:.2f}" for n in jobs if n in cores)
+                lines.append(f"| {r['images']} | {r['megapixels']:.2f} | {times} | {r['jobs_speedup']:.2f}x | {same} | "
+                             f"{busy} |")
     return "\n".join(lines)
 
 

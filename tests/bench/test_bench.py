@@ -276,6 +276,10 @@ def test_bench_stages_makes_a_larger_stack_from_its_images_again_and_measures_me
     large = run_with_peak([sys.executable, "-c", "import numpy as np; x = np.ones(400 * 2**20 // 8); x += 1"], 60)
     assert small.status == large.status == 0
     assert small.peak_bytes < 100 * 2**20 < 400 * 2**20 < large.peak_bytes - small.peak_bytes < 500 * 2**20
+    # its CPU seconds: a process that spins for 0.6 s of CPU reports at least that, and no more than it ran
+    busy = run_with_peak([sys.executable, "-c", "import time\nt = time.process_time()\n"
+                          "while time.process_time() - t < 0.6: pass"], 60)
+    assert 0.6 <= busy.cpu_seconds <= busy.seconds * 2 and small.cpu_seconds < 0.6
 
 
 def test_bench_stages_refuses_what_it_cannot_compare(tmp_path, capsys):
