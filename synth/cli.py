@@ -165,7 +165,8 @@ def _bench_command(args: argparse.Namespace) -> int:
         if args.pairs < 1:
             raise InputError("pairs", args.pairs, ">= 1")
         if args.record and args.scene:
-            raise InputError("--scene", args.scene, "given only without --record", "a record is always the demo scene's")
+            raise InputError("--scene", args.scene, "given only without --record",
+                             "a record is always the demo scene's")
 
         with console.status("benchmarking") as status:
             def progress(msg):
@@ -176,7 +177,7 @@ def _bench_command(args: argparse.Namespace) -> int:
         if doc is not None:
             console.print(f"wrote {record(doc, args.record)}")
         if args.json:
-            print(json.dumps(doc or results, indent=1))
+            print(json.dumps(doc if doc is not None else results[0] if len(results) == 1 else results, indent=1))
             return EXIT_OK
         for result in results:
             table = Table(title=f"whole processes, {result['scene']}: {result['shots']} shots at "

@@ -8,10 +8,11 @@ machine develops the DNGs with its default profile into JPEGs, as a photographer
 darktable (``darktable-cli``: its defaults for a new image). The JPEGs alone are copied into a
 folder; ``lensfit init`` drafts its stack.toml from their EXIF (the board's entry from the
 rendered stack) and ``lensfit fit`` fits it, each a fresh process as a user runs them. The DNGs
-fitted as they are are the control; the drafted stacks are given the control's ``[lens]`` table (an
-ideal lens: :func:`declare_lens`), so that they differ from it in their processing alone. Two more cases show what the pixels alone tell: darktable's
-JPEGs without their Software tag, and a camera-like pipeline written here (an S curve and an
-unsharp mask over sRGB, 4:2:0 JPEG, no EXIF).
+fitted as they are are the control; the drafted stacks are given the control's ``[lens]`` table
+(an ideal lens: :func:`declare_lens`), so that they differ from it in their processing alone.
+Two more cases show what the pixels alone tell: darktable's JPEGs without their Software tag,
+and a camera-like pipeline written here (an S curve and an unsharp mask over sRGB, 4:2:0 JPEG,
+no EXIF).
 
 A developer that is not installed is reported as missing with the package that provides it
 (Debian: ``apt install rawtherapee darktable``). A case passes where f and the focus distance

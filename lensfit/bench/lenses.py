@@ -342,7 +342,8 @@ def markdown(doc: dict[str, Any]) -> str:
             return "refused"
         return f"{100 * e['relative_error']:+.2f} %" + ("" if e["within_ci95"] else " (outside)")
 
-    out += ["", "| design | fit | f | N (nominal) | N (real rays) | focus distance | P |", "|---|---|---|---|---|---|---|"]
+    out += ["", "| design | fit | f | N (nominal) | N (real rays) | focus distance | P |",
+            "|---|---|---|---|---|---|---|"]
     for row in doc["rows"]:
         if row.get("refused"):
             out.append(f"| {row['lens']} | refused: {row['refused'][:160]} | | | | | |")

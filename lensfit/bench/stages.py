@@ -165,8 +165,10 @@ def run(stack: str | Path, counts: tuple[int, ...] = (3, 6, 12), scales: tuple[f
     of the most over one (``jobs_speedup``) and whether every run's results were the same
     (``jobs_identical``, provenance aside); the ratio to OpenCV is then the most jobs' run.
     ``shots``: whole-stack rows of each of these many images at every scale (the stack's own
-    again, in turn, where it has fewer; default: the stack's own count); each whole ``lensfit fit`` process's peak resident memory is in
-    ``lensfit_fit_peak_mib`` (the largest over its runs)."""
+    again, in turn, where it has fewer; default: the stack's own count); each whole ``lensfit
+    fit`` process's peak resident memory is in ``lensfit_fit_peak_mib`` (the largest over its
+    runs), and the cores it kept busy (CPU seconds over wall seconds) in
+    ``lensfit_fit_cores_busy_by_jobs``."""
     from lensfit.outputs.writers import provenance
 
     stack = Path(stack)
