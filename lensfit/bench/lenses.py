@@ -277,7 +277,7 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     95 % intervals held the truth of how many reported, the refusals, and the Wilson 95 %
     interval of the rate; and the mean absolute relative error beside the mean relative 95 %
     half-width of the bounded intervals (an honest interval is wider than the typical error, but
-    not by much: about 2x for a Gaussian's)."""
+    not by much: 2.5x for a Gaussian's, 1.96 sigma against a mean absolute error of 0.80 sigma)."""
     out: dict[str, dict[str, Any]] = {}
     errors_of: dict[tuple[str, str], list[tuple[float, float]]] = {}
     for row in rows:
