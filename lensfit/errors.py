@@ -7,7 +7,6 @@ value, and what would be valid, so that the CLI can print it as one line.
 from __future__ import annotations
 
 import re
-
 from typing import Any
 
 

@@ -227,16 +227,17 @@ def lens_sample_costs(samples_per_pixel: int = 16, repeats: int = 3, progress=No
     return rows
 
 
-def mitsuba_record(rows: list[dict], pairs: int, progress=None) -> dict:
+def mitsuba_record(rows: list[dict], pairs: int, progress=None, folder: str = "docs/validation/records") -> dict:
     """The record ``synth bench --against-mitsuba --record``: ``rows``, :func:`against_mitsuba`'s
     results on the demo scene (one per samples-per-pixel), and the kernel's cost per lens sample,
-    thin lens beside compound ones (:func:`lens_sample_costs`)."""
+    thin lens beside compound ones (:func:`lens_sample_costs`); ``folder``: where it is written (its
+    command names it)."""
     import platform
     from datetime import UTC, datetime
 
     spp = " ".join(str(r["samples_per_pixel"]) for r in rows)
     return {"benchmark": "synth_vs_mitsuba", "date": datetime.now(UTC).strftime("%Y-%m-%d"),
-            "command": f"synth bench --against-mitsuba --spp {spp} --pairs {pairs} --record docs/validation/records",
+            "command": f"synth bench --against-mitsuba --spp {spp} --pairs {pairs} --record {folder}",
             "system": f"{platform.system()} {platform.machine()}", "cores": os.cpu_count(), "rows": rows,
             "lens_samples": lens_sample_costs(progress=progress)}
 

@@ -173,7 +173,7 @@ def _bench_command(args: argparse.Namespace) -> int:
                 status.update(f"benchmarking: {msg}")
             results = [against_mitsuba(args.scene, spp, args.pairs, args.mitsuba_variant, progress=progress)
                        for spp in args.spp]
-            doc = mitsuba_record(results, args.pairs, progress) if args.record else None
+            doc = mitsuba_record(results, args.pairs, progress, args.record) if args.record else None
         if doc is not None:
             console.print(f"wrote {record(doc, args.record)}")
         if args.json:
