@@ -232,14 +232,12 @@ def mitsuba_record(rows: list[dict], pairs: int, progress=None, folder: str = "d
     results on the demo scene (one per samples-per-pixel), and the kernel's cost per lens sample,
     thin lens beside compound ones (:func:`lens_sample_costs`); ``folder``: where it is written (its
     command names it)."""
-    import platform
-    from datetime import UTC, datetime
+    from lensfit.bench.records import record_header
 
     spp = " ".join(str(r["samples_per_pixel"]) for r in rows)
-    return {"benchmark": "synth_vs_mitsuba", "date": datetime.now(UTC).strftime("%Y-%m-%d"),
-            "command": f"synth bench --against-mitsuba --spp {spp} --pairs {pairs} --record {folder}",
-            "system": f"{platform.system()} {platform.machine()}", "cores": os.cpu_count(), "rows": rows,
-            "lens_samples": lens_sample_costs(progress=progress)}
+    return {**record_header("synth_vs_mitsuba",
+                            f"synth bench --against-mitsuba --spp {spp} --pairs {pairs} --record {folder}"),
+            "rows": rows, "lens_samples": lens_sample_costs(progress=progress)}
 
 
 def markdown(doc: dict) -> str:

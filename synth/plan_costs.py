@@ -6,11 +6,8 @@ measured seconds. Measured, never asserted in tests; the record is shown on the 
 
 from __future__ import annotations
 
-import os
-import platform
 import time
 import tomllib
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Callable
 
@@ -67,9 +64,9 @@ def run(progress: Callable[[str], None] = lambda m: None) -> dict[str, Any]:
         rows.append({"case": what, "scene": name, "changes": changes, "shots": len(plans),
                      "methods": sorted({p.method for p in plans}), "estimated_s": estimated, "measured_s": measured,
                      "ratio": ratio, "within": bool(1 / WITHIN <= ratio <= WITHIN)})
-    return {"benchmark": "plan_costs", "date": datetime.now(UTC).strftime("%Y-%m-%d"),
-            "command": "synth bench --plan-costs", "system": f"{platform.system()} {platform.machine()}",
-            "cores": os.cpu_count(), "within_factor": WITHIN, "cases": rows,
+    from lensfit.bench.records import record_header
+
+    return {**record_header("plan_costs", "synth bench --plan-costs"), "within_factor": WITHIN, "cases": rows,
             "passed": sum(r["within"] for r in rows), "total": len(rows)}
 
 

@@ -23,14 +23,11 @@ its interval, or refused naming the processing; the control, where all three are
 from __future__ import annotations
 
 import json
-import os
-import platform
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Callable
 
@@ -211,9 +208,9 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
             row["passed"] = row_passed(row["errors"], row["processing"], control=tool is None)
             rows.append(row)
     ran = [r for r in rows if "missing" not in r]
-    return {"benchmark": "developed", "date": datetime.now(UTC).strftime("%Y-%m-%d"),
-            "command": "lensfit bench-developed", "system": f"{platform.system()} {platform.machine()}",
-            "cores": os.cpu_count(), "truth": {"focal_length_mm": truth["focal_length_mm"],
+    from lensfit.bench.records import record_header
+
+    return {**record_header("developed", "lensfit bench-developed"), "truth": {"focal_length_mm": truth["focal_length_mm"],
                                                **next(iter(truth["settings"].values()))} if ran else None,
             "rows": rows, "passed": sum(bool(r.get("passed")) for r in ran), "total": len(ran)}
 

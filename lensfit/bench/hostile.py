@@ -15,14 +15,12 @@ cases of the same kinds run in ``make test`` (``tests/io/test_hostile.py``,
 from __future__ import annotations
 
 import os
-import platform
 import shutil
 import struct
 import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -257,9 +255,9 @@ def run(progress: Callable[[str], None] = lambda m: None, only: list[str] | None
             case = make(root)
             outcomes.append(run_case(case, _input_bytes(root), root))
             shutil.rmtree(root, ignore_errors=True)
-    return {"benchmark": "hostile", "date": datetime.now(UTC).strftime("%Y-%m-%d"),
-            "command": "lensfit bench-hostile", "system": f"{platform.system()} {platform.machine()}",
-            "cores": os.cpu_count(), "max_seconds": MAX_SECONDS, "max_peak_mib": MAX_PEAK_BYTES >> 20,
+    from lensfit.bench.records import record_header
+
+    return {**record_header("hostile", "lensfit bench-hostile"), "max_seconds": MAX_SECONDS, "max_peak_mib": MAX_PEAK_BYTES >> 20,
             "cases": [asdict(o) for o in outcomes], "passed": sum(o.passed for o in outcomes),
             "total": len(outcomes)}
 

@@ -62,6 +62,17 @@ def make_record(doc: dict[str, Any]) -> dict[str, Any]:
             "seconds_wall_first_run": first.get("seconds_wall"), "cases": len(cases), "quantities": quantities}
 
 
+def record_header(benchmark: str, command: str) -> dict[str, Any]:
+    """What every benchmark record other than a suite's begins with: its name, the day (UTC), the
+    command that regenerates it, the system and the cores it was measured on."""
+    import os
+    import platform
+    from datetime import UTC, datetime
+
+    return {"benchmark": benchmark, "date": datetime.now(UTC).strftime("%Y-%m-%d"), "command": command,
+            "system": f"{platform.system()} {platform.machine()}", "cores": os.cpu_count()}
+
+
 def write_json(folder: str | Path, name: str, data: dict[str, Any]) -> Path:
     """Write (or replace) the record ``folder/<name>.json``, the folder made where missing."""
     from lensfit.outputs.writers import write_text

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -182,14 +181,9 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
     except InputError as exc:
         raise fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
     if args.record:
-        import platform
-        from datetime import UTC, datetime
+        from lensfit.bench.records import record_header, write_json
 
-        from lensfit.bench.records import write_json
-
-        result.update(benchmark="lenses", command=" ".join(["lensfit", *sys.argv[1:]]),
-                      date=datetime.now(UTC).strftime("%Y-%m-%d"), system=f"{platform.system()} {platform.machine()}",
-                      cores=os.cpu_count())
+        result.update(record_header("lenses", " ".join(["lensfit", *sys.argv[1:]])))
         console.print(f"wrote {write_json(args.record, 'lenses', result)}")
     if args.json:
         print(json.dumps(result, indent=1))
