@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from lensfit.bench.coverage import wilson_interval
+from lensfit.bench.coverage import GAUSSIAN_HALF_WIDTH_RATIO, wilson_interval
 from lensfit.errors import InputError, SpecError
 from lensfit.fitting import fit
 from lensfit.measurement.pipeline import measure_and_fit
@@ -276,8 +276,8 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per fit and quantity over the lenses (both settings where the fit has both): how many
     95 % intervals held the truth of how many reported, the refusals, and the Wilson 95 %
     interval of the rate; and the mean absolute relative error beside the mean relative 95 %
-    half-width of the bounded intervals (an honest interval is wider than the typical error, but
-    not by much: 2.5x for a Gaussian's, 1.96 sigma against a mean absolute error of 0.80 sigma)."""
+    half-width of the bounded intervals, whose ratio is the suites' ``half_width95_over_mean_error``
+    (``lensfit.bench.coverage.interval_honesty``: ``GAUSSIAN_HALF_WIDTH_RATIO`` where right)."""
     out: dict[str, dict[str, Any]] = {}
     errors_of: dict[tuple[str, str], list[tuple[float, float]]] = {}
     for row in rows:
@@ -323,8 +323,8 @@ def markdown(doc: dict[str, Any]) -> str:
            "carried by their priors) and as the two-setting bracket (P fitted). The 95 % intervals holding the truth "
            "(Wilson's 95 % interval of the rate), and the mean absolute error beside the mean 95 % half-width, both "
            "relative to the truth.", "",
-           "| fit | quantity | intervals holding the truth | refused | mean error | mean 95 % half-width |",
-           "|---|---|---|---|---|---|"]
+           "| fit | quantity | intervals holding the truth | refused | mean error | mean 95 % half-width | "
+           f"half-width / mean error ({GAUSSIAN_HALF_WIDTH_RATIO:.2f} if right) |", "|---|---|---|---|---|---|---|"]
     for how, per in doc["coverage"].items():
         for q, c in per.items():
             if not c["reported"] and not c["refused"]:
@@ -333,7 +333,9 @@ def markdown(doc: dict[str, Any]) -> str:
                     if c["reported"] else "")
             err = "" if c.get("mean_abs_error") is None else f"{100 * c['mean_abs_error']:.2f} %"
             half = "" if c.get("mean_half_width") is None else f"{100 * c['mean_half_width']:.2f} %"
-            out.append(f"| {how} | {QUANTITY_NAMES.get(q, q)} | {held} | {c['refused']} | {err} | {half} |")
+            ratio = (f"{c['mean_half_width'] / c['mean_abs_error']:.2f}" if c.get("mean_half_width") is not None
+                     and c.get("mean_abs_error") else "")
+            out.append(f"| {how} | {QUANTITY_NAMES.get(q, q)} | {held} | {c['refused']} | {err} | {half} | {ratio} |")
 
     def cell(e):
         if e is None:

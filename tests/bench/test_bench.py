@@ -702,7 +702,7 @@ def test_bench_lenses_record_sets_the_mean_error_beside_the_mean_half_width():
     assert (got["pupil_magnification"]["held"], got["pupil_magnification"]["mean_half_width"]) == (1, 0.2)
     text = markdown({"coverage": {"bracket": got}, "rows": [], "samples_per_pixel": 16, "scale": 0.5,
                      "f_number": None, "designs": "optiland"})
-    assert "| bracket | f | 2 of 3 (" in text and "| 2.00 % | 2.50 % |" in text
+    assert "| bracket | f | 2 of 3 (" in text and "| 2.00 % | 2.50 % | 1.25 |" in text
     assert "| bracket | P | 1 of 1 (" in text
 
 
