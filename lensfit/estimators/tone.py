@@ -269,6 +269,14 @@ def _pack(profiles: list[tuple], starts: list[np.ndarray], encoding: str,
     return A
 
 
+def _pack_rows(rows: list[int], profiles: list[tuple], radii: list[float], encoding: str,
+               airy_px: list[float] | None) -> dict[str, np.ndarray]:
+    """:func:`_pack` of the edges ``rows`` of ``profiles``, each starting from its radius."""
+    chosen = [profiles[j] for j in rows]
+    return _pack(chosen, _starts(chosen, [radii[j] for j in rows]), encoding,
+                 None if airy_px is None else [airy_px[j] for j in rows])
+
+
 def _starts(profiles: list[tuple], radii: list[float]) -> list[np.ndarray]:
     out = []
     for (d, _s, v, _se, _n), r in zip(profiles, radii):
@@ -392,8 +400,7 @@ def fit(profiles: list[tuple], radii: list[float], encoding: str, terms: int,
     srgb = encoding == "srgb"
     use = _usable(profiles, radii)
     joint = [use[k] for k in np.unique(np.linspace(0, len(use) - 1, min(len(use), JOINT_EDGES)).round().astype(int))]
-    J = _pack([profiles[j] for j in joint], _starts([profiles[j] for j in joint], [radii[j] for j in joint]), encoding,
-              None if airy_px is None else [airy_px[j] for j in joint])
+    J = _pack_rows(joint, profiles, radii, encoding, airy_px)
     with jax.enable_x64(True):
         J["P"], _ = solve_edges(J, terms, srgb, _priors(terms)[0])
         PJ, g, _, _ = solve(J, terms, srgb, _mask_start(J, terms, srgb))
@@ -419,8 +426,7 @@ def read(fitted: ToneFit, profiles: list[tuple], radii: list[float], encoding: s
     starts, ``airy_px`` as :func:`fit`'s). Edges whose radius is not finite are not read (``ok``
     False)."""
     use = _usable(profiles, radii)
-    A = _pack([profiles[j] for j in use], _starts([profiles[j] for j in use], [radii[j] for j in use]), encoding,
-              None if airy_px is None else [airy_px[j] for j in use])
+    A = _pack_rows(use, profiles, radii, encoding, airy_px)
     g = fitted.shared
     with jax.enable_x64(True):
         P, _ = solve_edges(A, fitted.terms, fitted.srgb, g)

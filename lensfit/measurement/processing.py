@@ -340,19 +340,21 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
         typical = sorted(per_setting.values())[len(per_setting) // 2]
         return [per_setting.get(setting_of.get(j, ""), typical) for j in range(len(batch))]
 
+    def fitted_through(readings: Any) -> tuple[Any, Any]:
+        through = _through(table, where, readings)
+        return through, fit(through, **{**options, "spot_shape": "disk"})
+
     encoding, runs, held = next(iter(encodings)), [], scales(airy_px)
     for terms in MODEL_TERMS:
         fitted, readings = tone.fit(batch, radii, encoding, terms, held)
-        through = _through(table, where, readings)
-        result = fit(through, **{**options, "spot_shape": "disk"})
+        through, result = fitted_through(readings)
         if _misfits(fitted):
             runs.append((fitted, readings, through, result))
             break  # (refused whatever the other curve reads)
         again = scales(airy_per_setting(result)) if held is not None else None
         if again is not None:  # (read again at the Airy scale of the N read through the model)
             readings = tone.read(fitted, batch, radii, encoding, again)
-            through = _through(table, where, readings)
-            result = fit(through, **{**options, "spot_shape": "disk"})
+            through, result = fitted_through(readings)
         runs.append((fitted, readings, through, result))
     fitted, readings, through, result = runs[0]
     spread = math.nan if len(runs) < 2 else 0.0
