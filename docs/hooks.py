@@ -124,7 +124,8 @@ def validation_markdown() -> str:
         "No benchmark record yet: run `lensfit bench --suite NAME --out DIR --record docs/validation/records`."]
     # the other benchmarks' records, each shown by its own module's markdown()
     for name, module in (("api_vs_cli", "lensfit.bench.api"), ("developed", "lensfit.bench.developed"),
-                         ("lenses", "lensfit.bench.lenses"),
+                         ("lenses", "lensfit.bench.lenses"), ("lenses_narrow", "lensfit.bench.lenses"),
+                         ("lenses_internal", "lensfit.bench.lenses"), ("lenses_narrow_internal", "lensfit.bench.lenses"),
                          ("stages", "lensfit.bench.stages"), ("plan_costs", "synth.plan_costs"),
                          ("synth_vs_mitsuba", "synth.bench"),
                          ("hostile", "lensfit.bench.hostile")):

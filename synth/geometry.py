@@ -183,7 +183,8 @@ class ChannelCamera(ThinLensCamera):
 @dataclass(frozen=True)
 class CompoundLensCamera(ThinLensCamera):
     """A camera with a real compound lens (``synth.lens.Prescription``), focused by moving the
-    whole lens (unit focusing) so that the focus distance is imaged on the sensor: at the lens's
+    whole lens (unit focusing; or by a group inside it, see ``focus_group``: the prescription is
+    then the lens as that setting leaves it) so that the focus distance is imaged on the sensor: at the lens's
     best focus for it (``focus_plane = "best"``: the smallest RMS spot of the axial point, where a
     camera's autofocus puts it; spherical aberration moves it from the paraxial image; over all
     of ``wavelengths_nm`` when given) or at its paraxial image (``"paraxial"``, d line).
@@ -201,6 +202,11 @@ class CompoundLensCamera(ThinLensCamera):
     focus_plane: str = "best"
     #: Spectral samples (nm) the image is rendered at (``synth.spectral``); () = the d line alone.
     wavelengths_nm: tuple[float, ...] = ()
+    #: Internal focusing: the surfaces (first, last) of the group that moved to focus, and how far
+    #: (mm, + towards the image) from its design position; ``prescription`` is then the lens with
+    #: the group there, and ``focal_length_mm`` its EFL. None: unit focusing.
+    focus_group: tuple[int, int] | None = None
+    focus_group_shift_mm: float | None = None
 
     @property
     def scene_origin_z_mm(self) -> float:
@@ -298,6 +304,9 @@ class CompoundLensCamera(ThinLensCamera):
                 "focus_distance_from_sensor_mm": from_sensor if math.isfinite(from_sensor) else None,
                 "pupil_magnification": para.pupil_magnification,
                 "lens": {"prescription": self.prescription.name, "source": self.prescription.source,
+                         "focusing": "unit" if self.focus_group is None else "internal",
+                         **({} if self.focus_group is None else {"focus_group": list(self.focus_group),
+                                                                 "focus_group_shift_mm": self.focus_group_shift_mm}),
                          "distances_from": "entrance pupil", "sensor_z_mm": self.sensor_z_mm,
                          "paraxial_image_z_mm": self.paraxial_image_z_mm,
                          "best_focus_image_z_mm": self.best_focus_z_mm,

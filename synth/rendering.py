@@ -347,6 +347,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
         map_file = f"truth/{shot.name}_maps.npz"
         result.maps[map_file] = {"depth_mm": depth.astype(np.float32), "coc_diameter_px": coc.astype(np.float32)}
         settings.setdefault(shot.setting, {
+            "focal_length_mm": cam.focal_length_mm,
             "f_number": cam.f_number,
             "focus_distance_mm": finite_or_none(cam.focus_distance_mm),
             "inverse_focus_distance_per_mm": cam.inverse_focus_distance_per_mm,

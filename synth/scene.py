@@ -272,6 +272,46 @@ def _wavelengths(lens: dict, path, rx, effects) -> tuple[float, ...]:
     return waves
 
 
+def _internal_focusing(lens: dict, path, rx, wavelengths: tuple[float, ...]):
+    """For ``[lens] focusing = "internal"``: a function of a setting's f-number and focus
+    distance (and the field to name) giving its lens, the group moved to focus that distance on
+    the fixed sensor, and the group's shift (mm, + towards the image); None for unit focusing."""
+    from synth.lens import check_focus_group, internal_focus, polychromatic_best_focus_image_z, image_z
+
+    how = lens.get("focusing", "unit")
+    if how == "unit":
+        if "focus_group" in lens:
+            raise SpecError(path, "lens.focus_group", "moves a group only with focusing = \"internal\"; add that or "
+                            "remove focus_group")
+        return None
+    if "focus_group" not in lens:
+        raise SpecError(path, "lens.focus_group", "is required with focusing = \"internal\": the first and last "
+                        "surface index of the group that moves, e.g. [6, 10]")
+    group = (int(lens["focus_group"][0]), int(lens["focus_group"][1]))
+    problem = check_focus_group(rx, group)
+    if problem is not None:
+        raise SpecError(path, "lens.focus_group", f"got {list(group)}: must be {problem}")
+    design = rx.with_f_number(float(lens["f_number"]))
+    if lens.get("focus_plane", "best") == "best":
+        rxs = [design.at_wavelength(w) for w in wavelengths] if wavelengths else [design]
+        sensor_z = polychromatic_best_focus_image_z(rxs, -math.inf)
+    else:
+        sensor_z = image_z(design, -math.inf)
+    made: dict[tuple[float, float], tuple[Any, float]] = {}
+
+    def focused(N: float, D: float, where: str):
+        if (N, D) not in made:
+            try:
+                made[(N, D)] = internal_focus(rx.with_f_number(N), group, D, sensor_z, wavelengths,
+                                              lens.get("focus_plane", "best"))
+            except ValueError as exc:
+                raise SpecError(path, where, f"got {D:g}: {rx.name} does not focus there internally ({exc}); "
+                                "choose a farther focus distance or another lens.focus_group") from None
+        return made[(N, D)]
+
+    return focused
+
+
 #: Share of the axial beam that clear apertures other than the stop may block before an
 #: f-number counts as faster than the lens opens.
 AXIAL_CLIPPING_LIMIT = 0.02
@@ -322,6 +362,8 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
                             "apertures are for the thin lens")
     else:
         for key, why in (("focus_plane", "a thin lens has no aberration, its best and paraxial focus coincide"),
+                         ("focusing", "a thin lens has no groups to move; it focuses by moving as a whole"),
+                         ("focus_group", "a thin lens has no groups to move; it focuses by moving as a whole"),
                          ("wavelengths_nm", "a thin lens has no glass; its colour errors are the "
                           "chromatic_aberration effect"),
                          ("colour", "it asks for colour from the spectral samples of lens.wavelengths_nm")):
@@ -329,6 +371,7 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
                 raise SpecError(path, f"lens.{key}", f"applies to a compound lens (lens.prescription) only: {why}; "
                                 "remove it")
     wavelengths = _wavelengths(lens, path, rx, effects) if rx is not None else ()
+    internal = _internal_focusing(lens, path, rx, wavelengths) if rx is not None else None
     fmt = render.get("format", "dng" if effects.mosaic is not None else DEFAULTS["format"])
     problem = effects.format_problem(fmt)
     if problem is not None:
@@ -369,8 +412,16 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
             raise SpecError(path, f"{where}.setting", f"got {label!r}: shot[{first}] has the same setting with "
                             f"f_number {setting_values[label][0]:g} and focus_distance_mm {setting_values[label][1]:g}; "
                             "shots sharing a setting label must share f-number and focus distance")
+        lens_here, f_here, N_here, shift = rx, f, N, None
+        if internal is not None:  # the group moved to focus D: this setting's own lens, EFL and f-number
+            lens_here, shift = internal(N, D, f"{where}.focus_distance_mm" if "focus_distance_mm" in sh
+                                        else "lens.focus_distance_mm")
+            from synth.lens import paraxial
+
+            para = paraxial(lens_here)
+            f_here, N_here = para.efl_mm, para.efl_mm / para.entrance_pupil_diameter_mm
         if rx is not None and label not in setting_values:
-            _check_opens(path, f"{where}.f_number" if "f_number" in sh else "lens.f_number", rx, N, D)
+            _check_opens(path, f"{where}.f_number" if "f_number" in sh else "lens.f_number", lens_here, N_here, D)
         setting_values.setdefault(label, (N, D, k))
         overrides = {}
         for j, pose in enumerate(sh.get("pose", [])):
@@ -396,10 +447,13 @@ def scene_from_dict(data: dict[str, Any], path: str | Path = "<scene>") -> Scene
             camera = ThinLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
                                     width_px=int(cam["width_px"]), height_px=int(cam["height_px"]))
         else:
-            camera = CompoundLensCamera(focal_length_mm=f, f_number=N, focus_distance_mm=D, pixel_pitch_mm=pitch,
+            camera = CompoundLensCamera(focal_length_mm=f_here, f_number=N_here, focus_distance_mm=D,
+                                        pixel_pitch_mm=pitch,
                                         width_px=int(cam["width_px"]), height_px=int(cam["height_px"]),
-                                        prescription=rx, focus_plane=lens.get("focus_plane", "best"),
-                                        wavelengths_nm=wavelengths)
+                                        prescription=lens_here, focus_plane=lens.get("focus_plane", "best"),
+                                        wavelengths_nm=wavelengths,
+                                        focus_group=None if shift is None else tuple(lens["focus_group"]),
+                                        focus_group_shift_mm=shift)
         if ("shutter_s" in sh or "iso" in sh) and effects.exposure is None:
             raise SpecError(path, f"{where}.{'shutter_s' if 'shutter_s' in sh else 'iso'}",
                             "is an exposure setting, but 'exposure' is not in render.effects; add it or remove this")

@@ -155,8 +155,10 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str],
     from synth.geometry import CompoundLensCamera
 
     out = {"camera": {"pixel_pitch_mm": scene.pixel_pitch_mm}, "target": targets, "image": images}
-    # synth's lenses focus as a unit (the whole lens moves), as its user knows.
-    out["lens"] = {"focusing": "unit"}
+    # How synth's lens focuses, as its user knows: as a unit (the whole lens moves) unless the
+    # scene moves a group inside it.
+    internal = any(getattr(shot.camera, "focus_group", None) is not None for shot in scene.shots)
+    out["lens"] = {"focusing": "internal" if internal else "unit"}
     if not any(isinstance(shot.camera, CompoundLensCamera) for shot in scene.shots):
         # A thin lens's pupils coincide with it (P = 1), as a user of any renderer's thin-lens camera
         # knows; a compound lens's P is left for the data (or the spread of photographic lenses).

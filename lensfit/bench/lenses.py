@@ -61,15 +61,22 @@ NEAR_FRACTION = 1.0 / 6.0
 #: The near setting's f-number over the far one's: two stops down, so that its blur (six times
 #: the far setting's at the same aperture) stays three times the far one's and its markers decode.
 NEAR_STOP_FACTOR = 2.0
+#: The near setting's distances for each bracket: "wide" (inverse focus distances 1/(8 f) apart,
+#: P to a few per cent) and "narrow" (1/(40 f) apart: the near setting at half the far one's
+#: distances, a bracket too narrow to fit P, which a photographer's two nearby settings are).
+BRACKETS = {"wide": NEAR_FRACTION, "narrow": 0.5}
 
 
 def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
-               wavelengths_nm: tuple[float, ...] = (), scale: float = 1.0) -> dict[str, Any]:
+               wavelengths_nm: tuple[float, ...] = (), scale: float = 1.0, near_fraction: float = NEAR_FRACTION,
+               focus_group: tuple[int, int] | None = None) -> dict[str, Any]:
     """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f at
-    ``f_number``) and the same scene at a sixth of the distances with boards a sixth the size
-    (setting "near": focus X / 6 at ``NEAR_STOP_FACTOR`` x ``f_number``; the same pictures in
-    pinhole terms, three times the blur), unit focusing; ``scale`` x 1200 x 800 px; rendered grey
-    from ``wavelengths_nm`` through the glasses' dispersion where given."""
+    ``f_number``) and the same scene at ``near_fraction`` (a sixth) of the distances with boards
+    that much smaller (setting "near": focus X / 6 at ``NEAR_STOP_FACTOR`` x ``f_number``; the
+    same pictures in pinhole terms, three times the blur); ``scale`` x 1200 x 800 px; rendered
+    grey from ``wavelengths_nm`` through the glasses' dispersion where given. Unit focusing, or
+    with ``focus_group`` internal focusing by those surfaces (the sensor where the lens focuses
+    infinity)."""
     from synth.lens import load_prescription, paraxial
 
     efl = paraxial(load_prescription(name)).efl_mm
@@ -81,17 +88,19 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
                            * demo["camera"]["width_px"] / w)
     focus = scene["lens"]["focus_distance_mm"]
     scene["lens"] = {"prescription": name, "f_number": f_number, "focus_distance_mm": focus}
+    if focus_group is not None:
+        scene["lens"].update(focusing="internal", focus_group=list(focus_group))
     if wavelengths_nm:
         scene["lens"]["wavelengths_nm"] = [float(w) for w in wavelengths_nm]
     scene["render"] = {"effects": ["defocus"], "method": "raytrace", "samples_per_pixel": spp, "seed": 0}
-    near = _scale_lengths({"object": scene["object"], "shot": scene["shot"]}, NEAR_FRACTION)
+    near = _scale_lengths({"object": scene["object"], "shot": scene["shot"]}, near_fraction)
     for obj in near["object"]:
         obj["id"] = f"{obj['id']}-near"
     for shot in near["shot"]:
         shot["objects"] = [f"{o}-near" for o in shot["objects"]]
         shot["pose"] = [{**p, "id": f"{p['id']}-near"} for p in shot.get("pose", [])]
     scene["object"] = scene["object"] + near["object"]
-    scene["shot"] = ([{**s, "setting": "near", "focus_distance_mm": NEAR_FRACTION * focus,
+    scene["shot"] = ([{**s, "setting": "near", "focus_distance_mm": near_fraction * focus,
                        "f_number": NEAR_STOP_FACTOR * f_number, "name": f"near_{i:03d}"}
                       for i, s in enumerate(near["shot"])]
                      + [{**s, "setting": "far", "name": f"far_{i:03d}"} for i, s in enumerate(scene["shot"])])
@@ -102,7 +111,8 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
 def _errors(result, truth: dict[str, Any], label: str) -> dict[str, Any]:
     t = truth["settings"][label]
     out = {}
-    pairs = [("focal_length_mm", "focal_length_mm", truth["focal_length_mm"]), ("f_number", "f_number", t["f_number"]),
+    f_true = t.get("focal_length_mm", truth["focal_length_mm"])  # the setting's own where the lens breathes
+    pairs = [("focal_length_mm", "focal_length_mm", f_true), ("f_number", "f_number", t["f_number"]),
              ("focus_distance_mm", "focus_distance_mm", t["focus_distance_mm"])]
     if "real_ray_f_number" in t:  # what blur follows: the real entrance pupil (pupil aberration)
         pairs.append(("f_number_real_ray", "f_number_effective", t["real_ray_f_number"]))
@@ -134,7 +144,7 @@ def spectral_designs() -> list[str]:
 def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 11.0,
         progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = (),
         scale: float = 1.0, keep: Path | None = None, reuse: Path | None = None,
-        designs: str = "shipped") -> dict[str, Any]:
+        designs: str = "shipped", bracket: str = "wide", focusing: str = "unit") -> dict[str, Any]:
     """Render, measure and fit every lens (with ``wavelengths_nm``: every lens with dispersion,
     rendered grey through those wavelengths); returns rows of errors and seconds. With ``keep``
     each stack is written to ``keep / NAME`` and left there (an existing stack is an error, never
@@ -143,7 +153,10 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     arguments are then theirs, not these). ``designs``: "shipped" (``data_specs/lenses``) or
     "optiland" (optiland's all-spherical sample objectives, which lensfit does not ship, written
     as lens files beside the stacks); ``f_number`` None: each design wide open (its own f-number,
-    the near setting two stops down)."""
+    the near setting two stops down). ``bracket``: "wide" or "narrow" (``BRACKETS``);
+    ``focusing``: "unit" (the whole lens moves) or "internal" (the lens's rear group, else its
+    front group, moves: :func:`focus_group`; the bracket then fitted as declared, each setting
+    by itself)."""
     import json
 
     from synth.lens import list_prescriptions
@@ -186,8 +199,10 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                 lens = name if path is None else str(path)
                 n_far = f_number if f_number is not None else _wide_open(lens, design_n)
                 try:
+                    group = None if focusing == "unit" else focus_group(lens, n_far, BRACKETS[bracket])
                     scene = scene_from_dict(lens_scene(lens, f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm,
-                                                       scale=scale),
+                                                       scale=scale, near_fraction=BRACKETS[bracket],
+                                                       focus_group=group),
                                             f"<{name} bracket>")
                     folder = write_stack(render(scene), root / name)
                 except (InputError, SpecError) as exc:  # a design this bench cannot render so: a row saying why
@@ -200,7 +215,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
             # As `lensfit fit`: the images tested for the Airy pattern, which decides the readings
             # (the spots' shapes, or the pattern modelled; lensfit.fitting.refits); its fit is the bracket's.
             try:
-                table, bracket, _ = measure_and_fit(folder, auto_diffraction=True)
+                table, bracket_fit, _ = measure_and_fit(folder, auto_diffraction=True)
             except (InputError, SpecError) as exc:  # the stack refused as a user's would be: a row saying why
                 rows.append({"lens": name, "refused": str(exc), "fits": {}})
                 continue
@@ -210,15 +225,18 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
             one.samples = near
             one.intrinsics = {"near": table.intrinsics["near"]}
             P = truth["settings"]["near"]["pupil_magnification"]
+            internal = truth["settings"]["near"].get("lens", {}).get("focusing") == "internal"
             fits = {"default (one setting)": fit(one),
                     "thin (one setting)": fit(one, pupil_magnification=1.0),
                     "thick, P given (one setting)": fit(one, pupil_magnification=P),
-                    "thick (bracket, P fitted)": bracket}
+                    BRACKET_FITS[internal]: bracket_fit}
             calibration = {label: {"focal_length_px": k.focal_length_px, "sigma": k.focal_length_sigma_px,
                                    "sigma_method": k.focal_length_sigma_method, "views": k.views,
                                    "relative_error": k.focal_length_px / truth["settings"][label]["focal_length_px"] - 1}
                            for label, k in table.intrinsics.items()}
             row = {"lens": name, "pupil_magnification": P, "f_number_far": truth["settings"]["far"]["f_number"],
+                   "focus_group": truth["settings"]["near"].get("lens", {}).get("focus_group"),
+                   "focal_length_mm": {label: t.get("focal_length_mm") for label, t in truth["settings"].items()},
                    "f_number_near": truth["settings"]["near"]["f_number"],
                    "seconds_render": t_render, "seconds_measure": t_measure,
                    "calibration": calibration, "fits": {}}
@@ -235,10 +253,43 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                                         for label, qs in res.settings.items()
                                         if (e := qs.get("field_curvature_per_m")) is not None}}
             rows.append(row)
-    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number,
+    return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "bracket": bracket, "focusing": focusing,
+            "inverse_focus_distance_gap_per_focal_length": 1.0 / (40.0 * BRACKETS[bracket]) - 1.0 / 40.0,
             "near_f_number": None if f_number is None else NEAR_STOP_FACTOR * f_number, "designs": designs,
             "scale": scale, "wavelengths_nm": list(wavelengths_nm), "reused": None if reuse is None else str(reuse),
             "coverage": coverage(rows)}
+
+
+#: The bracket's fit as ``measure_and_fit`` makes it, by how the stack says the lens focuses:
+#: unit (f and P shared, P fitted) or internal (each setting by itself).
+BRACKET_FITS = {False: "thick (bracket, P fitted)", True: "bracket, focusing internal (per setting)"}
+
+
+def focus_group(lens: str, f_number: float, near_fraction: float) -> tuple[int, int]:
+    """The group that focuses ``lens`` internally for :func:`lens_scene`'s settings: everything
+    behind the stop (rear focusing, the common modern choice) where it reaches both focus
+    distances from the sensor at infinity focus, else everything in front of it (front-cell
+    focusing). Raises InputError where neither does."""
+    import math
+
+    from synth.lens import best_focus_image_z, check_focus_group, internal_focus, load_prescription, paraxial
+
+    rx = load_prescription(lens)
+    stopped = rx.with_f_number(f_number)
+    efl, k = paraxial(rx).efl_mm, rx.stop_index
+    sensor = best_focus_image_z(stopped, -math.inf)
+    why = []
+    for group in ((k + 1, len(rx.surfaces) - 1), (0, k - 1)):
+        if check_focus_group(rx, group) is not None:
+            continue
+        try:
+            for X, N in ((40.0 * efl, f_number), (40.0 * efl * near_fraction, NEAR_STOP_FACTOR * f_number)):
+                internal_focus(rx.with_f_number(N), group, X, sensor)
+            return group
+        except ValueError as exc:
+            why.append(str(exc))
+    raise InputError("focusing", "internal", f"a group of {rx.name} that focuses both settings",
+                     "; ".join(why) or "it has no air-bounded group on either side of its stop")
 
 
 def _write_lens_files(folder: Path, designs: dict[str, tuple[Any, float]]) -> dict[str, tuple[Path, float]]:
@@ -306,6 +357,11 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def record_name(bracket: str = "wide", focusing: str = "unit") -> str:
+    """The record's name (its file DIR/NAME.json): one current record per variant of the suite."""
+    return "lenses" + ("_narrow" if bracket == "narrow" else "") + ("_internal" if focusing == "internal" else "")
+
+
 #: How the record's tables name the quantities.
 QUANTITY_NAMES = {"focal_length_mm": "f", "f_number": "N (nominal)", "f_number_real_ray": "N (real rays)",
                   "focus_distance_mm": "focus distance", "pupil_magnification": "P"}
@@ -316,11 +372,17 @@ def markdown(doc: dict[str, Any]) -> str:
     design's errors."""
     what = ("each wide open (far), two stops down (near)" if doc.get("f_number") is None else
             f"far f/{doc['f_number']:g}, near f/{doc['near_f_number']:g}")
-    out = [f"### Real lenses (`lensfit bench-lenses`, {doc.get('designs', 'shipped')} designs)", "",
+    variant = "".join([", narrow bracket" if doc.get("bracket") == "narrow" else "",
+                       ", internal focusing" if doc.get("focusing") == "internal" else ""])
+    out = [f"### Real lenses (`lensfit bench-lenses`, {doc.get('designs', 'shipped')} designs{variant})", "",
            f"`{doc.get('command', 'lensfit bench-lenses')}`, {doc.get('date', '')}, {doc.get('cores', '?')} cores. "
            f"The demo stack scaled to each design and ray traced through it ({what}, {doc['samples_per_pixel']} "
            "spp, scale " f"{doc['scale']:g}); fitted as a user would (default: one setting, P and the nominal f-number "
-           "carried by their priors) and as the two-setting bracket (P fitted). The 95 % intervals holding the truth "
+           "carried by their priors) and as the two-setting bracket ("
+           + ("each setting by itself, as the stack declares the rear or front group to move"
+              if doc.get("focusing") == "internal" else "P fitted")
+           + f"; inverse focus distances {doc.get('inverse_focus_distance_gap_per_focal_length', 0.125):.3g} / f apart). "
+           "The 95 % intervals holding the truth "
            "(Wilson's 95 % interval of the rate), and the mean absolute error beside the mean 95 % half-width, both "
            "relative to the truth.", "",
            "| fit | quantity | intervals holding the truth | refused | mean error | mean 95 % half-width | "
@@ -350,7 +412,7 @@ def markdown(doc: dict[str, Any]) -> str:
         if row.get("refused"):
             out.append(f"| {row['lens']} | refused: {row['refused'][:160]} | | | | | |")
             continue
-        for how in ("default (one setting)", "thick (bracket, P fitted)"):
+        for how in ("default (one setting)", *BRACKET_FITS.values()):
             fr = row["fits"].get(how)
             if fr is None:
                 continue

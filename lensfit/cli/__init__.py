@@ -271,10 +271,19 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--wide-open", action="store_true",
                     help="each design at its own f-number (the far setting; the near one two stops down) instead of "
                          "--f-number")
+    bl.add_argument("--bracket", choices=("wide", "narrow"), default="wide",
+                    help="wide: the near setting at a sixth of the far one's distances (inverse focus distances "
+                         "1/(8 f) apart, P fitted to a few per cent; default); narrow: at half (1/(40 f) apart, too "
+                         "narrow to fit P)")
+    bl.add_argument("--focusing", choices=("unit", "internal"), default="unit",
+                    help="unit: the whole lens moves (default); internal: the group behind the stop (else the one in "
+                         "front of it) moves, the sensor fixed, so f, N and P change per setting, and the bracket "
+                         "is fitted setting by setting")
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--record", metavar="DIR", help="also write the record DIR/lenses.json the validation page "
-                                                   "shows (docs/validation/records)")
+                                                   "shows (docs/validation/records; lenses_narrow.json, "
+                                                   "lenses_internal.json for those variants)")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=bench_lenses_command, prog="lensfit bench-lenses")
 

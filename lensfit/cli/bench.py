@@ -162,7 +162,7 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from lensfit.bench.lenses import run
+    from lensfit.bench.lenses import record_name, run
     from lensfit.runtime.jaxcache import enable_compilation_cache
 
     if not 1 <= args.spp <= 65536:
@@ -177,14 +177,15 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
             result = run(args.lens or None, spp=args.spp, f_number=None if args.wide_open else args.f_number,
                          progress=lambda m: status.update(f"benchmarking: {m}"),
                          wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep, reuse=args.reuse,
-                         designs=args.designs)
+                         designs=args.designs, bracket=args.bracket, focusing=args.focusing)
     except InputError as exc:
         raise fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
     if args.record:
         from lensfit.bench.records import record_header, write_json
 
-        result.update(record_header("lenses", " ".join(["lensfit", *sys.argv[1:]])))
-        console.print(f"wrote {write_json(args.record, 'lenses', result)}")
+        name = record_name(args.bracket, args.focusing)
+        result.update(record_header(name, " ".join(["lensfit", *sys.argv[1:]])))
+        console.print(f"wrote {write_json(args.record, name, result)}")
     if args.json:
         print(json.dumps(result, indent=1))
         return EXIT_OK

@@ -40,7 +40,8 @@ Snell's law; a ray outside a clear aperture or totally reflected is blocked. The
 runs on NumPy (float64, for analysis and tests) and inside JAX (for rendering).
 
 Layout: ``prescription`` (surfaces, paraxial data, real rays), ``files`` (shipped designs,
-inline tables, glasses), ``focus`` (conjugates, best focus, pupils, fastest f-number).
+inline tables, glasses), ``focus`` (conjugates, best focus, pupils, fastest f-number, internal
+focusing by a moving group).
 """
 
 from __future__ import annotations
@@ -51,12 +52,14 @@ from synth.lens.files import (lens_dir, list_prescriptions, prescription_from_di
                               load_prescription)
 from synth.lens.focus import (image_z, object_z, axial_rays, disk_grid, BEST_FOCUS_GRID, best_focus_image_z,
                               polychromatic_best_focus_image_z, axial_beam_clipped, fastest_f_number,
-                              real_entrance_pupil_diameter)
+                              real_entrance_pupil_diameter, check_focus_group, shift_group, group_travel,
+                              internal_focus)
 
 __all__ = [
     'D_LINE_NM', 'F_LINE_NM', 'C_LINE_NM', 'Glass', 'abbe_index', 'Surface', 'Prescription', 'Paraxial',
     'paraxial', 'reverse', 'trace', 'lens_dir', 'list_prescriptions', 'prescription_from_dict',
     'glass_catalogue', 'load_prescription', 'image_z', 'object_z', 'axial_rays', 'disk_grid',
     'BEST_FOCUS_GRID', 'best_focus_image_z', 'polychromatic_best_focus_image_z', 'axial_beam_clipped',
-    'fastest_f_number', 'real_entrance_pupil_diameter',
+    'fastest_f_number', 'real_entrance_pupil_diameter', 'check_focus_group', 'shift_group', 'group_travel',
+    'internal_focus',
 ]

@@ -158,3 +158,124 @@ def real_entrance_pupil_diameter(rx: Prescription, object_z_mm: float) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if passes(mid) else (lo, mid)
     return 2.0 * lo
+
+
+#: Least axial-and-edge clearance (mm) a moving focus group keeps from its neighbours.
+GROUP_CLEARANCE_MM = 0.05
+
+
+def _sag(radius_mm: float, h: np.ndarray) -> np.ndarray:
+    """z of a spherical surface at height ``h`` from its vertex (0 where flat)."""
+    if math.isinf(radius_mm):
+        return np.zeros_like(h)
+    return radius_mm - math.copysign(1.0, radius_mm) * np.sqrt(np.maximum(radius_mm * radius_mm - h * h, 0.0))
+
+
+def _clearance(front, back, gap_mm: float) -> float:
+    """Least axial distance between two neighbouring surfaces ``gap_mm`` apart on the axis, over
+    the heights both clear apertures share."""
+    h = np.linspace(0.0, min(front.semi_aperture_mm, back.semi_aperture_mm), 64)
+    return float(np.min(gap_mm + _sag(back.radius_mm, h) - _sag(front.radius_mm, h)))
+
+
+def check_focus_group(rx: Prescription, group: tuple[int, int]) -> str | None:
+    """Why ``group`` (first and last surface index, inclusive) cannot move inside ``rx`` as a
+    focus group, or None where it can: both indices on the lens, in order, and not the whole lens
+    (which is unit focusing)."""
+    first, last = group
+    n = len(rx.surfaces)
+    if not 0 <= first <= last < n:
+        return f"surface indices first <= last from 0 to {n - 1} ({rx.name} has {n} surfaces)"
+    if first == 0 and last == n - 1:
+        return "a group short of the whole lens (moving every surface is unit focusing)"
+    if rx.surfaces[last].n != 1.0 or (first > 0 and rx.surfaces[first - 1].n != 1.0):
+        return "a group bounded by air on both sides (it may not split a cemented element or a glass)"
+    return None
+
+
+def shift_group(rx: Prescription, group: tuple[int, int], shift_mm: float) -> tuple[Prescription, float]:
+    """``rx`` with the surfaces ``group[0]..group[1]`` moved ``shift_mm`` towards the image, the
+    other surfaces and the sensor staying where they are; and how far the lens coordinates
+    (first vertex at 0) moved against the fixed frame (the unshifted lens's): non-zero only where
+    the group holds the first surface, which then moves, so that a fixed z is z - that in the
+    shifted lens's coordinates."""
+    first, last = group
+    surfaces = list(rx.surfaces)
+    if first > 0:
+        surfaces[first - 1] = replace(surfaces[first - 1], thickness_mm=surfaces[first - 1].thickness_mm + shift_mm)
+    if last < len(surfaces) - 1:
+        surfaces[last] = replace(surfaces[last], thickness_mm=surfaces[last].thickness_mm - shift_mm)
+    return replace(rx, surfaces=tuple(surfaces)), (shift_mm if first == 0 else 0.0)
+
+
+def group_travel(rx: Prescription, group: tuple[int, int], sensor_z_mm: float) -> tuple[float, float]:
+    """The shifts (mm, + towards the image) the focus group can take before it comes within
+    ``GROUP_CLEARANCE_MM`` of a neighbouring surface (anywhere over their shared clear
+    apertures) or, as the last group, of the sensor at ``sensor_z_mm``."""
+    first, last = group
+    s = rx.surfaces
+    # A front group has nothing ahead of it: half the EFL forward is far beyond any close focus.
+    lo = (-0.5 * paraxial(rx).efl_mm if first == 0 else
+          -(_clearance(s[first - 1], s[first], s[first - 1].thickness_mm) - GROUP_CLEARANCE_MM))
+    if last < len(s) - 1:
+        hi = _clearance(s[last], s[last + 1], s[last].thickness_mm) - GROUP_CLEARANCE_MM
+    else:
+        # the last surface's rim may reach behind its vertex (a convex rear surface's does not)
+        rim = float(np.max(_sag(s[last].radius_mm, np.linspace(0.0, s[last].semi_aperture_mm, 64))))
+        hi = sensor_z_mm - float(rx.vertices_mm()[-1]) - max(rim, 0.0) - GROUP_CLEARANCE_MM
+    return lo, hi
+
+
+def internal_focus(rx: Prescription, group: tuple[int, int], focus_distance_mm: float, sensor_z_mm: float,
+                   wavelengths_nm: tuple[float, ...] = (), focus_plane: str = "best",
+                   steps: int = 48) -> tuple[Prescription, float]:
+    """Focus ``rx`` (stopped) on ``focus_distance_mm`` (from its entrance pupil, which moves
+    with the group when the stop or the glass in front of it does) by moving the focus group
+    alone, the sensor fixed at ``sensor_z_mm`` (lens coordinates of ``rx``): the shifted lens and
+    the shift (mm, + towards the image), the smallest one that puts the best focus (or the
+    paraxial image) of the axial point at that distance on the sensor.
+
+    Raises ValueError where no shift within the group's travel (:func:`group_travel`) does."""
+    rxs = [rx.at_wavelength(w) for w in wavelengths_nm] if wavelengths_nm else [rx]
+
+    def miss(shift: float, grid: int = BEST_FOCUS_GRID) -> float:
+        moved = [shift_group(r, group, shift) for r in rxs]
+        shifted, moved_by = moved[0]
+        z_obj = paraxial(shifted).entrance_pupil_z_mm - focus_distance_mm
+        if focus_plane == "best":
+            z_img = polychromatic_best_focus_image_z([m for m, _ in moved], z_obj, grid)
+        else:
+            z_img = image_z(shifted, z_obj)
+        return z_img - (sensor_z_mm - moved_by)
+
+    lo, hi = group_travel(rx, group, sensor_z_mm)
+    if not lo < hi:
+        raise ValueError(f"the focus group (surfaces {group[0]}-{group[1]}) has no room to move")
+    # Coarse grid first (a smaller pupil grid): the sign change nearest the design position.
+    grid = np.unique(np.concatenate([np.linspace(lo, hi, steps), [0.0]]))
+    grid = grid[(grid >= lo) & (grid <= hi)]
+    values = []
+    for s in grid:
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):  # rays lost at a far position: blocked
+                values.append(miss(float(s), 41))
+        except ValueError:  # rays cut off at this position: no focus there
+            values.append(math.nan)
+    values = np.asarray(values)
+    brackets = [(grid[i], grid[i + 1]) for i in range(len(grid) - 1)
+                if np.isfinite(values[i]) and np.isfinite(values[i + 1]) and values[i] * values[i + 1] <= 0.0]
+    if not brackets:
+        raise ValueError(f"moving the focus group (surfaces {group[0]}-{group[1]}) from {lo:+.2f} to {hi:+.2f} mm "
+                         f"does not focus {focus_distance_mm:g} mm on the sensor")
+    a, b = min(brackets, key=lambda ab: min(abs(ab[0]), abs(ab[1])))
+    from scipy.optimize import brentq
+
+    fa, fb = miss(float(a)), miss(float(b))
+    if fa * fb > 0.0:  # the fine pupil grid moved the root a little: widen by one step each way
+        step = (hi - lo) / steps
+        a, b = max(lo, a - step), min(hi, b + step)
+        fa, fb = miss(float(a)), miss(float(b))
+        if fa * fb > 0.0:
+            raise ValueError(f"the focus group's position for {focus_distance_mm:g} mm could not be bracketed")
+    shift = float(brentq(miss, float(a), float(b), xtol=1e-9, rtol=1e-12))
+    return shift_group(rx, group, shift)[0], shift
