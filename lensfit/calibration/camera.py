@@ -15,6 +15,7 @@ the pose is flagged ``ambiguous`` when the runner-up is nearly as good.
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -279,7 +280,8 @@ class _Calibration:
         ``JACKKNIFE_MIN_VIEWS`` views or more the leave-one-view-out spread, each view's shift
         weighted by its leverage; with fewer, the residuals read through the refined corners'
         covariance (:func:`correlated_sigma` at ``solution``: the calibration's K, distortion
-        and poses), else OpenCV's sigma.
+        and poses), else OpenCV's sigma, either with ``MODEL_PRIOR_DOF`` degrees of freedom (its
+        worth as the jackknife's prior: 3-5 views cannot show how far they disagree).
 
         OpenCV's sigma assumes independent corner errors; corners on blurred views err per view
         (the views disagree by more than noise explains), which the jackknife sees directly. On
@@ -306,7 +308,10 @@ class _Calibration:
         if model is None:
             model, method = correlated_sigma(usable, *solution, flags | extra, independent=True), "opencv"
         if n < JACKKNIFE_MIN_VIEWS:
-            return (sigma_opencv if model is None else model), method, 0.0, 0.0
+            # too few views for a jackknife: the model's sigma alone, worth the degrees of freedom
+            # it has as the jackknife's prior (it misses where the views disagree beyond the
+            # corners' noise, which few views cannot show)
+            return (sigma_opencv if model is None else model), method, MODEL_PRIOR_DOF, 0.0
         # each leave-one-out calibration started from the whole one's intrinsics: the same
         # minimum (sigma within 1e-7), 13 % less time than OpenCV's own start from homographies;
         # the leverages from the inverse information equilibrated (OpenCV's reported sigma
@@ -371,13 +376,21 @@ FEW_VIEWS_DOF = 3.0
 def few_informative_views(intrinsics: dict[str, Intrinsics]) -> list[str]:
     """Warnings for calibrations whose focal length rests on few of their views (the jackknife's
     own degrees of freedom, ``informative_views`` less one, under ``FEW_VIEWS_DOF``,
-    :func:`jackknife_dof`; before its pooling with the model): its interval is then wide, and
-    tilted views would narrow it."""
-    return [f"setting {label!r}: its focal length rests on about {v.informative_views:.1f} of its "
-            f"{v.views} views, its interval on Student's t with {v.focal_length_sigma_dof:.1f} degrees of freedom "
-            "(wide); add views of the targets tilted by 20-40 degrees"
-            for label, v in intrinsics.items()
-            if v.focal_length_sigma_method == "jackknife" and 0.0 < v.informative_views - 1.0 < FEW_VIEWS_DOF]
+    :func:`jackknife_dof`; before its pooling with the model), or on too few for a jackknife at
+    all: its interval is then wide, and more views, tilted ones, would narrow it."""
+    out = []
+    for label, v in intrinsics.items():
+        if v.focal_length_sigma_method == "jackknife" and 0.0 < v.informative_views - 1.0 < FEW_VIEWS_DOF:
+            out.append(f"setting {label!r}: its focal length rests on about {v.informative_views:.1f} of its "
+                       f"{v.views} views, its interval on Student's t with {v.focal_length_sigma_dof:.1f} degrees of "
+                       "freedom (wide); add views of the targets tilted by 20-40 degrees")
+        elif (v.source == "calibrated" and v.focal_length_sigma_method in ("corner covariance", "opencv")
+              and 0 < v.focal_length_sigma_dof < math.inf):
+            out.append(f"setting {label!r}: its focal length rests on {v.views} views, too few for their spread to "
+                       f"be measured ({JACKKNIFE_MIN_VIEWS} or more): its sigma is the corners' model's, its interval "
+                       f"on Student's t with {v.focal_length_sigma_dof:.0f} degrees of freedom (wide); add views of the "
+                       "targets, tilted by 20-40 degrees")
+    return out
 
 
 def estimate_pose(det: Detection, intr: Intrinsics) -> TargetPose | None:

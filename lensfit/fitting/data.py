@@ -111,8 +111,11 @@ def samples_from(samples: Any) -> tuple[list[Sample], dict[str, Any]]:
         ctx = {"pixel_pitch_mm": samples.pixel_pitch_mm,
                "focal_length_px": {k: v.focal_length_px for k, v in samples.intrinsics.items()},
                "focal_length_sigma_px": {k: v.focal_length_sigma_px for k, v in samples.intrinsics.items()},
+               # a jackknife's degrees of freedom, or those a model's sigma from too few views for
+               # one is worth (lensfit.calibration.camera.MODEL_PRIOR_DOF); else a Gaussian sigma
                "focal_length_dof": {k: (v.focal_length_sigma_dof or float(max(v.views - 1, 1)))
                                     if v.focal_length_sigma_method == "jackknife"
+                                    else (v.focal_length_sigma_dof or math.inf) if v.source == "calibrated"
                                     else math.inf for k, v in samples.intrinsics.items()},
                # settings whose calibration fitted no lens distortion, and those whose did (their
                # readings taken through it where flagged distortion_scaled; lensfit.fitting.constants:

@@ -249,7 +249,8 @@ def compare_with_truth(result: FitResult, truth: dict[str, Any]) -> list[dict[st
     per_setting = truth.get("settings") if isinstance(truth.get("settings"), dict) else {}
     for label, qs in result.settings.items():
         t = per_setting.get(label) if isinstance(per_setting.get(label), dict) else {}
-        for qn, tv in (("focal_length_mm", true_f), *((q, t.get(q)) for q in (
+        # a lens that breathes (internal focusing) has its own focal length per setting
+        for qn, tv in (("focal_length_mm", t.get("focal_length_mm", true_f)), *((q, t.get(q)) for q in (
                 "f_number", "focus_distance_mm", "focus_distance_from_sensor_mm", "sensor_distance_mm",
                 "aperture_diameter_mm"))):
             if isinstance(tv, bool) or not isinstance(tv, (int, float)) or qn not in qs:

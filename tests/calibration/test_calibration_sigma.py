@@ -349,3 +349,43 @@ def test_a_jackknife_over_few_informative_views_takes_their_degrees_of_freedom()
 
     said = few_informative_views({"a": intr})
     assert len(said) == 1 and "tilted by 20-40 degrees" in said[0] and "of its 10 views" in said[0], said
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_too_few_views_for_a_jackknife_take_the_models_degrees_of_freedom(seed):
+    """Four views (too few for a jackknife): the sigma is the corners' model's alone, which cannot
+    see an error each view shares across its corners (here a smooth warp of the view's corners
+    of 0.05 px, as large as their independent noise, which defocus or a board's flatness make).
+    On t with ``MODEL_PRIOR_DOF`` degrees of freedom the 95 % intervals of 60 simulated
+    calibrations held the truth in 93-98 % of them (seeds 1-2), where a Gaussian one (how they
+    counted before) held it in 52-68 %; without the warp both hold (t: 100 %, Gaussian 93 %)."""
+    import cv2
+    from scipy.stats import t as student
+
+    from lensfit.calibration.camera import MODEL_PRIOR_DOF, few_informative_views
+
+    rng = np.random.default_rng(seed)
+    poses = [(rng.normal(0, 0.5 if i % 2 == 0 else 0.08, 3),
+              np.array([rng.normal(0, 20), rng.normal(0, 20), 1000 + rng.normal(0, 100)])) for i in range(4)]
+    gx, gy = np.meshgrid(np.arange(10) * 20.0, np.arange(7) * 20.0)
+    obj = np.stack([gx.ravel() - 90, gy.ravel() - 60, 0 * gx.ravel()], 1)
+    K = np.array([[F_PX, 0, (W - 1) / 2], [0, F_PX, (H - 1) / 2], [0, 0, 1]])
+    held_t, held_gauss = [], []
+    for _ in range(60):
+        dets = []
+        for r, t in poses:
+            p = cv2.projectPoints(obj, r, t, K, np.zeros(5))[0].reshape(-1, 2)
+            d = (p - p.mean(0)) / np.abs(p - p.mean(0)).max()
+            a = rng.normal(0, 0.05, 4)
+            warp = np.stack([a[0] * d[:, 0] ** 2 + a[1] * d[:, 1] ** 2, a[2] * d[:, 0] * d[:, 1] + a[3] * d[:, 1] ** 2], 1)
+            dets.append(Detection("board", obj, p + warp + rng.normal(0, 0.05, p.shape), np.arange(len(obj))))
+        intr = calibrate({"a": dets}, (H, W))["a"]
+        assert intr.focal_length_sigma_method != "jackknife"
+        assert intr.focal_length_sigma_dof == MODEL_PRIOR_DOF
+        z = abs(intr.focal_length_px - F_PX) / intr.focal_length_sigma_px
+        held_t.append(z <= student.ppf(0.975, intr.focal_length_sigma_dof))
+        held_gauss.append(z <= 1.96)
+    assert np.mean(held_t) >= 0.9, np.mean(held_t)
+    assert np.mean(held_gauss) < 0.8, np.mean(held_gauss)  # the error the model alone misses
+    said = few_informative_views({"a": intr})
+    assert len(said) == 1 and "4 views, too few" in said[0] and "tilted by 20-40 degrees" in said[0], said

@@ -155,3 +155,23 @@ def test_a_thin_lens_refuses_a_focus_group():
     spec["lens"] = {"focal_length_mm": 24.0, "f_number": 5.6, "focus_distance_mm": 1000.0, "focusing": "internal"}
     with pytest.raises(SpecError, match="lens.focusing"):
         scene_from_dict(spec)
+
+
+def test_a_fit_is_judged_against_each_settings_own_focal_length():
+    """The comparison with truth.json (the CLI's truth column, results.json's truth_comparison)
+    takes a breathing lens's per-setting EFL, not the one at infinity focus."""
+    from types import SimpleNamespace
+
+    from lensfit.fitting.result import Estimate, compare_with_truth
+
+    scene = scene_from_dict(bracket_scene())
+    truth = {"focal_length_mm": scene.focal_length_mm,
+             "settings": {s.setting: {"focal_length_mm": s.camera.focal_length_mm, "f_number": s.camera.f_number}
+                          for s in scene.shots}}
+    estimates = {label: {"focal_length_mm": Estimate(t["focal_length_mm"], 0.1, ci95=(t["focal_length_mm"] - 0.2,
+                                                                                      t["focal_length_mm"] + 0.2))}
+                 for label, t in truth["settings"].items()}
+    rows = compare_with_truth(SimpleNamespace(settings=estimates), truth)
+    assert {r["setting"] for r in rows} == {"near", "far"}
+    assert all(r["relative_error"] == 0.0 and r["within_ci95"] for r in rows)
+    assert any(abs(t["focal_length_mm"] / scene.focal_length_mm - 1) > 0.01 for t in truth["settings"].values())
