@@ -140,6 +140,9 @@ def print_fit(result, document) -> None:
         how = {"fitted": "fitted", "prior": pm.get("reason") or "from the stated range",
                "assumed": "assumed"}[pm["source"]]
         spread = f" ± {pm['sigma']:.3g}" if pm["sigma"] else ""
+        lo, hi = pm.get("ci95") or (None, None)
+        if pm["sigma"] and lo is not None:
+            spread += f", 95 % [{lo:.3g}, {hi:.3g}]" if hi is not None else f", 95 % from {lo:.3g} up"
         print(f"pupil magnification P = {pm['value']:.4g}{spread} ({how}); distances are from the entrance pupil")
     print(f"{d['samples']} samples, {d['outliers']} outlier(s), RMS residual {num(d['rms_residual_px'], '.3f')} px, "
           f"reduced chi-square {num(d['chi2_reduced'], '.2f')}, condition number "

@@ -16,8 +16,8 @@ from lensfit.fitting.constants import (BLUR_SCALE2_MIN, FIELD_CURVATURE_MODES, F
 from lensfit.fitting.data import FitData, prepare
 from lensfit.fitting import nominal, stages
 from lensfit.fitting.focusing import merge, one_setting, subset, with_lens
-from lensfit.fitting.identifiability import (capture_problems, curvature_estimate, field_spread, one_sided, pupil_mode,
-                                             second_vertex)
+from lensfit.fitting.identifiability import (PHOTOGRAPHIC_P_NOTE, capture_problems, curvature_estimate, field_spread,
+                                             one_sided, photographic_p_interval, pupil_mode, second_vertex)
 from lensfit.fitting.model import Layout, vector_size
 from lensfit.fitting.result import Estimate, FitResult, Outcome, parameter_labels
 from lensfit.fitting.solve import image_scatter, padded_size, predict_all
@@ -344,6 +344,10 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
     else:
         sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
         p_est = dataclasses.replace(positive_estimate(math.exp(theta[i_p]), sd_p, z), reason=p_note)
+        if p_source == "prior" and p_note == PHOTOGRAPHIC_P_NOTE:  # the reach f and N were given
+            p_hat = math.exp(theta[i_p])
+            p_est = dataclasses.replace(p_est, ci68=photographic_p_interval(p_hat, sd_p, z[0]),
+                                        ci95=photographic_p_interval(p_hat, sd_p, z[1]))
         if parts:
             p_est = dataclasses.replace(p_est, shares=shares_of({src: max(float(c[i_p, i_p]), 0.0)
                                                                for src, c in parts.items()}, sd_p**2))

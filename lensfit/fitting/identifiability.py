@@ -72,6 +72,17 @@ _P_MAX_RELATIVE_SIGMA = 0.3
 PHOTOGRAPHIC_P_SIGMA_LOG = 0.6
 
 
+def photographic_p_interval(p: float, sigma_log: float, k: float) -> tuple[float, float | None]:
+    """P's interval at ``k`` sigmas where the photographic prior carries it: the reach in 1/P that
+    the intervals of f and N take (they follow 1/P, linearised in log P: 1/P = (1/p)(1 - k
+    sigma_log) to (1/p)(1 + k sigma_log)), so that P's interval states what theirs hold. Its upper
+    end is open (None) where that reach passes 1/P = 0: at 95 % every P from about 0.46 up, the
+    extreme retrofocus designs (P 4.7-7.2 among data_specs/f_number_survey.toml's) included,
+    which a log-normal interval (up to 3.2) had left out though f and N held them."""
+    lo = p / (1.0 + k * sigma_log)
+    return lo, (None if k * sigma_log >= 1.0 else p / (1.0 - k * sigma_log))
+
+
 PHOTOGRAPHIC_P_NOTE = ("not determined by the data: the spread of photographic lenses (log-normal, median 1, "
                        f"sigma {PHOTOGRAPHIC_P_SIGMA_LOG:g} in log P) is carried into f and N")
 
