@@ -126,7 +126,6 @@ def validation_markdown() -> str:
     for name, module in (("api_vs_cli", "lensfit.bench.api"), ("developed", "lensfit.bench.developed"),
                          ("lenses", "lensfit.bench.lenses"), ("lenses_narrow", "lensfit.bench.lenses"),
                          ("lenses_internal", "lensfit.bench.lenses"), ("lenses_narrow_internal", "lensfit.bench.lenses"),
-                         ("lenses_one_board", "lensfit.bench.lenses"),
                          ("stages", "lensfit.bench.stages"), ("plan_costs", "synth.plan_costs"),
                          ("synth_vs_mitsuba", "synth.bench"),
                          ("hostile", "lensfit.bench.hostile")):

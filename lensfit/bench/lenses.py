@@ -74,16 +74,14 @@ BRACKETS = {"wide": NEAR_FRACTION, "narrow": 0.5}
 
 def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
                wavelengths_nm: tuple[float, ...] = (), scale: float = 1.0, near_fraction: float = NEAR_FRACTION,
-               focus_group: tuple[int, int] | None = None, boards: int = 2) -> dict[str, Any]:
+               focus_group: tuple[int, int] | None = None) -> dict[str, Any]:
     """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f at
     ``f_number``) and the same scene at ``near_fraction`` (a sixth) of the distances with boards
-    that much smaller (setting "near": focus X / 6 at ``NEAR_STOP_FACTOR`` x ``f_number``; the
-    same pictures in pinhole terms, three times the blur); ``scale`` x 1200 x 800 px; rendered
+    that much smaller (setting "near": focus ``near_fraction`` x X at ``NEAR_STOP_FACTOR`` x
+    ``f_number``; the same pictures in pinhole terms, at a sixth three times the blur); ``scale`` x 1200 x 800 px; rendered
     grey from ``wavelengths_nm`` through the glasses' dispersion where given. Unit focusing, or
     with ``focus_group`` internal focusing by those surfaces (the sensor where the lens focuses
-    infinity). ``boards=1``: the demo's large board alone, in every shot at the poses of both
-    (near the camera it overfills the frame and is seen in part, as one board moved through the
-    depth is)."""
+    infinity)."""
     from synth.lens import load_prescription, paraxial
 
     efl = paraxial(load_prescription(name)).efl_mm
@@ -100,11 +98,6 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
     if wavelengths_nm:
         scene["lens"]["wavelengths_nm"] = [float(w) for w in wavelengths_nm]
     scene["render"] = {"effects": ["defocus"], "method": "raytrace", "samples_per_pixel": spp, "seed": 0}
-    if boards == 1:
-        board = scene["object"][-1]["id"]  # the far shots' board, the larger
-        scene["object"] = [o for o in scene["object"] if o["id"] == board]
-        scene["shot"] = [{**s, "objects": [board], "pose": [{**p, "id": board} for p in s.get("pose", [])]}
-                         for s in scene["shot"]]
     near = _scale_lengths({"object": scene["object"], "shot": scene["shot"]}, near_fraction)
     for obj in near["object"]:
         obj["id"] = f"{obj['id']}-near"
@@ -156,7 +149,7 @@ def spectral_designs() -> list[str]:
 def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 11.0,
         progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = (),
         scale: float = 1.0, keep: Path | None = None, reuse: Path | None = None,
-        designs: str = "shipped", bracket: str = "wide", focusing: str = "unit", boards: int = 2) -> dict[str, Any]:
+        designs: str = "shipped", bracket: str = "wide", focusing: str = "unit") -> dict[str, Any]:
     """Render, measure and fit every lens (with ``wavelengths_nm``: every lens with dispersion,
     rendered grey through those wavelengths); returns rows of errors and seconds. With ``keep``
     each stack is written to ``keep / NAME`` and left there (an existing stack is an error, never
@@ -168,8 +161,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     the near setting two stops down). ``bracket``: "wide" or "narrow" (``BRACKETS``);
     ``focusing``: "unit" (the whole lens moves) or "internal" (the lens's rear group, else its
     front group, moves: :func:`focus_group`; the bracket then fitted as declared, each setting
-    by itself); ``boards``: 2 (the demo's, one for the near shots and a larger one for the far
-    ones) or 1 (the larger alone)."""
+    by itself)."""
     import json
 
     from synth.lens import list_prescriptions
@@ -215,7 +207,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                     group = None if focusing == "unit" else focus_group(lens, n_far, BRACKETS[bracket])
                     scene = scene_from_dict(lens_scene(lens, f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm,
                                                        scale=scale, near_fraction=BRACKETS[bracket],
-                                                       focus_group=group, boards=boards),
+                                                       focus_group=group),
                                             f"<{name} bracket>")
                     folder = write_stack(render(scene), root / name)
                 except (InputError, SpecError) as exc:  # a design this bench cannot render so: a row saying why
@@ -267,7 +259,6 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                                         if (e := qs.get("field_curvature_per_m")) is not None}}
             rows.append(row)
     return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "bracket": bracket, "focusing": focusing,
-            "boards": boards,
             "inverse_focus_distance_gap_per_focal_length": 1.0 / (40.0 * BRACKETS[bracket]) - 1.0 / 40.0,
             "near_f_number": None if f_number is None else NEAR_STOP_FACTOR * f_number, "designs": designs,
             "scale": scale, "wavelengths_nm": list(wavelengths_nm), "reused": None if reuse is None else str(reuse),
@@ -371,10 +362,9 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def record_name(bracket: str = "wide", focusing: str = "unit", boards: int = 2) -> str:
+def record_name(bracket: str = "wide", focusing: str = "unit") -> str:
     """The record's name (its file DIR/NAME.json): one current record per variant of the suite."""
-    return ("lenses" + ("_narrow" if bracket == "narrow" else "") + ("_internal" if focusing == "internal" else "")
-            + ("_one_board" if boards == 1 else ""))
+    return "lenses" + ("_narrow" if bracket == "narrow" else "") + ("_internal" if focusing == "internal" else "")
 
 
 #: How the record's tables name the quantities.
@@ -388,8 +378,7 @@ def markdown(doc: dict[str, Any]) -> str:
     what = ("each wide open (far), two stops down (near)" if doc.get("f_number") is None else
             f"far f/{doc['f_number']:g}, near f/{doc['near_f_number']:g}")
     variant = "".join([", narrow bracket" if doc.get("bracket") == "narrow" else "",
-                       ", internal focusing" if doc.get("focusing") == "internal" else "",
-                       ", one board" if doc.get("boards") == 1 else ""])
+                       ", internal focusing" if doc.get("focusing") == "internal" else ""])
     out = [f"### Real lenses (`lensfit bench-lenses`, {doc.get('designs', 'shipped')} designs{variant})", "",
            f"`{doc.get('command', 'lensfit bench-lenses')}`, {doc.get('date', '')}, {doc.get('cores', '?')} cores. "
            f"The demo stack scaled to each design and ray traced through it ({what}, {doc['samples_per_pixel']} "

@@ -279,15 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="unit: the whole lens moves (default); internal: the group behind the stop (else the one in "
                          "front of it) moves, the sensor fixed, so f, N and P change per setting, and the bracket "
                          "is fitted setting by setting")
-    bl.add_argument("--boards", type=int, choices=(1, 2), default=2,
-                    help="2: the demo's two boards, a small one for the near shots and a large one for the far ones "
-                         "(default); 1: the large one alone in every shot, seen in part near the camera")
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--record", metavar="DIR", help="also write the record DIR/lenses.json the validation page "
                                                    "shows (docs/validation/records; lenses_narrow.json, "
-                                                   "lenses_internal.json, lenses_one_board.json for those "
-                                                   "variants)")
+                                                   "lenses_internal.json for those variants)")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=bench_lenses_command, prog="lensfit bench-lenses")
 
