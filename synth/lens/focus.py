@@ -180,8 +180,8 @@ def _clearance(front, back, gap_mm: float) -> float:
 
 def check_focus_group(rx: Prescription, group: tuple[int, int]) -> str | None:
     """Why ``group`` (first and last surface index, inclusive) cannot move inside ``rx`` as a
-    focus group, or None where it can: both indices on the lens, in order, and not the whole lens
-    (which is unit focusing)."""
+    focus group, or None where it can: both indices on the lens, in order, not the whole lens
+    (which is unit focusing), and air on both sides of the group."""
     first, last = group
     n = len(rx.surfaces)
     if not 0 <= first <= last < n:
