@@ -21,8 +21,8 @@ focus (``focus_plane = "best"``). Three fits per lens:
 
 Variants: ``bracket="narrow"`` puts the near setting at half the far one's distances (inverse
 focus distances 1/(40 f) apart: P not determined, so carried); ``focusing="internal"`` renders
-each design focused by moving one group (:func:`focus_group`), its stack saying so, and the
-bracket fit is then each setting by itself, judged against each setting's own EFL.
+each design focused by moving one group (:func:`internally_focused_scene`), its stack saying
+so, and the bracket fit is then each setting by itself, judged against each setting's own EFL.
 
 Errors are against the truth.json of each stack: the prescription's paraxial EFL, f-number =
 EFL / entrance-pupil diameter, and the focus distance from the entrance pupil (the distance
@@ -160,8 +160,8 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     as lens files beside the stacks); ``f_number`` None: each design wide open (its own f-number,
     the near setting two stops down). ``bracket``: "wide" or "narrow" (``BRACKETS``);
     ``focusing``: "unit" (the whole lens moves) or "internal" (the lens's rear group, else its
-    front group, moves: :func:`focus_group`; the bracket then fitted as declared, each setting
-    by itself)."""
+    front group, moves: :func:`internally_focused_scene`; the bracket then fitted as declared,
+    each setting by itself)."""
     import json
 
     from synth.lens import list_prescriptions
@@ -204,11 +204,10 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                 lens = name if path is None else str(path)
                 n_far = f_number if f_number is not None else _wide_open(lens, design_n)
                 try:
-                    group = None if focusing == "unit" else focus_group(lens, n_far, BRACKETS[bracket])
-                    scene = scene_from_dict(lens_scene(lens, f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm,
-                                                       scale=scale, near_fraction=BRACKETS[bracket],
-                                                       focus_group=group),
-                                            f"<{name} bracket>")
+                    args = dict(f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm, scale=scale,
+                                near_fraction=BRACKETS[bracket])
+                    scene = (scene_from_dict(lens_scene(lens, **args), f"<{name} bracket>") if focusing == "unit"
+                             else internally_focused_scene(lens, f"<{name} bracket>", **args))
                     folder = write_stack(render(scene), root / name)
                 except (InputError, SpecError) as exc:  # a design this bench cannot render so: a row saying why
                     rows.append({"lens": name, "refused": f"not rendered: {exc}", "fits": {}})
@@ -270,28 +269,22 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
 BRACKET_FITS = {False: "thick (bracket, P fitted)", True: "bracket, focusing internal (per setting)"}
 
 
-def focus_group(lens: str, f_number: float, near_fraction: float) -> tuple[int, int]:
-    """The group that focuses ``lens`` internally for :func:`lens_scene`'s settings: everything
-    behind the stop (rear focusing, the common modern choice) where it reaches both focus
-    distances from the sensor at infinity focus, else everything in front of it (front-cell
-    focusing). Raises InputError where neither does."""
-    import math
-
-    from synth.lens import best_focus_image_z, check_focus_group, internal_focus, load_prescription, paraxial
+def internally_focused_scene(lens: str, where: str, **scene_args):
+    """:func:`lens_scene` (with ``scene_args``) resolved by synth with ``lens`` focusing
+    internally: everything behind the stop moving (rear focusing, the common modern choice)
+    where synth can focus both settings so, else everything in front of it (front-cell
+    focusing). Raises InputError, with synth's reasons, where neither group does."""
+    from synth.lens import check_focus_group, load_prescription
+    from synth.scene import scene_from_dict
 
     rx = load_prescription(lens)
-    stopped = rx.with_f_number(f_number)
-    efl, k = paraxial(rx).efl_mm, rx.stop_index
-    sensor = best_focus_image_z(stopped, -math.inf)
-    why = []
+    k, why = rx.stop_index, []
     for group in ((k + 1, len(rx.surfaces) - 1), (0, k - 1)):
         if check_focus_group(rx, group) is not None:
             continue
         try:
-            for X, N in ((40.0 * efl, f_number), (40.0 * efl * near_fraction, NEAR_STOP_FACTOR * f_number)):
-                internal_focus(rx.with_f_number(N), group, X, sensor)
-            return group
-        except ValueError as exc:
+            return scene_from_dict(lens_scene(lens, focus_group=group, **scene_args), where)
+        except SpecError as exc:
             why.append(str(exc))
     raise InputError("focusing", "internal", f"a group of {rx.name} that focuses both settings",
                      "; ".join(why) or "it has no air-bounded group on either side of its stop")

@@ -342,10 +342,9 @@ def _fit(data: FitData, loss: str, blur_floor_px: float | None, floor_prior_sigm
         p_est = Estimate(P0, 0.0, (P0, P0), (P0, P0),
                          "assumed (a thin lens)" if thin else "assumed (given as pupil_magnification)")
     else:
-        sd_p = math.sqrt(max(full_cov[i_p, i_p], 0.0))
-        p_est = dataclasses.replace(positive_estimate(math.exp(theta[i_p]), sd_p, z), reason=p_note)
+        sd_p, p_hat = math.sqrt(max(full_cov[i_p, i_p], 0.0)), math.exp(theta[i_p])
+        p_est = dataclasses.replace(positive_estimate(p_hat, sd_p, z), reason=p_note)
         if p_source == "prior" and p_note == PHOTOGRAPHIC_P_NOTE:  # the reach f and N were given
-            p_hat = math.exp(theta[i_p])
             p_est = dataclasses.replace(p_est, ci68=photographic_p_interval(p_hat, sd_p, z[0]),
                                         ci95=photographic_p_interval(p_hat, sd_p, z[1]))
         if parts:
