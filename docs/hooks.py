@@ -123,9 +123,10 @@ def validation_markdown() -> str:
     parts = [suite_table(r) for r in records] or [
         "No benchmark record yet: run `lensfit bench --suite NAME --out DIR --record docs/validation/records`."]
     # the other benchmarks' records, each shown by its own module's markdown()
+    # (bench-lenses writes one record per variant, lenses*.json: lensfit.bench.lenses.record_name)
+    lenses = sorted(p.stem for p in folder.glob("lenses*.json"))
     for name, module in (("api_vs_cli", "lensfit.bench.api"), ("developed", "lensfit.bench.developed"),
-                         ("lenses", "lensfit.bench.lenses"), ("lenses_narrow", "lensfit.bench.lenses"),
-                         ("lenses_internal", "lensfit.bench.lenses"), ("lenses_narrow_internal", "lensfit.bench.lenses"),
+                         *((name, "lensfit.bench.lenses") for name in lenses),
                          ("stages", "lensfit.bench.stages"), ("plan_costs", "synth.plan_costs"),
                          ("synth_vs_mitsuba", "synth.bench"),
                          ("hostile", "lensfit.bench.hostile")):

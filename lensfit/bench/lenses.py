@@ -355,9 +355,13 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def record_name(bracket: str = "wide", focusing: str = "unit") -> str:
-    """The record's name (its file DIR/NAME.json): one current record per variant of the suite."""
-    return "lenses" + ("_narrow" if bracket == "narrow" else "") + ("_internal" if focusing == "internal" else "")
+def record_name(bracket: str = "wide", focusing: str = "unit", designs: str = "optiland",
+                f_number: float | None = None) -> str:
+    """The record's name (its file DIR/NAME.json): one current record per variant of the suite
+    (optiland's designs wide open: ``lenses``; the shipped designs, a given f-number, a narrow
+    bracket, internal focusing each add to it, e.g. ``lenses_f5.6_narrow``)."""
+    return ("lenses" + ("_shipped" if designs == "shipped" else "") + ("" if f_number is None else f"_f{f_number:g}")
+            + ("_narrow" if bracket == "narrow" else "") + ("_internal" if focusing == "internal" else ""))
 
 
 #: How the record's tables name the quantities.

@@ -282,8 +282,10 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--record", metavar="DIR", help="also write the record DIR/lenses.json the validation page "
-                                                   "shows (docs/validation/records; lenses_narrow.json, "
-                                                   "lenses_internal.json for those variants)")
+                                                   "shows (docs/validation/records), one per variant: optiland's "
+                                                   "designs wide open lenses.json; the shipped designs, a given "
+                                                   "--f-number, a narrow bracket and internal focusing name it "
+                                                   "further (lenses_shipped_f11.json, lenses_f5.6_narrow.json, ...)")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=bench_lenses_command, prog="lensfit bench-lenses")
 

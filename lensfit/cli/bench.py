@@ -183,7 +183,7 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
     if args.record:
         from lensfit.bench.records import record_header, write_json
 
-        name = record_name(args.bracket, args.focusing)
+        name = record_name(args.bracket, args.focusing, args.designs, None if args.wide_open else args.f_number)
         result.update(record_header(name, " ".join(["lensfit", *sys.argv[1:]])))
         console.print(f"wrote {write_json(args.record, name, result)}")
     if args.json:

@@ -115,6 +115,21 @@ def test_bench_lenses_shows_p_only_where_the_bracket_fit_gave_every_quantity():
     assert p_fitted_text("thick (bracket, P fitted)", dict(fit_row, result="not_identifiable")) == ""
 
 
+def test_bench_lenses_variants_never_write_one_record():
+    """Each variant's --record is its own file, the existing ones' names kept: a run of one variant
+    never replaces another's record."""
+    import itertools
+
+    from lensfit.bench.lenses import record_name
+
+    variants = list(itertools.product(("wide", "narrow"), ("unit", "internal"), ("optiland", "shipped"),
+                                      (None, 5.6, 11.0, 2.8)))
+    names = [record_name(*v) for v in variants]
+    assert len(set(names)) == len(variants)
+    assert record_name() == "lenses" and record_name("narrow", "internal") == "lenses_narrow_internal"
+    assert record_name("wide", "unit", "optiland", 5.6) == "lenses_f5.6"
+
+
 @pytest.mark.parametrize("bracket, gap", [("wide", 1 / 8), ("narrow", 1 / 40)])
 def test_bench_lenses_brackets_are_the_inverse_focus_gaps_the_issue_names(bracket, gap):
     """The scene bench-lenses renders: the two settings' focus distances (from the entrance
