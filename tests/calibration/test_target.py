@@ -162,3 +162,42 @@ def test_detection_copies_are_made_in_blocks_when_asked_with_the_same_values():
     for got, want in zip(targets.detection_copies(large), exact):
         diff = np.abs(got.astype(int) - want.astype(int))
         assert diff.max() <= 1 and (diff == 0).mean() > 0.9
+
+
+def test_a_board_whose_markers_the_blur_took_is_found_by_its_squares(calibration_stack):
+    """Blurred until its markers no longer read, a ChArUco board is found by its squares: every
+    corner where the markers put it on the sharp image (their ids the truth; a board of even
+    squares is the same board turned half a turn), oriented so that its dark squares lie where
+    the board's are. Its mirror image, which no camera sees, is not taken."""
+    import cv2
+
+    from lensfit.calibration.targets import Target, detection_copies
+    from lensfit.io.images import read_image
+    from lensfit.io.stack import load_stack
+
+    stack = load_stack(calibration_stack)
+    target = Target(stack.targets[0])
+    nx, ny = target.spec["squares"]
+    n = (nx - 1) * (ny - 1)
+    turned = np.arange(n)[::-1]  # (half a turn of the 6 x 4 board relabels corner k as n - 1 - k)
+    tried = 0
+    for entry in stack.images:
+        sharp = read_image(entry.file)
+        truth = target.detect(sharp)
+        if truth is None or len(truth.ids) < n:
+            continue
+        where = dict(zip(truth.ids.tolist(), truth.image_points_px))
+        spacing = float(np.median(np.linalg.norm(np.diff(truth.image_points_px.reshape(ny - 1, nx - 1, 2), axis=1),
+                                                 axis=2)))
+        blurred = cv2.GaussianBlur(sharp, (0, 0), 0.12 * spacing)
+        if target.detect(blurred) is not None:
+            continue  # the markers still read
+        tried += 1
+        found = target.detect_squares(detection_copies(blurred))
+        assert found is not None and len(found.ids) == n, entry.file.name
+        as_is = max(np.linalg.norm(found.image_points_px[k] - where[int(i)]) for k, i in enumerate(found.ids))
+        half_turn = max(np.linalg.norm(found.image_points_px[k] - where[int(turned[i])]) for k, i in enumerate(found.ids))
+        assert min(as_is, half_turn) < 0.05 * spacing, (entry.file.name, as_is, half_turn)
+        assert np.allclose(found.object_points_mm, target.inner_corners_mm()[found.ids])
+        assert target.detect_squares(detection_copies(np.ascontiguousarray(blurred[:, ::-1]))) is None
+    assert tried >= 2
