@@ -374,12 +374,10 @@ class Target:
                                borderMode=cv2.BORDER_REPLICATE).reshape(ny * nx, -1).mean(axis=1)
             mean = values.reshape(ny, nx)
             scores.append((float(mean[~dark].mean() - mean[dark].mean()), reading))
-        if not scores:
-            return None
         best, reading = max(scores, key=lambda c: c[0])
         # a reading that puts light squares where dark ones are scores the contrast's negative;
-        # one that puts them in the same places (half a turn of a board of even squares) scores
-        # the same, and is the same board for the edges and the calibration
+        # one that puts them in the same places (half a turn of an even board, or a flip that
+        # keeps them) scores the same, and is the same board for the edges and the calibration
         floor = SQUARES_MIN_CONTRAST * float(np.ptp(grey))
         if not best > floor or any(-floor <= score < 0.95 * best for score, _ in scores):
             return None
