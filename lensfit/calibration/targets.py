@@ -107,14 +107,6 @@ class EdgeSegment:
 
 #: The gammas of the detectors' 8-bit copies (linear, and encoded as a display would).
 DETECTION_GAMMAS = (1.0, 2.2)
-#: A board found by its squares alone (``Target.detect_squares``) is oriented where its light
-#: squares average above its dark ones by at least this share of the copy's range, and every
-#: reading that swaps them averages below by as much.
-SQUARES_MIN_CONTRAST = 0.05
-#: ... and where its corners lie on one homography to within this share of their spacing, RMS
-#: (a grid the detector claimed among blurred markers was off by a fifth of a square; a lens's
-#: distortion bends a board's rows by a few percent of one).
-SQUARES_MAX_OFF_PLANE = 0.05
 
 
 def display_8bit(linear: np.ndarray, gamma: float = 1.0) -> np.ndarray:
@@ -305,84 +297,6 @@ class Target:
             if best is not None and len(best.ids) >= self.corner_count():
                 break  # every corner found: no other copy can find more (half the detector's time)
         return best
-
-    def detect_squares(self, copies: Sequence[np.ndarray]) -> Detection | None:
-        """A ChArUco board whose markers the blur made unreadable, found as the checkerboard its
-        squares form (``cv2.findChessboardCornersSB``: every inner corner or none); None where the
-        squares are not found either, or their pattern of dark and light does not say which way
-        the board lies.
-
-        The markers' bits are a fraction of a square: a board far from the focus loses them long
-        before its squares. The corners then carry no ids, so the board is oriented by its
-        squares: of the grid's two readings with the board's handedness (a board seen from the
-        front is no mirror image), as found and turned half a turn, the one whose dark squares
-        lie where the board's are, by the mean of each square's pixels (a light square holds a
-        marker, still lighter on average than a dark one). Where both fit (a board of an even
-        number of squares in all), they put every dark square and every marker's square in one
-        place: the same edges, the same clean rooms, the same calibration (only the markers'
-        contents differ, which the blur took). Which board it is must be known otherwise (the
-        caller tries it only where no other candidate has its grid)."""
-        import cv2
-
-        if self.kind != "charuco":
-            return None
-        nx, ny = self.spec["squares"]
-        for grey in copies:
-            ok, corners = cv2.findChessboardCornersSB(grey, (nx - 1, ny - 1), flags=cv2.CALIB_CB_EXHAUSTIVE
-                                                      | cv2.CALIB_CB_ACCURACY)
-            found = self._oriented_squares(grey, corners) if ok else None
-            if found is not None:
-                return found
-        return None
-
-    def _oriented_squares(self, grey: np.ndarray, corners: np.ndarray) -> Detection | None:
-        """:meth:`detect_squares`'s grid of ``corners`` in the copy ``grey``, checked and oriented."""
-        import cv2
-
-        nx, ny = self.spec["squares"]
-        grid = corners.reshape(ny - 1, nx - 1, 2).astype(np.float64)
-        obj = self.inner_corners_mm()
-        # the detector can claim a grid among the markers' blurred ink: a board is a plane, its
-        # corners on one homography to within the lens's distortion over it
-        H, _ = cv2.findHomography(obj[:, :2], grid.reshape(-1, 2))
-        spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
-        if H is None or not spacing > 0:
-            return None
-        off = cv2.perspectiveTransform(obj[:, None, :2], H).reshape(-1, 2) - grid.reshape(-1, 2)
-        if float(np.sqrt(np.mean(np.sum(off**2, axis=1)))) > SQUARES_MAX_OFF_PLANE * spacing:
-            return None
-        sq = float(self.spec["square_mm"])
-        dark = self.square_is_dark()
-        # each square's pixels, sampled on a 5 x 5 grid inside it (board mm)
-        t = (np.arange(5) + 0.5) / 5.0
-        cells = np.stack(np.meshgrid(t, t, indexing="ij"), axis=-1).reshape(-1, 2)
-        rows, cols = np.mgrid[0:ny, 0:nx]
-        centres = np.stack([cols.ravel(), rows.ravel()], axis=1)[:, None, :] + cells[None, :, :]
-        points = (centres * sq).reshape(-1, 1, 2)
-        scores = []
-        for reading in (grid, grid[::-1, ::-1], grid[:, ::-1], grid[::-1, :]):
-            a, b = np.mean(reading[:, -1] - reading[:, 0], axis=0), np.mean(reading[-1] - reading[0], axis=0)
-            if a[0] * b[1] - a[1] * b[0] <= 0:
-                continue  # a mirror image: a board seen from the front keeps its handedness
-            H, _ = cv2.findHomography(obj[:, :2], reading.reshape(-1, 2))
-            if H is None:
-                scores.append((-np.inf, reading))
-                continue
-            xy = cv2.perspectiveTransform(points, H).reshape(ny * nx, -1, 2)
-            values = cv2.remap(grey.astype(np.float32), xy[..., 0].astype(np.float32).reshape(-1, 1),
-                               xy[..., 1].astype(np.float32).reshape(-1, 1), cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_REPLICATE).reshape(ny * nx, -1).mean(axis=1)
-            mean = values.reshape(ny, nx)
-            scores.append((float(mean[~dark].mean() - mean[dark].mean()), reading))
-        best, reading = max(scores, key=lambda c: c[0])
-        # a reading that puts light squares where dark ones are scores the contrast's negative;
-        # one that puts them in the same places (half a turn of an even board, or a flip that
-        # keeps them) scores the same, and is the same board for the edges and the calibration
-        floor = SQUARES_MIN_CONTRAST * float(np.ptp(grey))
-        if not best > floor or any(-floor <= score < 0.95 * best for score, _ in scores):
-            return None
-        ids = np.arange((nx - 1) * (ny - 1))
-        return Detection(self.id, obj, reading.reshape(-1, 2), ids)
 
     def corner_count(self) -> int:
         """How many corners a detection can find at most (a whole board; a square's four)."""

@@ -311,17 +311,10 @@ class _Run:
             t1 = time.perf_counter()
             copies = detection_copies(img) if candidates[i] else []
             found = [d for d in (t.detect(img, copies) for t in candidates[i]) if d is not None]
-            if not found:  # a board whose markers the blur took, where its grid names it
-                grids = [tuple(t.spec["squares"]) for t in candidates[i] if t.kind in ("charuco", "checkerboard")]
-                alone = [t for t in candidates[i] if t.kind == "charuco" and grids.count(tuple(t.spec["squares"])) == 1]
-                found = [d for d in (t.detect_squares(copies) for t in alone) if d is not None][:1]
-                if found:
-                    by_squares.append(stack.images[i].file.name)
             for d in found:
                 _check_saturation(stack, i, img, d)
             return found, t1 - t0, time.perf_counter() - t1
 
-        by_squares: list[str] = []
         if detected is None:
             jobs = max(1, min(jobs, IN_FLIGHT_BYTES // max(DETECT_BYTES_PER_PX * stack.shape[0] * stack.shape[1], 1)))
             with self.clock.parallel(("read", "detect")) as spent:
@@ -336,10 +329,6 @@ class _Run:
         missing = [stack.images[i].file.name for i in range(n) if not self.detections[i]]
         if missing:
             self.table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
-        if by_squares:
-            self.table.warnings.append(
-                f"{len(by_squares)} image(s) show a ChArUco board whose markers the blur made unreadable: found by its "
-                f"squares alone, oriented by their pattern ({', '.join(sorted(by_squares)[:5])})")
 
     def calibrate_views(self, final: bool = True) -> dict[str, Any]:
         """Each setting's intrinsics from its views (given ones as given); views whose corners
