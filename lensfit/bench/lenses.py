@@ -374,7 +374,8 @@ def markdown(doc: dict[str, Any]) -> str:
     design's errors."""
     what = ("each wide open (far), two stops down (near)" if doc.get("f_number") is None else
             f"far f/{doc['f_number']:g}, near f/{doc['near_f_number']:g}")
-    variant = "".join([", narrow bracket" if doc.get("bracket") == "narrow" else "",
+    variant = "".join([", wide open" if doc.get("f_number") is None else f", f/{doc['f_number']:g}",
+                       ", narrow bracket" if doc.get("bracket") == "narrow" else "",
                        ", internal focusing" if doc.get("focusing") == "internal" else ""])
     out = [f"### Real lenses (`lensfit bench-lenses`, {doc.get('designs', 'shipped')} designs{variant})", "",
            f"`{doc.get('command', 'lensfit bench-lenses')}`, {doc.get('date', '')}, {doc.get('cores', '?')} cores. "
