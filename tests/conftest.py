@@ -22,6 +22,18 @@ from synth.stack import write_stack
 
 
 @pytest.fixture(scope="session")
+def camera_raw_stack(tmp_path_factory):
+    """data_specs/scenes/camera_raw.toml rendered (Bayer DNGs at f/11 with noise and
+    diffraction); read only by the tests that take it."""
+    from lensfit.io.specs import specs_dir
+    from synth.scene import load_scene
+
+    out = tmp_path_factory.mktemp("camera-raw") / "dng"
+    write_stack(render(load_scene(specs_dir() / "scenes" / "camera_raw.toml")), out)
+    return out
+
+
+@pytest.fixture(scope="session")
 def calibration_stack(tmp_path_factory):
     """A small ChArUco stack (8 shots, some tilted) rendered by synth."""
     from helpers import calibration_scene

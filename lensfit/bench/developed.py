@@ -65,8 +65,10 @@ def _develop(name: str, program: str, dngs: list[Path], out: Path, scratch: Path
 S_CURVE, USM_SIGMA_PX, USM_AMOUNT = 0.5, 1.0, 0.8
 
 
-def _in_camera(dngs: list[Path], out: Path) -> None:
-    """JPEGs of ``dngs`` through the pipeline of ``S_CURVE``, ``USM_SIGMA_PX``, ``USM_AMOUNT``."""
+def in_camera(dngs: list[Path], out: Path, usm_sigma_px: float = USM_SIGMA_PX,
+              usm_amount: float = USM_AMOUNT) -> None:
+    """JPEGs of ``dngs`` in ``out`` through the pipeline of ``S_CURVE`` and an unsharp mask of
+    ``usm_sigma_px``, ``usm_amount`` (by default ``USM_SIGMA_PX``, ``USM_AMOUNT``)."""
     import cv2
     import numpy as np
     import rawpy
@@ -78,7 +80,7 @@ def _in_camera(dngs: list[Path], out: Path) -> None:
             rgb = raw.postprocess(use_camera_wb=True, no_auto_bright=True, output_bps=16, user_flip=0)
         x = rgb.astype(np.float64) / 65535.0
         x = (1 - S_CURVE) * x + S_CURVE * (3 * x**2 - 2 * x**3)
-        x = x + USM_AMOUNT * (x - cv2.GaussianBlur(x, (0, 0), USM_SIGMA_PX))
+        x = x + usm_amount * (x - cv2.GaussianBlur(x, (0, 0), usm_sigma_px))
         Image.fromarray(np.clip(np.rint(255 * x), 0, 255).astype(np.uint8)).save(
             out / f"{dng.stem}.jpg", "JPEG", quality=90, subsampling=2)
 
@@ -170,7 +172,7 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
                 t = time.perf_counter()
                 folder = root / name.split(",")[0] / ("photos" if "," not in name else "photos-variant")
                 if name.startswith("in-camera"):
-                    _in_camera(dngs, folder)
+                    in_camera(dngs, folder)
                 elif "," in name:
                     without_software(root / "darktable" / "photos", folder)
                 else:

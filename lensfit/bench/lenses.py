@@ -78,10 +78,10 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
     """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f at
     ``f_number``) and the same scene at ``near_fraction`` (a sixth) of the distances with boards
     that much smaller (setting "near": focus ``near_fraction`` x X at ``NEAR_STOP_FACTOR`` x
-    ``f_number``; the same pictures in pinhole terms, at a sixth three times the blur); ``scale`` x 1200 x 800 px; rendered
-    grey from ``wavelengths_nm`` through the glasses' dispersion where given. Unit focusing, or
-    with ``focus_group`` internal focusing by those surfaces (the sensor where the lens focuses
-    infinity)."""
+    ``f_number``; the same pictures in pinhole terms, at a sixth three times the blur);
+    ``scale`` x 1200 x 800 px; rendered grey from ``wavelengths_nm`` through the glasses'
+    dispersion where given. Unit focusing, or with ``focus_group`` internal focusing by those
+    surfaces (the sensor where the lens focuses infinity)."""
     from synth.lens import load_prescription, paraxial
 
     efl = paraxial(load_prescription(name)).efl_mm

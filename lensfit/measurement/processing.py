@@ -320,11 +320,11 @@ def read_through(measurement: Any, table: Any, found: Processing, options: dict[
     f-number's interval carrying the model's uncertainty (the shared parameters' covariance, the
     spread between the tone curves of ``MODEL_TERMS`` and the form's, ``MODEL_FORM_SIGMA``); None
     where it does not hold them or cannot be fitted (``found.model`` says why; the caller refuses
-    N). ``measurement``: the
-    stack's ``Measurement``, its profiles kept; ``table``: its first reading; ``options``: the
-    CoC fit's; ``airy_px``: each setting's Airy scale at 550 nm from the plain fit (px), which the
-    model holds where it reaches ``MODEL_AIRY_PX``; the edges are read once more at the scale of
-    the f-number read through the model (the plain fit's is biased by the processing)."""
+    N). ``measurement``: the stack's ``Measurement``, its profiles kept; ``table``: its first
+    reading; ``options``: the CoC fit's; ``airy_px``: each setting's Airy scale at 550 nm from
+    the plain fit (px), which the model holds where it reaches ``MODEL_AIRY_PX``; the edges are
+    read once more at the scale of the f-number read through the model (the plain fit's is
+    biased by the processing)."""
     from lensfit.estimators import tone
     from lensfit.fitting import fit
     from lensfit.fitting.refits import airy_per_setting

@@ -42,9 +42,8 @@ def test_a_render_only_scene_is_refused_as_its_header_says(name, tmp_path, capsy
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
 
 
-def test_the_camera_raw_scene_fits(tmp_path):
-    out = tmp_path / "raw"
-    write_stack(render(load_scene(specs_dir() / "scenes" / "camera_raw.toml")), out)
+def test_the_camera_raw_scene_fits(camera_raw_stack):
+    out = camera_raw_stack
     from lensfit.fitting import fit
     from lensfit.measurement.measure import measure
 
