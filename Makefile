@@ -6,17 +6,24 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+# rayoptics reads the lens files of its sample designs (lensfit bench-lenses --designs rayoptics and its
+# tests); installed without its declared dependencies, which bring its Qt GUI (PySide6, hundreds of MB) that
+# its file readers never import: these are the ones they do
+RAYOPTICS := rayoptics==0.9.8 opticalglass==1.1.1 anytree==2.13.0 parsimonious==0.11.0 regex==2026.12.2 \
+             transforms3d==0.4.2 json_tricks==3.17.3 deprecation==2.1.0 traitlets==5.16.1 xlrd==2.0.2 \
+             openpyxl==3.1.5 et_xmlfile==2.0.0
 
 .PHONY: setup demo test docs docs-figures readme-table clean
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml Makefile
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "lensfit needs Python >= 3.11; found " + sys.version.split()[0] + ". Set PYTHON=/path/to/python3.11 and retry.")'
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || { echo "could not create a virtual environment with '$(PYTHON) -m venv'; on Debian/Ubuntu install python3-venv"; exit 1; }
 	@echo "installing lensfit and its dependencies into $(VENV) (log: $(VENV)/pip.log) ..."
 	@$(PY) -m pip install --quiet --upgrade pip > $(VENV)/pip.log 2>&1 || { cat $(VENV)/pip.log; exit 1; }
 	@$(PY) -m pip install --quiet -e '.[test,docs]' >> $(VENV)/pip.log 2>&1 || { cat $(VENV)/pip.log; exit 1; }
+	@$(PY) -m pip install --quiet --no-deps $(RAYOPTICS) >> $(VENV)/pip.log 2>&1 || { cat $(VENV)/pip.log; exit 1; }
 	@touch $(STAMP)
 
 demo: setup

@@ -81,6 +81,86 @@ def from_optiland(lens):
     return Prescription("optiland", tuple(rows)), float(lens.paraxial.FNO())
 
 
+#: rayoptics's sample files that hold photographic objectives, relative to its package folder
+#: (the others are telescopes, mirrors, relays, test surfaces, or aspheric designs, which synth's
+#: tracer does not take): a double Gauss f/2, Sasian's triplet f/4, a patent's 50 mm f/4.5 and a
+#: landscape lens f/10.
+RAYOPTICS_SAMPLES = ("codev/tests/ag_dblgauss.seq", "models/Sasian Triplet.roa",
+                     "zemax/tests/US00583336-2-scaled.zmx", "codev/tests/landscape_lens.seq")
+
+
+def from_rayoptics(opm, name: str):
+    """Our prescription of a rayoptics optical model (spherical refracting surfaces only, a stop
+    among them; None otherwise), at its central wavelength, with its f-number (rayoptics's
+    paraxial EFL/EPD): (prescription, f-number). The clear apertures are the ones rayoptics sets
+    from the beams of the design's fields (a file may leave some unset); the stop is set to the
+    design's entrance pupil, and a design whose paraxial data ours do not reproduce (EFL, pupil
+    magnification, back focus: a folded or decentred one) is None too. Sets ``opm``'s apertures."""
+    from synth.lens.prescription import Prescription, Surface, paraxial
+
+    sm = opm["seq_model"]
+    fod = opm["analysis_results"]["parax_data"].fod
+    wavelength = float(opm["optical_spec"]["wvls"].central_wvl)
+    if sm.stop_surface is None or not (fod.efl > 0 and fod.bfl > 0):
+        return None
+    sm.set_clear_apertures()
+    rows = []
+    for k in range(1, len(sm.ifcs) - 1):
+        ifc, gap = sm.ifcs[k], sm.gaps[k]
+        if type(getattr(ifc, "profile", None)).__name__ != "Spherical":
+            return None
+        cv = float(ifc.profile.cv)
+        radius = math.inf if cv == 0.0 else 1.0 / cv
+        semi = float(ifc.surface_od())
+        if math.isfinite(radius):
+            semi = min(semi, 0.999 * abs(radius))
+        rows.append(Surface(radius, float(gap.thi), float(gap.medium.rindex(wavelength)), semi, k == sm.stop_surface))
+    rows[-1] = Surface(rows[-1].radius_mm, 0.0, 1.0, rows[-1].semi_aperture_mm, rows[-1].stop)
+    f_number = float(fod.fno)
+    rx = Prescription(name, tuple(rows)).with_f_number(f_number)
+    ours = paraxial(rx)
+    theirs = (fod.efl, fod.exp_radius / fod.enp_radius, fod.bfl)
+    if not all(math.isclose(a, b, rel_tol=1e-6) for a, b in
+               zip((ours.efl_mm, ours.pupil_magnification, ours.bfl_mm), theirs)):
+        return None
+    return rx, f_number
+
+
+def read_rayoptics(path: Path):
+    """rayoptics's optical model of a lens file it reads: .roa (its own), .seq (CODE V), .zmx (Zemax)."""
+    import logging
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from rayoptics.codev import cmdproc
+        from rayoptics.gui.roafile import open_roa
+        from rayoptics.zemax import zmxread
+
+        # Its readers log every line they read to files in the working directory
+        # (cv_cmd_proc.log, zmx_read_lens.log): a benchmark writes nothing where it is run.
+        for reader in (cmdproc, zmxread):
+            for handler in [h for h in reader.logger.handlers if isinstance(h, logging.FileHandler)]:
+                reader.logger.removeHandler(handler)
+
+        suffix = path.suffix.lower()
+        if suffix == ".roa":
+            return open_roa(path)
+        return (cmdproc.read_lens(path) if suffix == ".seq" else zmxread.read_lens_file(path))[0]
+
+
+def rayoptics_objectives():
+    """rayoptics's all-spherical sample objectives (``RAYOPTICS_SAMPLES``): (name, prescription,
+    f-number, the file it came from)."""
+    import rayoptics
+
+    root = Path(rayoptics.__file__).parent
+    for rel in RAYOPTICS_SAMPLES:
+        name = Path(rel).stem.replace(" ", "_")
+        got = from_rayoptics(read_rayoptics(root / rel), name)
+        if got is not None:
+            yield name, got[0], got[1], f"rayoptics/{rel}"
+
+
 def effective_ratio(rx, f_number: float, x_over_f: float = X_OVER_F, grid: int = 201) -> float:
     """N_effective / (EFL/EPD) of ``rx`` stopped to ``f_number``, focused (best focus, least RMS
     spot) at ``x_over_f`` focal lengths from its entrance pupil: the V ``c = K |1/D - 1/X|``

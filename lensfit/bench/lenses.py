@@ -155,9 +155,10 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     each stack is written to ``keep / NAME`` and left there (an existing stack is an error, never
     replaced); otherwise to a temporary folder that is removed. With ``reuse`` nothing is rendered:
     the stacks a run with ``keep`` wrote there are measured and fitted again (the rendering
-    arguments are then theirs, not these). ``designs``: "shipped" (``data_specs/lenses``) or
+    arguments are then theirs, not these). ``designs``: "shipped" (``data_specs/lenses``),
     "optiland" (optiland's all-spherical sample objectives, which lensfit does not ship, written
-    as lens files beside the stacks); ``f_number`` None: each design wide open (its own f-number,
+    as lens files beside the stacks) or "rayoptics" (the photographic objectives among rayoptics's
+    sample lens files, likewise); ``f_number`` None: each design wide open (its own f-number,
     the near setting two stops down). ``bracket``: "wide" or "narrow" (``BRACKETS``);
     ``focusing``: "unit" (the whole lens moves) or "internal" (the lens's rear group, else its
     front group, moves: :func:`internally_focused_scene`; the bracket then fitted as declared,
@@ -169,12 +170,18 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     from synth.scene import scene_from_dict
     from synth.stack import write_stack
 
-    unshipped: dict[str, tuple[Any, float]] = {}  # name: (prescription, f-number) of optiland's designs
+    unshipped: dict[str, tuple[Any, float, str]] = {}  # name: (prescription, f-number, source) not shipped
     lens_files: dict[str, tuple[Path, float]] = {}  # name: (its lens file, f-number) where not shipped
     if designs == "optiland":
         from lensfit.bench.designs import sample_objectives
 
-        unshipped = {f"optiland-{n}": (rx, fno) for n, rx, fno in sample_objectives()}
+        unshipped = {f"optiland-{n}": (rx, fno, f"optiland.samples.objectives.{n}")
+                     for n, rx, fno in sample_objectives()}
+    elif designs == "rayoptics":
+        from lensfit.bench.designs import rayoptics_objectives
+
+        unshipped = {f"rayoptics-{n}": (rx, fno, src) for n, rx, fno, src in rayoptics_objectives()}
+    if designs != "shipped":
         names = [n for n in (names or list(unshipped)) if n in unshipped]
     else:
         names = names or (spectral_designs() if wavelengths_nm else list_prescriptions())
@@ -224,16 +231,16 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                 rows.append({"lens": name, "refused": str(exc), "fits": {}})
                 continue
             t_measure = time.perf_counter() - t0
-            near = [s for s in table.samples if s.setting == "near"]
-            one = copy.copy(table)
-            one.samples = near
-            one.intrinsics = {"near": table.intrinsics["near"]}
             P = truth["settings"]["near"]["pupil_magnification"]
             internal = truth["settings"]["near"].get("lens", {}).get("focusing") == "internal"
-            fits = {"default (one setting)": fit(one),
-                    "thin (one setting)": fit(one, pupil_magnification=1.0),
-                    "thick, P given (one setting)": fit(one, pupil_magnification=P),
-                    BRACKET_FITS[internal]: bracket_fit}
+            fits = {}
+            if "near" not in table.left_out_settings:  # (else the bracket's refuses it, naming why)
+                one = copy.copy(table)
+                one.samples = [s for s in table.samples if s.setting == "near"]
+                one.intrinsics = {"near": table.intrinsics["near"]}
+                fits = {"default (one setting)": fit(one), "thin (one setting)": fit(one, pupil_magnification=1.0),
+                        "thick, P given (one setting)": fit(one, pupil_magnification=P)}
+            fits[BRACKET_FITS[internal]] = bracket_fit
             calibration = {label: {"focal_length_px": k.focal_length_px, "sigma": k.focal_length_sigma_px,
                                    "sigma_method": k.focal_length_sigma_method, "views": k.views,
                                    "relative_error": k.focal_length_px / truth["settings"][label]["focal_length_px"] - 1}
@@ -246,8 +253,11 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                    "calibration": calibration, "fits": {}}
             for how, res in fits.items():
                 errors = _errors(res, truth, "near")
-                if res.pupil_magnification.value is not None and (res.pupil_magnification.sigma or 0) > 0:
-                    errors["pupil_magnification"] = _judged(res.pupil_magnification, P)  # (estimated, not given)
+                # P judged where estimated, not given; the bracket's only where it fitted P (one
+                # setting left out, its prior's open interval would count as held)
+                if (res.pupil_magnification.value is not None and (res.pupil_magnification.sigma or 0) > 0
+                        and (how not in BRACKET_FITS.values() or res.pupil_magnification_source == "fitted")):
+                    errors["pupil_magnification"] = _judged(res.pupil_magnification, P)
                 row["fits"][how] = {"errors": errors, "result": res.code,
                                     "errors_far": _errors(res, truth, "far") if "far" in res.settings else None,
                                     "pupil_magnification": res.pupil_magnification.value,
@@ -290,15 +300,15 @@ def internally_focused_scene(lens: str, where: str, **scene_args):
                      "; ".join(why) or "it has no air-bounded group on either side of its stop")
 
 
-def _write_lens_files(folder: Path, designs: dict[str, tuple[Any, float]]) -> dict[str, tuple[Path, float]]:
-    """``designs`` (name: optiland's prescription and f-number) as lens files in ``folder``."""
+def _write_lens_files(folder: Path, designs: dict[str, tuple[Any, float, str]]) -> dict[str, tuple[Path, float]]:
+    """``designs`` (name: prescription, f-number and where it came from) as lens files in ``folder``."""
     from lensfit.bench.designs import lens_file_text
 
     folder.mkdir(parents=True, exist_ok=True)
     out = {}
-    for name, (rx, fno) in designs.items():
+    for name, (rx, fno, source) in designs.items():
         path = folder / f"{name}.toml"
-        path.write_text(lens_file_text(rx, name, f"optiland.samples.objectives.{name.removeprefix('optiland-')}", fno))
+        path.write_text(lens_file_text(rx, name, source, fno))
         out[name] = (path, fno)
     return out
 
@@ -358,10 +368,12 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 def record_name(bracket: str = "wide", focusing: str = "unit", designs: str = "optiland",
                 f_number: float | None = None) -> str:
     """The record's name (its file DIR/NAME.json): one current record per variant of the suite
-    (optiland's designs wide open: ``lenses``; the shipped designs, a given f-number, a narrow
-    bracket, internal focusing each add to it, e.g. ``lenses_f5.6_narrow``)."""
-    return ("lenses" + ("_shipped" if designs == "shipped" else "") + ("" if f_number is None else f"_f{f_number:g}")
-            + ("_narrow" if bracket == "narrow" else "") + ("_internal" if focusing == "internal" else ""))
+    (optiland's designs wide open: ``lenses``; the shipped or rayoptics's designs, a given
+    f-number, a narrow bracket, internal focusing each add to it, e.g. ``lenses_f5.6_narrow``,
+    ``lenses_rayoptics``)."""
+    return ("lenses" + {"shipped": "_shipped", "rayoptics": "_rayoptics"}.get(designs, "")
+            + ("" if f_number is None else f"_f{f_number:g}") + ("_narrow" if bracket == "narrow" else "")
+            + ("_internal" if focusing == "internal" else ""))
 
 
 #: How the record's tables name the quantities.

@@ -132,6 +132,12 @@ def _usable(dets: list[Detection]) -> list[Detection]:
     return [d for d in dets if len(d.ids) >= MIN_POINTS]
 
 
+def usable_views(dets: list[Detection]) -> int:
+    """How many of ``dets`` a calibration can use (``MIN_POINTS`` corners or more); a setting
+    needs ``MIN_VIEWS``."""
+    return len(_usable(dets))
+
+
 def calibrate(detections: dict[str, list[Detection]], image_shape: tuple[int, int], *,
               fix_principal_point: bool = True, jackknife: bool = True) -> dict[str, Intrinsics]:
     """Per-setting focal length in pixels, shared principal point and distortion (deterministic:

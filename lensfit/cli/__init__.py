@@ -265,9 +265,11 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--scale", type=number_arg, default=1.0, metavar="K",
                     help="image size as a fraction of the demo's 1200 x 800 px (default 1; 0.5 renders 4x faster, "
                          "with calibrations and so P about half as precise)")
-    bl.add_argument("--designs", choices=("shipped", "optiland"), default="shipped",
+    bl.add_argument("--designs", choices=("shipped", "optiland", "rayoptics"), default="shipped",
                     help="shipped: the designs in data_specs/lenses (default); optiland: optiland's all-spherical "
-                         "sample objectives, which lensfit does not ship (needs optiland: the test extra)")
+                         "sample objectives, which lensfit does not ship (needs optiland: the test extra); "
+                         "rayoptics: the all-spherical photographic objectives among rayoptics's sample lens files "
+                         "(CODE V, Zemax and its own; needs rayoptics, which make setup installs)")
     bl.add_argument("--wide-open", action="store_true",
                     help="each design at its own f-number (the far setting; the near one two stops down) instead of "
                          "--f-number")

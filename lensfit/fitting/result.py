@@ -159,6 +159,12 @@ class FitResult:
     def ok(self) -> bool:
         return self.code == Outcome.OK
 
+    def setting_samples(self, label: str) -> int:
+        """How many samples of setting ``label`` the fit took (none for a setting left out of the
+        measurement: ``lensfit.measurement.pipeline.refuse_left_out``)."""
+        labels = self.samples.labels
+        return int(np.sum(self.samples.setting == labels.index(label))) if label in labels else 0
+
     def predict_px(self, setting: str, distance_mm: np.ndarray, pose: bool = False) -> np.ndarray:
         """Model blur diameter (px) of a fronto-parallel edge on the axis at ``distance_mm`` from the lens;
         ``pose``: a distance as the setting's target poses measure it (scaled by its
@@ -179,8 +185,8 @@ class FitResult:
             "focal_length_mm": self.focal_length_mm.to_json_dict(),
             "pupil_magnification": self.pupil_magnification.to_json_dict() | {
                 "source": self.pupil_magnification_source},
-            "settings": {label: {q: e.to_json_dict() for q, e in qs.items()} | {"samples": int(np.sum(
-                self.samples.setting == self.samples.labels.index(label)))} for label, qs in self.settings.items()},
+            "settings": {label: {q: e.to_json_dict() for q, e in qs.items()} | {"samples": self.setting_samples(label)}
+                         for label, qs in self.settings.items()},
             "result": self.code,
             "reasons": self.reasons,
             "diagnostics": {

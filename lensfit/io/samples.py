@@ -162,6 +162,10 @@ class SampleTable:
     #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``, ``ideal``), which the
     #: fit takes where no argument gives it; written to the samples JSON
     lens: dict[str, Any] = field(default_factory=dict)
+    #: settings left out of the measurement, each with why and what would fix it (a setting whose
+    #: views cannot calibrate it, in a stack whose other settings can); in memory for the fit's
+    #: results, which refuse them by name
+    left_out_settings: dict[str, str] = field(default_factory=dict)
 
     COLUMNS = SAMPLES_CSV_COLUMNS
 

@@ -19,7 +19,8 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.runtime.clock import StageClock
-from lensfit.calibration.camera import calibrate, estimate_pose, few_informative_views, known_intrinsics, outlier_views
+from lensfit.calibration.camera import (MIN_POINTS, MIN_VIEWS, calibrate, estimate_pose, few_informative_views,
+                                       known_intrinsics, outlier_views, usable_views)
 from lensfit.errors import InputError, SpecError
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.estimators.base import Flag
@@ -182,6 +183,8 @@ class Measurement:
         self.detected: dict[int, list[Detection]] | None = None
         #: the first pass's edge profiles, the edge estimator's state among them (None: not kept)
         self.profiles: dict[str, Any] | None = {} if keep_profiles else None
+        #: the settings the first read left out (``SampleTable.left_out_settings``)
+        self.left_out: dict[str, str] = {}
 
     def read(self, airy_px: dict[str, float] | None = None) -> SampleTable:
         """The stack's samples, through each setting's Airy pattern ``airy_px`` (px) where given."""
@@ -189,7 +192,7 @@ class Measurement:
             raise InputError("estimator", self.estimator, "edge or edge-disk where diffraction is modelled",
                              "the target estimator has no diffraction model")
         if airy_px is not None:
-            missing = sorted({e.setting for e in self.stack.images} - set(airy_px))
+            missing = sorted({e.setting for e in self.stack.images} - set(airy_px) - set(self.left_out))
             if missing:
                 raise InputError("airy_px", missing[0], "an Airy scale for every setting of the stack")
         warming = _prewarm(self.estimator, airy_px is not None)
@@ -201,7 +204,7 @@ class Measurement:
             if warming is not None:
                 warming.join()
         if first:
-            self.detected = detected
+            self.detected, self.left_out = detected, dict(table.left_out_settings)
         return table
 
     def reread(self, table: SampleTable, which: list[int], airy_px: dict[str, float]) -> list[Any]:
@@ -287,7 +290,8 @@ class _Run:
             self.progress(stage, self.step, self.total)
 
     def airy(self, i: int) -> float | None:
-        return None if self.airy_px is None else float(self.airy_px[self.stack.images[i].setting])
+        scale = None if self.airy_px is None else self.airy_px.get(self.stack.images[i].setting)
+        return None if scale is None else float(scale)  # (none for a setting left out: it has no edges)
 
     def detect(self, detected: dict[int, list[Detection]] | None, jobs: int) -> None:
         """Every image's targets (or those an earlier measure found: ``detected``)."""
@@ -338,7 +342,8 @@ class _Run:
         for i in range(self.n):
             views.setdefault(stack.images[i].setting, []).extend((i, d) for d in detections[i])
         known = {k: known_intrinsics(v, stack.shape) for k, v in stack.intrinsics.items()}
-        todo = {k: v for k, v in views.items() if k not in known}
+        todo = {k: v for k, v in views.items() if k not in known and k not in self.table.left_out_settings}
+        self.leave_out_uncalibrated(todo, len(known))
         for label, bad in outlier_views({k: [d for _, d in v] for k, v in todo.items()}, stack.shape).items():
             for j, rms, median in bad:  # misdetections: left out of the calibration and the samples
                 i, det = todo[label][j]
@@ -352,8 +357,31 @@ class _Run:
         todo = {k: [d for _, d in v] for k, v in todo.items()}
         return {**(calibrate(todo, stack.shape, jackknife=final) if todo else {}), **known}
 
+    def leave_out_uncalibrated(self, todo: dict[str, list[tuple[int, Detection]]], known: int) -> None:
+        """Settings of ``todo`` (label: its views) with too few usable views to calibrate, where
+        other settings (``known`` with given intrinsics among them) can be: left out, their
+        images' targets with them, by name in the table's ``left_out_settings`` and its warnings
+        (the others are fitted; the results refuse these). Where none can be, the calibration
+        refuses the stack naming the first."""
+        short = {k: usable_views([d for _, d in v]) for k, v in todo.items()}
+        short = {k: c for k, c in short.items() if c < MIN_VIEWS}
+        if not short or len(short) == len(todo) + known:
+            return
+        for label, count in short.items():
+            why = (f"seen in {count} image(s) with {MIN_POINTS}+ detected corners, and its calibration needs "
+                   f"{MIN_VIEWS}: add views of the targets (some tilted by 20-40 degrees) in this setting, with "
+                   "less blur (targets nearer its focus distance, or the aperture closed) where they were not found")
+            self.table.left_out_settings[label] = why
+            self.table.warnings.append(f"setting {label!r} left out: {why}")
+            del todo[label]
+            for i in range(self.n):
+                if self.stack.images[i].setting == label:
+                    self.detections[i] = []
+
     def tasks_for(self, i: int, intrinsics: dict[str, Any]) -> tuple[list, list]:
         """Image ``i``'s edge tasks and, for each, (target id, segment, end depths, pose)."""
+        if not self.detections[i]:
+            return [], []
         intr = intrinsics[self.stack.images[i].setting]
         tasks, meta = [], []
         for det in self.detections[i]:
@@ -420,8 +448,9 @@ class _Run:
         stack, table = self.stack, self.table
         before = dict(table.intrinsics)
         for i in range(self.n):
-            self.detections[i] = refined_detections(self.detections[i], first[i], table.intrinsics[stack.images[i].setting],
-                                          self.by_id)
+            if stack.images[i].setting in table.intrinsics:  # (not a setting left out)
+                self.detections[i] = refined_detections(self.detections[i], first[i],
+                                                        table.intrinsics[stack.images[i].setting], self.by_id)
         with self.clock.stage("calibrate"):
             table.intrinsics = self.calibrate_views()
         # A distortion the corners as detected did not show (OpenCV's carry ~0.1 px) but the

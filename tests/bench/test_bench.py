@@ -122,7 +122,7 @@ def test_bench_lenses_variants_never_write_one_record():
 
     from lensfit.bench.lenses import record_name
 
-    variants = list(itertools.product(("wide", "narrow"), ("unit", "internal"), ("optiland", "shipped"),
+    variants = list(itertools.product(("wide", "narrow"), ("unit", "internal"), ("optiland", "shipped", "rayoptics"),
                                       (None, 5.6, 11.0, 2.8)))
     names = [record_name(*v) for v in variants]
     assert len(set(names)) == len(variants)
@@ -761,6 +761,50 @@ def test_optiland_designs_written_as_lens_files_keep_optilands_paraxial_data(tmp
             lens = getattr(objectives, name)()
             assert back.efl_mm == pytest.approx(float(lens.paraxial.f2()), rel=1e-6), name
             assert back.f_number == pytest.approx(fno, rel=1e-6), name
+
+
+def test_rayoptics_designs_written_as_lens_files_trace_as_rayoptics_traces_them(tmp_path, monkeypatch):
+    """The lens files bench-lenses --designs rayoptics renders through, read back by synth: every
+    photographic sample rayoptics reads (CODE V, Zemax and its own files) is taken, with
+    rayoptics's own EFL and pupil magnification (its paraxial solver), and a real ray at 0.7 of the
+    pupil leaves the last surface where rayoptics's exact trace puts it, at its angle. Reading
+    them leaves nothing in the working directory (rayoptics's readers log to files there)."""
+    pytest.importorskip("rayoptics")
+    import numpy as np
+    from rayoptics.raytr.raytrace import trace as rayoptics_trace
+
+    import rayoptics
+    from lensfit.bench.designs import RAYOPTICS_SAMPLES, lens_file_text, rayoptics_objectives, read_rayoptics
+    from synth.lens.files import load_prescription
+    from synth.lens.prescription import paraxial, trace
+
+    here = tmp_path / "cwd"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    found = list(rayoptics_objectives())
+    assert len(found) == len(RAYOPTICS_SAMPLES)
+    assert list(here.iterdir()) == []
+    for name, rx, fno, source in found:
+        path = tmp_path / f"{name}.toml"
+        path.write_text(lens_file_text(rx, name, source, fno))
+        back = load_prescription(path)
+        para = paraxial(back)
+        opm = read_rayoptics(Path(rayoptics.__file__).parent / source.removeprefix("rayoptics/"))
+        fod = opm["analysis_results"]["parax_data"].fod
+        assert para.efl_mm == pytest.approx(fod.efl, rel=1e-6), name
+        assert para.pupil_magnification == pytest.approx(fod.exp_radius / fod.enp_radius, rel=1e-6), name
+        assert para.f_number == pytest.approx(fod.fno, rel=1e-6), name
+        # a ray parallel to the axis at 0.7 of the entrance pupil's radius, both tracers to the last surface
+        h = 0.7 * fod.enp_radius
+        sm = opm["seq_model"]
+        segments = rayoptics_trace(sm, np.array([0.0, h, 0.0]), np.array([0.0, 0.0, 1.0]),
+                                   opm["optical_spec"]["wvls"].central_wvl)[0]
+        last = len(sm.ifcs) - 2
+        (_, y, _), (_, dy, dz), passed, _ = trace(back, (np.zeros(1), np.full(1, h), np.full(1, -1.0)),
+                                                  (np.zeros(1), np.zeros(1), np.ones(1)))
+        assert passed[0], name
+        assert float(y[0]) == pytest.approx(segments[last][0][1], abs=1e-6), name
+        assert float(dy[0] / dz[0]) == pytest.approx(segments[last][1][1] / segments[last][1][2], rel=1e-6), name
 
 
 def test_a_case_other_code_measured_is_not_a_finished_case(monkeypatch):

@@ -225,6 +225,36 @@ def test_focus_bracket_scene_fits_jointly(tmp_path, monkeypatch):
         within(r.settings[label]["focus_distance_mm"], t["focus_distance_mm"], 0.003)
 
 
+def test_a_setting_its_views_cannot_calibrate_is_left_out_and_the_others_fitted(tmp_path, capsys):
+    """The focus bracket with only two views of its near setting (a calibration needs three): the
+    far setting is fitted and holds its truth; the near one is refused by name, with the fix, in
+    the results (valid against the schema, no samples) and the exit status, not the whole stack
+    (a bracket of a fast lens, whose nearest views were too blurred to find the board, had been
+    refused entirely)."""
+    from lensfit.cli import main
+    from lensfit.io.specs import load_toml, specs_dir
+    from lensfit.measurement.pipeline import measure_and_fit
+
+    spec = load_toml(specs_dir() / "scenes" / "focus_bracket.toml")
+    near = [k for k, shot in enumerate(spec["shot"]) if shot["setting"] == "near"]
+    spec["shot"] = [shot for k, shot in enumerate(spec["shot"]) if k not in near[2:]]
+    out = tmp_path / "fb"
+    write_stack(render(scene_from_dict(spec)), out)
+    truth = json.loads((out / "truth.json").read_text())
+    table, r, _ = measure_and_fit(out)
+    assert set(table.left_out_settings) == {"near"} and {s.setting for s in table.samples} == {"far"}
+    assert r.code == "not_identifiable" and any("'near'" in why and "add views" in why for why in r.reasons)
+    assert all(e.value is None and "left out" in e.reason for e in r.settings["near"].values())
+    t = truth["settings"]["far"]
+    for q in ("f_number", "focus_distance_mm"):
+        within(r.settings["far"][q], t[q], 0.01)
+    code = main(["fit", str(out), "--out", str(tmp_path / "r.json"), "--force"])
+    assert code == 3 and "setting 'near' left out" in capsys.readouterr().err
+    doc = json.loads((tmp_path / "r.json").read_text())
+    jsonschema.validate(doc, schema("results"))
+    assert doc["settings"]["near"]["samples"] == 0 and doc["settings"]["near"]["f_number"]["value"] is None
+
+
 @settings(max_examples=4, deadline=None, derandomize=True, print_blob=True,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.function_scoped_fixture])
 @given(f=st.floats(15.0, 100.0), N=st.floats(1.4, 16.0), D_over_f=st.floats(15.0, 80.0),
