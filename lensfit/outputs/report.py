@@ -223,11 +223,12 @@ def image_rows(table: SampleTable, blur: np.ndarray, z: np.ndarray, w: np.ndarra
     for name, setting in images:
         if name not in groups:
             found = sum(len(pts) for _, pts in table.corners_px.get(name, []))
+            why = ("its setting left out (see the warnings)" if setting in table.left_out_settings
+                   else "no target found" if not found else "target left out (see the warnings)")
             rows.append({"image": name, "setting": setting, "corners": found, "reprojection_rms_px": math.nan,
                          "edges": 0, "measured": 0, "used": 0, "distance_mm": None, "rms_residual_sigma": math.nan,
                          "suspicious": 0, "down_weighted": 0, "flags": "", "not_measured": "",
-                         "why_none": "no target found" if not found else
-                                     "target left out (see the warnings)"})
+                         "why_none": why})
     for name, idx in groups.items():
         d = np.array([table.samples[i].distance_mm for i in idx])
         zi = z[idx][np.isfinite(z[idx])]

@@ -248,8 +248,9 @@ def test_a_setting_its_views_cannot_calibrate_is_left_out_and_the_others_fitted(
     t = truth["settings"]["far"]
     for q in ("f_number", "focus_distance_mm"):
         within(r.settings["far"][q], t[q], 0.01)
-    code = main(["fit", str(out), "--out", str(tmp_path / "r.json"), "--force"])
+    code = main(["fit", str(out), "--out", str(tmp_path / "r.json"), "--report", str(tmp_path / "r.html"), "--force"])
     assert code == 3 and "setting 'near' left out" in capsys.readouterr().err
+    assert "its setting left out" in (tmp_path / "r.html").read_text()
     doc = json.loads((tmp_path / "r.json").read_text())
     jsonschema.validate(doc, schema("results"))
     assert doc["settings"]["near"]["samples"] == 0 and doc["settings"]["near"]["f_number"]["value"] is None
