@@ -150,15 +150,31 @@ def read_rayoptics(path: Path):
 
 def rayoptics_objectives():
     """rayoptics's all-spherical sample objectives (``RAYOPTICS_SAMPLES``): (name, prescription,
-    f-number, the file it came from)."""
+    f-number, the file it came from, its half field of view in degrees: the object angle its file
+    states, or the angle of the image height it states)."""
     import rayoptics
 
     root = Path(rayoptics.__file__).parent
     for rel in RAYOPTICS_SAMPLES:
         name = Path(rel).stem.replace(" ", "_")
-        got = from_rayoptics(read_rayoptics(root / rel), name)
+        opm = read_rayoptics(root / rel)
+        got = from_rayoptics(opm, name)
         if got is not None:
-            yield name, got[0], got[1], f"rayoptics/{rel}"
+            fov = opm["optical_spec"]["fov"]
+            efl = opm["analysis_results"]["parax_data"].fod.efl
+            field = float(fov.value) if fov.key[1] == "angle" else math.degrees(math.atan(float(fov.value) / efl))
+            yield name, got[0], got[1], f"rayoptics/{rel}", field
+
+
+def optiland_fields() -> dict[str, float]:
+    """The half field of view (degrees, the largest field angle optiland's sample objectives are
+    designed for), by the names :func:`sample_objectives` gives."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import optiland.samples.objectives as objectives
+
+        return {name: float(cls().fields.max_field) for name, cls in inspect.getmembers(objectives, inspect.isclass)
+                if cls.__module__ == objectives.__name__}
 
 
 def effective_ratio(rx, f_number: float, x_over_f: float = X_OVER_F, grid: int = 201) -> float:

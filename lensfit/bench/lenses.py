@@ -22,7 +22,10 @@ focus (``focus_plane = "best"``). Three fits per lens:
 Variants: ``bracket="narrow"`` puts the near setting at half the far one's distances (inverse
 focus distances 1/(40 f) apart: P not determined, so carried); ``focusing="internal"`` renders
 each design focused by moving one group (:func:`internally_focused_scene`), its stack saying
-so, and the bracket fit is then each setting by itself, judged against each setting's own EFL.
+so, and the bracket fit is then each setting by itself, judged against each setting's own EFL;
+``field="design"`` renders each of optiland's and rayoptics's designs at its own angle of view
+where it is wider than the demo's (a retrofocus's 30 degrees, a wide angle's 35 at most), the
+sensor, pixel pitch and boards widened by one factor, as a photographer would use the lens.
 
 Errors are against the truth.json of each stack: the prescription's paraxial EFL, f-number =
 EFL / entrance-pupil diameter, and the focus distance from the entrance pupil (the distance
@@ -32,6 +35,7 @@ imaged at best focus).
 from __future__ import annotations
 
 import copy
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -72,16 +76,25 @@ NEAR_STOP_FACTOR = 2.0
 BRACKETS = {"wide": NEAR_FRACTION, "narrow": 0.5}
 
 
+#: The widest half field of view (degrees, on the diagonal) ``lens_scene`` widens a design's stack
+#: to: the boards grow with the sensor, and wider, their blur in px (which shrinks as the pixel
+#: pitch grows) leaves little to fit.
+FIELD_CAP_DEG = 35.0
+
+
 def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
                wavelengths_nm: tuple[float, ...] = (), scale: float = 1.0, near_fraction: float = NEAR_FRACTION,
-               focus_group: tuple[int, int] | None = None) -> dict[str, Any]:
+               focus_group: tuple[int, int] | None = None, field_deg: float | None = None) -> dict[str, Any]:
     """The demo scene scaled to the prescription ``name`` (setting "far": focus X = 40 f at
     ``f_number``) and the same scene at ``near_fraction`` (a sixth) of the distances with boards
     that much smaller (setting "near": focus ``near_fraction`` x X at ``NEAR_STOP_FACTOR`` x
     ``f_number``; the same pictures in pinhole terms, at a sixth three times the blur);
     ``scale`` x 1200 x 800 px; rendered grey from ``wavelengths_nm`` through the glasses'
     dispersion where given. Unit focusing, or with ``focus_group`` internal focusing by those
-    surfaces (the sensor where the lens focuses infinity)."""
+    surfaces (the sensor where the lens focuses infinity). With ``field_deg`` (the design's half
+    field of view) wider than the demo's (9.8 degrees on the diagonal), the sensor, the pixel
+    pitch, the boards and their offsets are widened by one factor to that field (at most
+    ``FIELD_CAP_DEG``): the same pictures at the lens's own angle of view."""
     from synth.lens import load_prescription, paraxial
 
     efl = paraxial(load_prescription(name)).efl_mm
@@ -98,6 +111,16 @@ def lens_scene(name: str, f_number: float = 11.0, spp: int = 64,
     if wavelengths_nm:
         scene["lens"]["wavelengths_nm"] = [float(w) for w in wavelengths_nm]
     scene["render"] = {"effects": ["defocus"], "method": "raytrace", "samples_per_pixel": spp, "seed": 0}
+    if field_deg is not None:
+        demo_half = math.atan(math.hypot(w, h) * scene["camera"]["pixel_pitch_mm"] / 2 / efl)
+        q = math.tan(max(demo_half, math.radians(min(field_deg, FIELD_CAP_DEG)))) / math.tan(demo_half)
+        scene["camera"]["pixel_pitch_mm"] *= q
+        for obj in scene["object"]:
+            obj.update(square_mm=obj["square_mm"] * q, marker_mm=obj["marker_mm"] * q,
+                       size_mm=[v * q for v in obj["size_mm"]])
+        for shot in scene["shot"]:
+            for pose in shot.get("pose", []):
+                pose["offset_mm"] = [v * q for v in pose.get("offset_mm", [0.0, 0.0])]
     near = _scale_lengths({"object": scene["object"], "shot": scene["shot"]}, near_fraction)
     for obj in near["object"]:
         obj["id"] = f"{obj['id']}-near"
@@ -149,7 +172,8 @@ def spectral_designs() -> list[str]:
 def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 11.0,
         progress: Callable[[str], None] | None = None, wavelengths_nm: tuple[float, ...] = (),
         scale: float = 1.0, keep: Path | None = None, reuse: Path | None = None,
-        designs: str = "shipped", bracket: str = "wide", focusing: str = "unit") -> dict[str, Any]:
+        designs: str = "shipped", bracket: str = "wide", focusing: str = "unit",
+        field: str = "demo") -> dict[str, Any]:
     """Render, measure and fit every lens (with ``wavelengths_nm``: every lens with dispersion,
     rendered grey through those wavelengths); returns rows of errors and seconds. With ``keep``
     each stack is written to ``keep / NAME`` and left there (an existing stack is an error, never
@@ -162,7 +186,9 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     the near setting two stops down). ``bracket``: "wide" or "narrow" (``BRACKETS``);
     ``focusing``: "unit" (the whole lens moves) or "internal" (the lens's rear group, else its
     front group, moves: :func:`internally_focused_scene`; the bracket then fitted as declared,
-    each setting by itself)."""
+    each setting by itself); ``field``: "demo" (every design at the demo's angle of view) or
+    "design" (optiland's and rayoptics's designs each at its own, where wider: ``lens_scene``'s
+    ``field_deg``)."""
     import json
 
     from synth.lens import list_prescriptions
@@ -172,15 +198,21 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
 
     unshipped: dict[str, tuple[Any, float, str]] = {}  # name: (prescription, f-number, source) not shipped
     lens_files: dict[str, tuple[Path, float]] = {}  # name: (its lens file, f-number) where not shipped
+    fields: dict[str, float] = {}  # name: the design's half field of view (degrees) where known
     if designs == "optiland":
-        from lensfit.bench.designs import sample_objectives
+        from lensfit.bench.designs import optiland_fields, sample_objectives
 
         unshipped = {f"optiland-{n}": (rx, fno, f"optiland.samples.objectives.{n}")
                      for n, rx, fno in sample_objectives()}
+        fields = {f"optiland-{n}": v for n, v in optiland_fields().items()}
     elif designs == "rayoptics":
         from lensfit.bench.designs import rayoptics_objectives
 
-        unshipped = {f"rayoptics-{n}": (rx, fno, src) for n, rx, fno, src in rayoptics_objectives()}
+        found = list(rayoptics_objectives())
+        unshipped = {f"rayoptics-{n}": (rx, fno, src) for n, rx, fno, src, _ in found}
+        fields = {f"rayoptics-{n}": v for n, *_, v in found}
+    if field not in ("demo", "design"):
+        raise InputError("field", field, "demo or design")
     if designs != "shipped":
         names = [n for n in (names or list(unshipped)) if n in unshipped]
     else:
@@ -212,7 +244,8 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                 n_far = f_number if f_number is not None else _wide_open(lens, design_n)
                 try:
                     args = dict(f_number=n_far, spp=spp, wavelengths_nm=wavelengths_nm, scale=scale,
-                                near_fraction=BRACKETS[bracket])
+                                near_fraction=BRACKETS[bracket],
+                                field_deg=fields.get(name) if field == "design" else None)
                     scene = (scene_from_dict(lens_scene(lens, **args), f"<{name} bracket>") if focusing == "unit"
                              else internally_focused_scene(lens, f"<{name} bracket>", **args))
                     folder = write_stack(render(scene), root / name)
@@ -246,6 +279,9 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                                    "relative_error": k.focal_length_px / truth["settings"][label]["focal_length_px"] - 1}
                            for label, k in table.intrinsics.items()}
             row = {"lens": name, "pupil_magnification": P, "f_number_far": truth["settings"]["far"]["f_number"],
+                   "field_deg": fields.get(name), "sensor_diagonal_mm": math.hypot(truth["width_px"],
+                                                                                   truth["height_px"])
+                   * truth["pixel_pitch_mm"],
                    "focus_group": truth["settings"]["near"].get("lens", {}).get("focus_group"),
                    "focal_length_mm": {label: t.get("focal_length_mm") for label, t in truth["settings"].items()},
                    "f_number_near": truth["settings"]["near"]["f_number"],
@@ -268,6 +304,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
                                         if (e := qs.get("field_curvature_per_m")) is not None}}
             rows.append(row)
     return {"rows": rows, "samples_per_pixel": spp, "f_number": f_number, "bracket": bracket, "focusing": focusing,
+            "field": field,
             "inverse_focus_distance_gap_per_focal_length": 1.0 / (40.0 * BRACKETS[bracket]) - 1.0 / 40.0,
             "near_f_number": None if f_number is None else NEAR_STOP_FACTOR * f_number, "designs": designs,
             "scale": scale, "wavelengths_nm": list(wavelengths_nm), "reused": None if reuse is None else str(reuse),
@@ -366,14 +403,14 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 
 def record_name(bracket: str = "wide", focusing: str = "unit", designs: str = "optiland",
-                f_number: float | None = None) -> str:
+                f_number: float | None = None, field: str = "demo") -> str:
     """The record's name (its file DIR/NAME.json): one current record per variant of the suite
     (optiland's designs wide open: ``lenses``; the shipped or rayoptics's designs, a given
     f-number, a narrow bracket, internal focusing each add to it, e.g. ``lenses_f5.6_narrow``,
     ``lenses_rayoptics``)."""
     return ("lenses" + {"shipped": "_shipped", "rayoptics": "_rayoptics"}.get(designs, "")
             + ("" if f_number is None else f"_f{f_number:g}") + ("_narrow" if bracket == "narrow" else "")
-            + ("_internal" if focusing == "internal" else ""))
+            + ("_internal" if focusing == "internal" else "") + ("_design_field" if field == "design" else ""))
 
 
 #: How the record's tables name the quantities.
@@ -388,7 +425,8 @@ def markdown(doc: dict[str, Any]) -> str:
             f"far f/{doc['f_number']:g}, near f/{doc['near_f_number']:g}")
     variant = "".join([", wide open" if doc.get("f_number") is None else f", f/{doc['f_number']:g}",
                        ", narrow bracket" if doc.get("bracket") == "narrow" else "",
-                       ", internal focusing" if doc.get("focusing") == "internal" else ""])
+                       ", internal focusing" if doc.get("focusing") == "internal" else "",
+                       ", each at its own field of view" if doc.get("field") == "design" else ""])
     out = [f"### Real lenses (`lensfit bench-lenses`, {doc.get('designs', 'shipped')} designs{variant})", "",
            f"`{doc.get('command', 'lensfit bench-lenses')}`, {doc.get('date', '')}, {doc.get('cores', '?')} cores. "
            f"The demo stack scaled to each design and ray traced through it ({what}, {doc['samples_per_pixel']} "

@@ -281,6 +281,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="unit: the whole lens moves (default); internal: the group behind the stop (else the one in "
                          "front of it) moves, the sensor fixed, so f, N and P change per setting, and the bracket "
                          "is fitted setting by setting")
+    bl.add_argument("--field", choices=("demo", "design"), default="demo",
+                    help="demo: every design at the demo's angle of view (9.8 degrees half-diagonal; default); "
+                         "design: optiland's and rayoptics's designs each at its own half field of view where wider "
+                         "(up to 35 degrees), the sensor, pixels and boards widened with it")
     bl.add_argument("--keep", metavar="DIR", help="write the rendered stacks to DIR/NAME and keep them")
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--record", metavar="DIR", help="also write the record DIR/lenses.json the validation page "

@@ -177,13 +177,14 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
             result = run(args.lens or None, spp=args.spp, f_number=None if args.wide_open else args.f_number,
                          progress=lambda m: status.update(f"benchmarking: {m}"),
                          wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep, reuse=args.reuse,
-                         designs=args.designs, bracket=args.bracket, focusing=args.focusing)
+                         designs=args.designs, bracket=args.bracket, focusing=args.focusing, field=args.field)
     except InputError as exc:
         raise fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
     if args.record:
         from lensfit.bench.records import record_header, write_json
 
-        name = record_name(args.bracket, args.focusing, args.designs, None if args.wide_open else args.f_number)
+        name = record_name(args.bracket, args.focusing, args.designs, None if args.wide_open else args.f_number,
+                           args.field)
         result.update(record_header(name, " ".join(["lensfit", *sys.argv[1:]])))
         console.print(f"wrote {write_json(args.record, name, result)}")
     if args.json:

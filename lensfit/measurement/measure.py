@@ -19,9 +19,9 @@ from typing import Any, Callable
 import numpy as np
 
 from lensfit.runtime.clock import StageClock
-from lensfit.calibration.camera import (MIN_POINTS, MIN_VIEWS, calibrate, estimate_pose, few_informative_views,
-                                       known_intrinsics, outlier_views, usable_views)
+from lensfit.calibration.camera import estimate_pose, few_informative_views
 from lensfit.errors import InputError, SpecError
+from lensfit.measurement.views import calibrate_views
 from lensfit.estimators import EdgeTask, get_estimator
 from lensfit.estimators.base import Flag
 from lensfit.runtime.parallel import check_jobs, in_threads
@@ -335,48 +335,8 @@ class _Run:
             self.table.warnings.append(f"no target found in {len(missing)} image(s): {', '.join(missing[:5])}")
 
     def calibrate_views(self, final: bool = True) -> dict[str, Any]:
-        """Each setting's intrinsics from its views (given ones as given); views whose corners
-        reproject far off their setting's calibration are misdetections: left out, with a warning."""
-        stack, detections = self.stack, self.detections
-        views: dict[str, list[tuple[int, Detection]]] = {}
-        for i in range(self.n):
-            views.setdefault(stack.images[i].setting, []).extend((i, d) for d in detections[i])
-        known = {k: known_intrinsics(v, stack.shape) for k, v in stack.intrinsics.items()}
-        todo = {k: v for k, v in views.items() if k not in known and k not in self.table.left_out_settings}
-        self.leave_out_uncalibrated(todo, len(known))
-        for label, bad in outlier_views({k: [d for _, d in v] for k, v in todo.items()}, stack.shape).items():
-            for j, rms, median in bad:  # misdetections: left out of the calibration and the samples
-                i, det = todo[label][j]
-                detections[i] = [d for d in detections[i] if d is not det]
-                self.table.warnings.append(
-                    f"{stack.images[i].file.name}: target {det.target_id!r} left out, its corners reproject "
-                    f"{rms:.2g} px off the calibration of setting {label!r} (median view {median:.2g} px): a "
-                    "misdetection, or markers misread under heavy blur")
-            dropped = {j for j, _, _ in bad}
-            todo[label] = [view for j, view in enumerate(todo[label]) if j not in dropped]
-        todo = {k: [d for _, d in v] for k, v in todo.items()}
-        return {**(calibrate(todo, stack.shape, jackknife=final) if todo else {}), **known}
-
-    def leave_out_uncalibrated(self, todo: dict[str, list[tuple[int, Detection]]], known: int) -> None:
-        """Settings of ``todo`` (label: its views) with too few usable views to calibrate, where
-        other settings (``known`` with given intrinsics among them) can be: left out, their
-        images' targets with them, by name in the table's ``left_out_settings`` and its warnings
-        (the others are fitted; the results refuse these). Where none can be, the calibration
-        refuses the stack naming the first."""
-        short = {k: usable_views([d for _, d in v]) for k, v in todo.items()}
-        short = {k: c for k, c in short.items() if c < MIN_VIEWS}
-        if not short or len(short) == len(todo) + known:
-            return
-        for label, count in short.items():
-            why = (f"seen in {count} image(s) with {MIN_POINTS}+ detected corners, and its calibration needs "
-                   f"{MIN_VIEWS}: add views of the targets (some tilted by 20-40 degrees) in this setting, with "
-                   "less blur (targets nearer its focus distance, or the aperture closed) where they were not found")
-            self.table.left_out_settings[label] = why
-            self.table.warnings.append(f"setting {label!r} left out: {why}")
-            del todo[label]
-            for i in range(self.n):
-                if self.stack.images[i].setting == label:
-                    self.detections[i] = []
+        """Each setting's intrinsics (:func:`lensfit.measurement.views.calibrate_views`)."""
+        return calibrate_views(self.stack, self.detections, self.table, final)
 
     def tasks_for(self, i: int, intrinsics: dict[str, Any]) -> tuple[list, list]:
         """Image ``i``'s edge tasks and, for each, (target id, segment, end depths, pose)."""

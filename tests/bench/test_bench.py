@@ -115,6 +115,33 @@ def test_bench_lenses_shows_p_only_where_the_bracket_fit_gave_every_quantity():
     assert p_fitted_text("thick (bracket, P fitted)", dict(fit_row, result="not_identifiable")) == ""
 
 
+def test_a_design_rendered_at_its_own_field_sees_that_angle_with_the_same_pictures():
+    """--field design: the sensor's half diagonal subtends the design's field at the focal length
+    (capped at FIELD_CAP_DEG, never narrower than the demo's), and the boards and their offsets
+    grow with the pixel pitch, so that each view frames its board as the demo's does."""
+    from lensfit.bench.lenses import FIELD_CAP_DEG, lens_scene
+    from synth.lens import load_prescription, paraxial
+
+    efl = paraxial(load_prescription("cooke-triplet-50")).efl_mm
+    demo = lens_scene("cooke-triplet-50", spp=1, scale=0.5)
+
+    def half_field(scene):
+        cam = scene["camera"]
+        return math.degrees(math.atan(math.hypot(cam["width_px"], cam["height_px"]) * cam["pixel_pitch_mm"] / 2 / efl))
+
+    for asked, seen in ((25.0, 25.0), (80.0, FIELD_CAP_DEG), (3.0, half_field(demo))):
+        wide = lens_scene("cooke-triplet-50", spp=1, scale=0.5, field_deg=asked)
+        assert half_field(wide) == pytest.approx(seen, rel=1e-9)
+        q = wide["camera"]["pixel_pitch_mm"] / demo["camera"]["pixel_pitch_mm"]
+        for a, b in zip(wide["object"], demo["object"]):
+            assert a["square_mm"] == pytest.approx(q * b["square_mm"]) and a["distance_mm"] == b["distance_mm"]
+            assert a["size_mm"] == pytest.approx([q * v for v in b["size_mm"]])
+        for a, b in zip(wide["shot"], demo["shot"]):
+            for pa, pb in zip(a.get("pose", []), b.get("pose", [])):
+                assert pa["offset_mm"] == pytest.approx([q * v for v in pb["offset_mm"]])
+                assert pa["distance_mm"] == pb["distance_mm"]
+
+
 def test_bench_lenses_variants_never_write_one_record():
     """Each variant's --record is its own file, the existing ones' names kept: a run of one variant
     never replaces another's record."""
@@ -123,7 +150,7 @@ def test_bench_lenses_variants_never_write_one_record():
     from lensfit.bench.lenses import record_name
 
     variants = list(itertools.product(("wide", "narrow"), ("unit", "internal"), ("optiland", "shipped", "rayoptics"),
-                                      (None, 5.6, 11.0, 2.8)))
+                                      (None, 5.6, 11.0, 2.8), ("demo", "design")))
     names = [record_name(*v) for v in variants]
     assert len(set(names)) == len(variants)
     assert record_name() == "lenses" and record_name("narrow", "internal") == "lenses_narrow_internal"
@@ -784,7 +811,7 @@ def test_rayoptics_designs_written_as_lens_files_trace_as_rayoptics_traces_them(
     found = list(rayoptics_objectives())
     assert len(found) == len(RAYOPTICS_SAMPLES)
     assert list(here.iterdir()) == []
-    for name, rx, fno, source in found:
+    for name, rx, fno, source, _ in found:
         path = tmp_path / f"{name}.toml"
         path.write_text(lens_file_text(rx, name, source, fno))
         back = load_prescription(path)

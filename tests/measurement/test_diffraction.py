@@ -371,8 +371,10 @@ def test_a_round_solves_the_kept_profiles_again_and_reads_what_gathering_them_an
     gathered, calibrated = [], []
     original = edge_module._select
     monkeypatch.setattr(edge_module, "_select", lambda *a, **k: gathered.append(1) or original(*a, **k))
-    calibrate = measure_module.calibrate
-    monkeypatch.setattr(measure_module, "calibrate", lambda *a, **k: calibrated.append(k) or calibrate(*a, **k))
+    import lensfit.measurement.views as views_module
+
+    calibrate = views_module.calibrate
+    monkeypatch.setattr(views_module, "calibrate", lambda *a, **k: calibrated.append(k) or calibrate(*a, **k))
     again = measurement.read(airy)
     assert len(gathered) < 0.05 * len(plain.samples)  # only edges the refined corners added, if any
     # the corners as detected were calibrated by the first measure: only the refined ones again
