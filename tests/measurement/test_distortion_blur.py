@@ -312,8 +312,9 @@ def test_a_distortion_only_the_refined_corners_show_moves_the_lines_again(calibr
     import dataclasses
 
     import lensfit.measurement.measure as m
+    import lensfit.measurement.views as views
 
-    real_calibrate, real_refined = m.calibrate, m.refined_detections
+    real_calibrate, real_refined = views.calibrate, m.refined_detections
     for inject in (False, True):
         calls, fresh = [], []
 
@@ -328,7 +329,7 @@ def test_a_distortion_only_the_refined_corners_show_moves_the_lines_again(calibr
             fresh.append(fresh_poses)
             return real_refined(*args, fresh_poses=fresh_poses, **kw)
 
-        monkeypatch.setattr(m, "calibrate", calibrate)
+        monkeypatch.setattr(views, "calibrate", calibrate)
         monkeypatch.setattr(m, "refined_detections", refined)
         table = m.measure(calibration_stack)
         assert not any(np.any(v.distortion) for v in calls[0].values())
