@@ -213,6 +213,9 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
         fields = {f"rayoptics-{n}": v for n, *_, v in found}
     if field not in ("demo", "design"):
         raise InputError("field", field, "demo or design")
+    if field == "design" and designs == "shipped":
+        raise InputError("field", field, "demo with the shipped designs, whose lens files state no angle of view",
+                         "add --designs optiland or --designs rayoptics, which state theirs")
     if designs != "shipped":
         names = [n for n in (names or list(unshipped)) if n in unshipped]
     else:

@@ -179,7 +179,7 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
                          wavelengths_nm=tuple(args.wavelengths or ()), scale=args.scale, keep=args.keep, reuse=args.reuse,
                          designs=args.designs, bracket=args.bracket, focusing=args.focusing, field=args.field)
     except InputError as exc:
-        raise fail_input(exc, {"keep": "--keep", "reuse": "--reuse"}) from exc
+        raise fail_input(exc, {"keep": "--keep", "reuse": "--reuse", "field": "--field"}) from exc
     if args.record:
         from lensfit.bench.records import record_header, write_json
 

@@ -142,6 +142,16 @@ def test_a_design_rendered_at_its_own_field_sees_that_angle_with_the_same_pictur
                 assert pa["distance_mm"] == pb["distance_mm"]
 
 
+def test_bench_lenses_refuses_a_field_it_does_not_know_in_one_line(capsys):
+    """--field design with the shipped designs (whose lens files state no field) is refused
+    before anything is rendered, naming the option and the fix, exit 2."""
+    from lensfit.cli import main
+
+    assert main(["bench-lenses", "--field", "design", "--spp", "1", "--scale", "0.1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--field" in err[0] and "optiland" in err[0]
+
+
 def test_bench_lenses_variants_never_write_one_record():
     """Each variant's --record is its own file, the existing ones' names kept: a run of one variant
     never replaces another's record."""
