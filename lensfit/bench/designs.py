@@ -151,7 +151,7 @@ def read_rayoptics(path: Path):
 def rayoptics_objectives():
     """rayoptics's all-spherical sample objectives (``RAYOPTICS_SAMPLES``): (name, prescription,
     f-number, the file it came from, its half field of view in degrees: the object angle its file
-    states, or the angle of the image height it states)."""
+    states, or the angle of the image height it states; None where it states an object height)."""
     import rayoptics
 
     root = Path(rayoptics.__file__).parent
@@ -162,7 +162,8 @@ def rayoptics_objectives():
         if got is not None:
             fov = opm["optical_spec"]["fov"]
             efl = opm["analysis_results"]["parax_data"].fod.efl
-            field = float(fov.value) if fov.key[1] == "angle" else math.degrees(math.atan(float(fov.value) / efl))
+            field = (float(fov.value) if fov.key[1] == "angle" else
+                     math.degrees(math.atan(float(fov.value) / efl)) if fov.key[0] == "image" else None)
             yield name, got[0], got[1], f"rayoptics/{rel}", field
 
 

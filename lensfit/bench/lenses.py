@@ -210,7 +210,7 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
 
         found = list(rayoptics_objectives())
         unshipped = {f"rayoptics-{n}": (rx, fno, src) for n, rx, fno, src, _ in found}
-        fields = {f"rayoptics-{n}": v for n, *_, v in found}
+        fields = {f"rayoptics-{n}": v for n, *_, v in found if v is not None}
     if field not in ("demo", "design"):
         raise InputError("field", field, "demo or design")
     if field == "design" and designs == "shipped":
