@@ -145,7 +145,8 @@ def disk_hits(radius_px: float, rng, n: int = 200_000):
 
 
 def jpeg_with_exif(path: Path, *, make="Canon", model="Canon EOS R5", focal=50.0, fnum=2.8, subject_m=None,
-                   plane_res=None, plane_unit=None, exif_width=None, size=(48, 64)) -> Path:
+                   plane_res=None, plane_unit=None, exif_width=None, size=(48, 64), max_aperture_apex=None,
+                   lens_spec=None) -> Path:
     """A small JPEG whose EXIF is written tag by tag with Pillow (not with synth.exif)."""
     import numpy as np
     from PIL import Image
@@ -164,5 +165,9 @@ def jpeg_with_exif(path: Path, *, make="Canon", model="Canon EOS R5", focal=50.0
         sub[0xA210] = plane_unit
     if exif_width is not None:
         sub[0xA002] = exif_width
+    if max_aperture_apex is not None:  # MaxApertureValue
+        sub[0x9205] = IFDRational(int(max_aperture_apex * 1000), 1000)
+    if lens_spec is not None:  # LensSpecification: focal lengths and their widest f-numbers
+        sub[0xA432] = tuple(IFDRational(int(v * 10), 10) for v in lens_spec)
     Image.fromarray(np.full(size, 128, np.uint8)).save(path, "JPEG", exif=ex)
     return path

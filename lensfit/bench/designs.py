@@ -4,16 +4,19 @@ A lens's f-number is its paraxial focal length over its paraxial entrance-pupil 
 (what the aperture ring says). What a blur-versus-depth fit measures is the cone of the real
 rays: the second moment of the defocused spot grows with the defocus as the real rays' spread of
 angles, which pupil aberrations (the real entrance pupil is not the paraxial one), the
-non-paraxial angles of a fast cone and the real best focus move away from EFL/EPD. This survey
-traces, for every all-spherical objective in optiland's sample library and every design lensfit
-ships, the real rays of the axial point (``synth.lens``, checked against optiland in the tests)
-through focus, fits the circle-of-confusion V to the exact second-moment diameters, and reports
-the f-number that V gives (``N_effective``, the pupil magnification known) over EFL/EPD, wide open
-and one to three stops down. ``lensfit.fitting.nominal`` carries the spread into the reported f-number.
+non-paraxial angles of a fast cone and the real best focus move away from EFL/EPD; and the
+sensor at the real best focus, off the paraxial image, moves the focal length a calibration
+reads. This survey traces, for every all-spherical objective in optiland's sample library, every
+design lensfit ships and rayoptics's photographic sample objectives, the real rays of the axial
+point (``synth.lens``, checked against optiland and rayoptics in the tests) through focus, fits
+the circle-of-confusion V to the exact second-moment diameters, and reports the f-number that V
+gives (``N_effective``, the pupil magnification known) over EFL/EPD, and the focal length read
+from the best focus over EFL, wide open and one to three stops down. ``lensfit.fitting.nominal``
+carries their spreads into the reported f-number, focal length and pupil magnification.
 
 Run ``python -m lensfit.bench.designs`` to print the table, ``--write`` to store it in
 ``data_specs/f_number_survey.toml`` (the table the prior's documentation cites). Needs optiland
-(the test extra installs it).
+(the test extra installs it) and rayoptics (``make setup`` installs it).
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ class Row:
     f_number: float  # EFL / EPD, paraxial
     stops_down: int
     ratio: float  # N_effective / (EFL / EPD)
+    focal_ratio: float  # the focal length a calibration reads / EFL
 
 
 def from_optiland(lens):
@@ -179,11 +183,22 @@ def optiland_fields() -> dict[str, float]:
 
 
 def effective_ratio(rx, f_number: float, x_over_f: float = X_OVER_F, grid: int = 201) -> float:
-    """N_effective / (EFL/EPD) of ``rx`` stopped to ``f_number``, focused (best focus, least RMS
-    spot) at ``x_over_f`` focal lengths from its entrance pupil: the V ``c = K |1/D - 1/X|``
-    (with a floor in quadrature) fitted to the exact second-moment diameters ``4 sigma_x`` of the
-    axial point's real-ray spots, and ``A = K / S``, ``S`` the pinhole distance a calibration
-    measures (exit-pupil-to-sensor over P); the ratio is ``EPD / A``."""
+    """N_effective / (EFL/EPD) of ``rx`` stopped to ``f_number``: :func:`design_ratios`'s first."""
+    return design_ratios(rx, f_number, x_over_f, grid)[0]
+
+
+def design_ratios(rx, f_number: float, x_over_f: float = X_OVER_F, grid: int = 201) -> tuple[float, float]:
+    """What a blur-versus-depth fit reads from ``rx`` stopped to ``f_number``, focused (best
+    focus, least RMS spot) at ``x_over_f`` focal lengths from its entrance pupil, over the
+    paraxial values: (N_effective / (EFL/EPD), f_read / EFL).
+
+    ``S``, the pinhole distance a calibration measures, is exit-pupil-to-sensor over P with the
+    sensor at the real best focus. ``N_effective``: the V ``c = K |1/D - 1/X|`` (with a floor in
+    quadrature) fitted to the exact second-moment diameters ``4 sigma_x`` of the axial point's
+    real-ray spots gives ``A = K / S``, and the ratio is ``EPD / A``. ``f_read`` is the focal
+    length the fit's paraxial relation ``1/S = 1/f - 1/(P X)`` gives from that ``S``: where
+    spherical aberration puts the best focus off the paraxial image, it moves ``S`` and so the
+    f read, by the same share at every focus distance of a bracket (so no bracket can see it)."""
     from scipy.optimize import least_squares
 
     from synth.lens.focus import axial_rays, best_focus_image_z, disk_grid
@@ -206,7 +221,8 @@ def effective_ratio(rx, f_number: float, x_over_f: float = X_OVER_F, grid: int =
     c, w = np.asarray(c), 1.0 / distances
     fit = least_squares(lambda q: np.hypot(q[0] * (w - q[1]), q[2]) - c,
                         [float(c.max() / np.ptp(w)), 1.0 / x, float(c.min())])
-    return float(epd * s_px / abs(fit.x[0]))
+    f_read = 1.0 / (1.0 / s_px + 1.0 / (para.pupil_magnification * x))
+    return float(epd * s_px / abs(fit.x[0])), float(f_read / para.efl_mm)
 
 
 def shipped():
@@ -234,29 +250,31 @@ def sample_objectives():
 
 
 def survey(stops=STOPS, designs=None) -> list[Row]:
-    """The table: every design of ``designs`` (default: optiland's sample objectives and the
-    shipped ones) wide open and ``stops`` down."""
+    """The table: every design of ``designs`` (default: optiland's sample objectives, the
+    shipped ones and rayoptics's) wide open and ``stops`` down."""
     from synth.lens.prescription import paraxial
 
     rows = []
     for source, found in designs or (("optiland.samples.objectives", sample_objectives()),
-                                     ("data_specs/lenses", shipped())):
+                                     ("data_specs/lenses", shipped()),
+                                     *((s, [(n, rx, fno)]) for n, rx, fno, s, _ in rayoptics_objectives())):
         for name, rx, fno in found:
             para = paraxial(rx.with_f_number(fno))
             for k in stops:
                 n = fno * 2.0 ** (k / 2.0)
-                rows.append(Row(name, source, para.efl_mm, para.pupil_magnification, n, k, effective_ratio(rx, n)))
+                rows.append(Row(name, source, para.efl_mm, para.pupil_magnification, n, k, *design_ratios(rx, n)))
     return rows
 
 
 def to_toml(rows: list[Row]) -> str:
-    lines = ["# N_effective / (EFL/EPD) of published designs: written by `python -m lensfit.bench.designs --write`",
-             "# (lensfit/bench/designs.py says how); lensfit.fitting.nominal carries their spread into the f-number.",
+    lines = ["# N_effective / (EFL/EPD) (ratio) and the focal length read at the real best focus / EFL (focal_ratio)",
+             "# of published designs: written by `python -m lensfit.bench.designs --write` (lensfit/bench/designs.py",
+             "# says how); lensfit.fitting.nominal carries their spreads into the f-number and the focal length.",
              f"x_over_f = {X_OVER_F:g}", ""]
     for r in rows:
         lines += ["[[design]]", f'name = "{r.design}"', f'source = "{r.source}"', f"efl_mm = {r.efl_mm:.4g}",
                   f"pupil_magnification = {r.pupil_magnification:.4g}", f"f_number = {r.f_number:.4g}",
-                  f"stops_down = {r.stops_down}", f"ratio = {r.ratio:.5f}", ""]
+                  f"stops_down = {r.stops_down}", f"ratio = {r.ratio:.5f}", f"focal_ratio = {r.focal_ratio:.5f}", ""]
     return "\n".join(lines)
 
 
@@ -284,7 +302,7 @@ def read_survey(path: Path | None = None) -> list[Row]:
 
     data = tomllib.loads((path or survey_file()).read_text())
     return [Row(d["name"], d["source"], d["efl_mm"], d["pupil_magnification"], d["f_number"], d["stops_down"],
-                d["ratio"]) for d in data["design"]]
+                d["ratio"], d["focal_ratio"]) for d in data["design"]]
 
 
 def main(argv=None) -> int:
@@ -294,7 +312,7 @@ def main(argv=None) -> int:
     rows = survey()
     for r in rows:
         print(f"{r.design:26s} {r.source:28s} f {r.efl_mm:8.2f} mm  P {r.pupil_magnification:5.2f}  "
-              f"f/{r.f_number:<5.2f} -{r.stops_down}  N_eff/N {r.ratio:.4f}")
+              f"f/{r.f_number:<5.2f} -{r.stops_down}  N_eff/N {r.ratio:.4f}  f_read/EFL {r.focal_ratio:.4f}")
     if args.write:
         survey_file().write_text(to_toml(rows))
         print(f"wrote {survey_file()}")

@@ -103,7 +103,7 @@ def declare_lens(control: Path, drafted: Path) -> None:
     P = 1), as the photographer who rendered the scene knows it: the DNG control and the developed
     stacks then differ in their processing alone, which is what the suite measures. (Undeclared,
     the f-number reported is the nominal one of a real design, ``lensfit.fitting.nominal``, about
-    1.5 % below a thin lens's, and P's prior widens every interval.)"""
+    1.2 % below a thin lens's, and P's prior widens every interval.)"""
     import tomllib
 
     lens = tomllib.loads(control.read_text()).get("lens", {})

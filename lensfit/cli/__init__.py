@@ -177,6 +177,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="how the lens focuses: unit (the whole lens moves: settings share f and P, and a focus bracket "
                          "fits P), internal (a group inside moves: f changes with focus) or unknown; default: "
                          "stack.toml's [lens] focusing, else unknown (each setting fitted by itself)")
+    ft.add_argument("--widest-f-number", type=number_arg, default=None, metavar="N",
+                    help="the lens's widest f-number, its full aperture (1:1.4 on the barrel is 1.4): each setting then "
+                         "carries the spread of real designs stopped down as far as it is, narrower than wide open's. "
+                         "Default: stack.toml's [lens] widest_f_number (lensfit init copies EXIF MaxApertureValue), "
+                         "else the spread wide open")
     ft.add_argument("--ideal-lens", action=argparse.BooleanOptionalAction, default=None,
                     help="the lens has no aberrations (a renderer's thin-lens camera): report the blur's own f-number. "
                          "Default: stack.toml's [lens] ideal, else a real lens: the nominal f-number (EFL / entrance "

@@ -116,9 +116,12 @@ def print_fit(result, document) -> None:
             print(budget)
         eff = qs.get("f_number_effective")
         if eff is not None and eff.value is not None and qs["f_number"].value is not None:
+            stops = ((document.get("f_number_definition") or {}).get("stops_down") or {}).get(label)
+            where = (f"{stops} stop{'s' if stops != 1 else ''} down" if stops else
+                     "wide open" if stops == 0 else "wide open; [lens] widest_f_number narrows it for a lens stopped down")
             print(f"f-number {qs['f_number'].text()} is the nominal one (EFL / entrance pupil); the blur's own reading "
-                  f"is {eff.text()} {eff.interval_text()}: real designs' ratio divided out (declare an ideal lens "
-                  "with [lens] ideal = true)")
+                  f"is {eff.text()} {eff.interval_text()}: real designs' ratio divided out, their spread {where} "
+                  "carried in f and N (declare an ideal lens with [lens] ideal = true)")
         cal = (document.get("calibration") or {}).get(label)
         if line := calibration_text(cal):
             print(line)
@@ -205,8 +208,8 @@ def _fit_claimed(args: argparse.Namespace, fpx: float | None) -> int:
     options = dict(pixel_pitch_mm=args.pixel_pitch, focal_length_px=fpx, loss=args.loss,
                    blur_floor_px=args.blur_floor, pupil_magnification=args.pupil_magnification,
                    field_curvature=args.field_curvature, spot_shape=args.spot_shape, focusing=args.focusing,
-                   ideal_lens=args.ideal_lens)
-    for name in ("focusing", "ideal_lens"):
+                   ideal_lens=args.ideal_lens, widest_f_number=args.widest_f_number)
+    for name in ("focusing", "ideal_lens", "widest_f_number"):
         if options[name] is None:
             del options[name]
     if source.suffix.lower() in (".csv", ".json") and not source.exists():

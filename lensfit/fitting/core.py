@@ -34,7 +34,8 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         floor_prior_sigma_px: float = FLOOR_PRIOR_SIGMA_PX, max_irls: int = 12,
         pupil_magnification: float | tuple[float, float] | None = None,
         field_curvature: str = "auto", spot_shape: str = "auto", floor_choice: bool = True,
-        focusing: str | None = None, ideal_lens: bool | None = None) -> FitResult:
+        focusing: str | None = None, ideal_lens: bool | None = None,
+        widest_f_number: float | None = None) -> FitResult:
     """Fit focal length, and per setting f-number and focus distance, to blur samples.
 
     Distances are measured from the entrance pupil (the centre a pinhole calibration finds;
@@ -90,6 +91,10 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         Default: the samples' ``lens`` (stack.toml ``[lens] ideal``), else False: the f-number
         and aperture diameter are the nominal ones, with the spread of real designs carried
         (``lensfit.fitting.nominal``).
+    widest_f_number : float, optional
+        The lens's full aperture (default: the samples' ``lens``, stack.toml ``[lens]
+        widest_f_number``, else unknown): a real lens's settings then carry the designs' spread as
+        far stopped down as each setting is; unknown, their spread wide open.
     spot_shape : str
         "auto" (default), "shaped" or "disk": where a sample gives two readings, take its spot's
         second moment or the uniform disk's (``disk_diameter_px``); "auto" takes the disk's on
@@ -122,7 +127,8 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         raise InputError("blur_floor_px", blur_floor_px, ">= 0 px and finite")
     if not (math.isfinite(floor_prior_sigma_px) and floor_prior_sigma_px > 0):
         raise InputError("floor_prior_sigma_px", floor_prior_sigma_px, "> 0 px and finite")
-    samples, pupil_magnification, focusing, ideal_lens = with_lens(samples, pupil_magnification, focusing, ideal_lens)
+    samples, pupil_magnification, focusing, ideal_lens, widest_f_number = with_lens(
+        samples, pupil_magnification, focusing, ideal_lens, widest_f_number)
     pupil = pupil_mode(pupil_magnification)
     if field_curvature not in FIELD_CURVATURE_MODES:
         raise InputError("field_curvature", field_curvature, "one of: " + ", ".join(FIELD_CURVATURE_MODES))
@@ -164,7 +170,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
         result = merge(result, {label: fit(subset(samples, label), focal_length_px=one_setting(focal_length_px, label),
                                            focal_length_sigma_px=one_setting(focal_length_sigma_px, label), **options)
                                 for label in result.samples.labels}, focusing)
-    nominal.apply(result, ideal_lens)
+    nominal.apply(result, ideal_lens, widest_f_number)
     return result
 
 

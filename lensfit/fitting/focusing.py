@@ -40,11 +40,11 @@ def check_focusing(value: Any) -> str:
     return value
 
 
-def with_lens(samples: Any, pupil_magnification: Any, focusing: str | None,
-              ideal: bool | None = None) -> tuple[Any, Any, str, bool]:
-    """``samples`` (a path read into its SampleTable), and the pupil magnification, focusing and
-    whether the lens is ideal that the fit takes: the arguments, else what the samples carry from
-    the stack's ``[lens]``, else none, "unknown" and not ideal."""
+def with_lens(samples: Any, pupil_magnification: Any, focusing: str | None, ideal: bool | None = None,
+              widest_f_number: float | None = None) -> tuple[Any, Any, str, bool, float | None]:
+    """``samples`` (a path read into its SampleTable), and the pupil magnification, focusing,
+    whether the lens is ideal and its widest f-number that the fit takes: the arguments, else what
+    the samples carry from the stack's ``[lens]``, else none, "unknown", not ideal and none."""
     from pathlib import Path
 
     from lensfit.io.samples import SampleTable
@@ -59,7 +59,14 @@ def with_lens(samples: Any, pupil_magnification: Any, focusing: str | None,
     if not isinstance(ideal, bool):
         raise InputError("ideal_lens", ideal, "true or false", "true only for a lens without aberrations (a "
                          "renderer's thin-lens camera)")
-    return samples, pupil_magnification, check_focusing(focusing or lens.get("focusing") or "unknown"), ideal
+    if widest_f_number is None:
+        widest_f_number = lens.get("widest_f_number")
+    if widest_f_number is not None and not (isinstance(widest_f_number, (int, float)) and not
+                                            isinstance(widest_f_number, bool) and 0.5 <= widest_f_number <= 64):
+        raise InputError("widest_f_number", widest_f_number, "a number from 0.5 to 64",
+                         "the lens's full aperture as its barrel states it (1:1.4 is 1.4), or leave it out")
+    return (samples, pupil_magnification, check_focusing(focusing or lens.get("focusing") or "unknown"), ideal,
+            None if widest_f_number is None else float(widest_f_number))
 
 
 def subset(samples: Any, label: str) -> Any:

@@ -42,6 +42,9 @@ class CameraRecord:
     taken: str | None = None
     #: the program that wrote the file (a camera's firmware, a raw developer)
     software: str | None = None
+    #: the lens's widest f-number at this focal length (EXIF MaxApertureValue, an APEX value; else
+    #: a prime's LensSpecification)
+    widest_f_number: float | None = None
 
     @property
     def camera(self) -> str | None:
@@ -122,6 +125,15 @@ def record_from_tags(tags: dict[str, Any]) -> CameraRecord:
         if canon is not None and 0 < canon < 65535:  # centimetres for most Canon bodies
             focus, source = 10.0 * canon, "Canon maker note"
     pitch = None
+    widest = None
+    apex = _number(_get(tags, "MaxApertureValue"))
+    if apex is not None and 0.0 <= apex <= 12.0:  # APEX Av: N = 2 ** (Av / 2), f/1 to f/64
+        widest = round(2.0 ** (apex / 2.0), 2)
+    spec = _get(tags, "LensSpecification")
+    if widest is None and isinstance(spec, (list, tuple)) and len(spec) == 4:
+        lo, hi = _number(spec[2]), _number(spec[3])
+        if lo and lo == hi and 0.5 <= lo <= 64.0:  # a prime's (a zoom's depends on the focal length)
+            widest = lo
     res = _number(_get(tags, "FocalPlaneXResolution"))
     unit = _number(_get(tags, "FocalPlaneResolutionUnit"))
     unit_mm = _UNIT_MM.get(int(unit) if unit is not None else 2)
@@ -139,4 +151,5 @@ def record_from_tags(tags: dict[str, Any]) -> CameraRecord:
         focus_distance_mm=focus, focus_distance_source=source, focal_plane_pitch_mm=pitch,
         reference_width_px=int(width) if width else None,
         shutter_s=_number(_get(tags, "ExposureTime")), iso=_number(_get(tags, "ISOSpeedRatings")),
-        taken=_text(_get(tags, "DateTimeOriginal")), software=_text(_get(tags, "Software")))
+        taken=_text(_get(tags, "DateTimeOriginal")), software=_text(_get(tags, "Software")),
+        widest_f_number=widest)

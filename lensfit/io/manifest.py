@@ -300,6 +300,14 @@ def draft_manifest(folder: str | Path, *, target_file: str | Path | None = None,
     rows = [{"file": p.name, "setting": labels[k], "focal_length_mm": r.focal_length_mm, "f_number": r.f_number,
              "focus_distance_mm": r.focus_distance_mm} for p, r, k in zip(files, records, keys)]
     manifest = {"camera": camera, "target": targets, "image": images}
+    widest = [r.widest_f_number for r in records if r.widest_f_number]
+    if widest:
+        # The largest any photo states: the fewer stops below it each setting counts, the wider
+        # the spread of real designs it carries.
+        manifest["lens"] = {"widest_f_number": max(widest)}
+        notes.append(f"[lens] widest_f_number {max(widest):g}: the lens's full aperture, from EXIF "
+                     "MaxApertureValue (or LensSpecification); settings stopped down from it carry a narrower spread "
+                     "of real lens designs in f and N")
     validate(manifest, "stack", folder / "stack.toml")
     return Draft(manifest_text(manifest, notes, folder), manifest, rows, notes)
 
@@ -400,6 +408,8 @@ def manifest_text(manifest: dict[str, Any], notes: list[str], folder: Path) -> s
              "# x_exif: what each file's EXIF says (nominal values; never read by the fit)."]
     lines += [f"# Note: {shown(n)}" for n in notes]
     text = "\n".join(lines) + "\n\n[camera]\n" + tomli_w.dumps(manifest["camera"])
+    if manifest.get("lens"):
+        text += "\n[lens]\n" + tomli_w.dumps(manifest["lens"])
     for section in ("target", "image"):
         for entry in manifest[section]:
             plain = {k: v for k, v in entry.items() if not isinstance(v, dict)}

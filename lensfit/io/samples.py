@@ -159,8 +159,8 @@ class SampleTable:
     blur_scale: list[float] = field(default_factory=list)
     #: what ``lensfit.measurement.pipeline``'s diffraction test found (None where it did not run)
     diffraction: dict[str, Any] | None = None
-    #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``, ``ideal``), which the
-    #: fit takes where no argument gives it; written to the samples JSON
+    #: what the stack's ``[lens]`` says (``pupil_magnification``, ``focusing``, ``ideal``,
+    #: ``widest_f_number``), which the fit takes where no argument gives it; written to the samples JSON
     lens: dict[str, Any] = field(default_factory=dict)
     #: settings left out of the measurement, each with why and what would fix it (a setting whose
     #: views cannot calibrate it, in a stack whose other settings can); in memory for the fit's
@@ -223,9 +223,10 @@ class SampleTable:
         except (TypeError, ValueError) as exc:
             raise SpecError(path, "pixel_pitch_mm", f"unreadable ({exc}); expected what lensfit measure writes") from None
         lens = doc.get("lens") or {}
-        if not isinstance(lens, dict) or not set(lens) <= {"pupil_magnification", "focusing", "ideal"}:
+        if not isinstance(lens, dict) or not set(lens) <= {"pupil_magnification", "focusing", "ideal",
+                                                            "widest_f_number"}:
             raise SpecError(path, "lens", "holds what stack.toml's [lens] says: pupil_magnification, focusing, "
-                            "ideal")
+                            "ideal, widest_f_number")
         table.lens = {k: tuple(v) if isinstance(v, list) else v for k, v in lens.items()}
         intrinsics = doc.get("intrinsics") or {}
         if not isinstance(intrinsics, dict):

@@ -65,7 +65,8 @@ class Stack:
     intrinsics: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_pixels: int | None = None
     #: what is known of the lens (``[lens]``: ``pupil_magnification``, a value or a (lo, hi) range;
-    #: ``focusing``, unit, internal or unknown; ``ideal``, a lens without aberrations)
+    #: ``focusing``, unit, internal or unknown; ``ideal``, a lens without aberrations;
+    #: ``widest_f_number``, its full aperture)
     lens: dict[str, Any] = field(default_factory=dict)
     #: images kept in memory once read (None: read again each time; :meth:`holding`)
     hold: "ImageHold | None" = field(default=None, repr=False, compare=False)

@@ -165,6 +165,28 @@ def test_exif_fields_in_lensfit_units(tmp_path):
     assert read_camera_record(tmp_path / "c.jpg").f_number is None
 
 
+def test_the_lenss_widest_f_number_from_exif_goes_into_the_draft(tmp_path):
+    """MaxApertureValue is an APEX value, N = 2 ** (Av / 2): the published table's Av 1, 3, 5 are
+    f/1.4, f/2.8, f/5.6. A prime's LensSpecification serves where it is missing, a zoom's does not
+    (its widest f-number depends on the focal length). lensfit init writes it into [lens]."""
+    from lensfit.io.exif import read_camera_record
+
+    for av, n in ((1.0, 1.4), (3.0, 2.8), (5.0, 5.6)):
+        r = read_camera_record(jpeg_with_exif(tmp_path / f"av{av}.jpg", max_aperture_apex=av))
+        assert r.widest_f_number == pytest.approx(n, abs=0.07)
+    assert read_camera_record(jpeg_with_exif(tmp_path / "prime.jpg", lens_spec=(50, 50, 1.8, 1.8))).widest_f_number \
+        == pytest.approx(1.8)
+    assert read_camera_record(jpeg_with_exif(tmp_path / "zoom.jpg", lens_spec=(24, 70, 2.8, 4))).widest_f_number is None
+    assert read_camera_record(jpeg_with_exif(tmp_path / "none.jpg")).widest_f_number is None
+    photos = tmp_path / "p"
+    photos.mkdir()
+    for i, n in enumerate((2.8, 5.6)):
+        jpeg_with_exif(photos / f"img_{i}.jpg", fnum=n, subject_m=1.5, max_aperture_apex=2.0)
+    assert lensfit_main(["init", str(photos)]) == 0
+    m = tomllib.loads((photos / "stack.toml").read_text())
+    assert m["lens"] == {"widest_f_number": 2.0}
+
+
 def test_exif_is_read_from_the_files_head_and_maker_notes_only_for_canon(tmp_path, monkeypatch):
     """A maker note of 100 MB (or one claiming 2 GB) kept exifread busy for minutes: the EXIF is
     parsed from the file's first EXIF_READ_BYTES without maker notes, and only a Canon body's

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -175,3 +176,20 @@ def test_a_fit_is_judged_against_each_settings_own_focal_length():
     assert {r["setting"] for r in rows} == {"near", "far"}
     assert all(r["relative_error"] == 0.0 and r["within_ci95"] for r in rows)
     assert any(abs(t["focal_length_mm"] / scene.focal_length_mm - 1) > 0.01 for t in truth["settings"].values())
+
+
+def test_a_compound_lenss_stack_states_its_widest_f_number_as_a_cameras_exif_would():
+    """stack.toml's [lens] widest_f_number is the lens file's design f-number (its full aperture),
+    or the scene's f-number where the scene opens the lens wider; a thin lens states none."""
+    import tomllib
+
+    from synth.truth import stack_manifest
+
+    design = tomllib.loads((Path(__file__).parents[2] / "data_specs" / "lenses" / "retrofocus-24.toml")
+                           .read_text())["design_f_number"]
+    for f_number, widest in ((1.5 * design, design), (0.9 * design, 0.9 * design)):
+        spec = bracket_scene()
+        spec["lens"]["f_number"] = f_number
+        del spec["lens"]["focusing"], spec["lens"]["focus_group"]
+        manifest = stack_manifest(scene_from_dict(spec), ["a.png", "b.png"], ["near", "far"])
+        assert manifest["lens"]["widest_f_number"] == pytest.approx(widest, rel=1e-4)
