@@ -19,7 +19,7 @@ from lensfit.fitting.focusing import merge, one_setting, subset, with_lens
 from lensfit.fitting.identifiability import (PHOTOGRAPHIC_P_NOTE, capture_problems, curvature_estimate, field_spread,
                                              one_sided, photographic_p_interval, pupil_mode, second_vertex)
 from lensfit.fitting.model import Layout, vector_size
-from lensfit.fitting.result import Estimate, FitResult, Outcome, parameter_labels
+from lensfit.fitting.result import Estimate, FitResult, Outcome, parameter_labels, refuse_left_out
 from lensfit.fitting.solve import image_scatter, padded_size, predict_all
 from lensfit.fitting.refits import SPOT_SHAPE_MODES, disk_instead, floor_sensitive, widen
 from lensfit.fitting.uncertainty import (StrataDof, arms_part, budget_parts, correlation, svd_covariance,
@@ -171,6 +171,7 @@ def fit(samples: Any, *, pixel_pitch_mm: float | None = None,
                                            focal_length_sigma_px=one_setting(focal_length_sigma_px, label), **options)
                                 for label in result.samples.labels}, focusing)
     nominal.apply(result, ideal_lens, widest_f_number)
+    refuse_left_out(result, getattr(samples, "left_out_settings", None) or {})
     return result
 
 

@@ -78,7 +78,7 @@ def subset(samples: Any, label: str) -> Any:
         keep = [i for i, s in enumerate(samples.samples) if str(s.setting) == label]
         return dataclasses.replace(
             samples, samples=[samples.samples[i] for i in keep],
-            intrinsics={k: v for k, v in samples.intrinsics.items() if k == label},
+            intrinsics={k: v for k, v in samples.intrinsics.items() if k == label}, left_out_settings={},
             fit_rms=[samples.fit_rms[i] for i in keep] if len(samples.fit_rms) == len(samples.samples) else [],
             edge_tasks=[samples.edge_tasks[i] for i in keep] if len(samples.edge_tasks) == len(samples.samples)
             else [],

@@ -164,11 +164,16 @@ def apply(result: Any, ideal: bool, widest_f_number: float | None = None) -> Non
     result.focal_length_mm = result.focal_length_mm.widened(focal_spread(least), SOURCE)
     if result.pupil_magnification_source == "fitted":
         result.pupil_magnification = result.pupil_magnification.widened(focal_spread(least), SOURCE)
+    # A focal length the settings share (one setting, or a lens focusing as a unit) is read through
+    # every setting's S, the widest's shift included: each setting carries the widest's term in f.
+    shared = result.focal_length_mm.value is not None
     for label, quantities in result.settings.items():
         k = stops[label] if stops else 0
         mean, sd = design_spread(k)
         mean_a, sd_a = aperture_spread(k)
-        sd_f = focal_spread(k)
+        sd_f = focal_spread(least if shared else k)
+        if sd_f > focal_spread(k):  # (N = f / A: the shared f's term beyond the one at its own aperture)
+            sd = math.hypot(sd, sd_f)
         f = quantities.get("focal_length_mm")
         if f is not None:
             quantities["focal_length_mm"] = f.widened(sd_f, SOURCE)

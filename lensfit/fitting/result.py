@@ -161,7 +161,7 @@ class FitResult:
 
     def setting_samples(self, label: str) -> int:
         """How many samples of setting ``label`` the fit took (none for a setting left out of the
-        measurement: ``lensfit.measurement.pipeline.refuse_left_out``)."""
+        measurement: :func:`refuse_left_out`)."""
         labels = self.samples.labels
         return int(np.sum(self.samples.setting == labels.index(label))) if label in labels else 0
 
@@ -279,3 +279,17 @@ def write_results(path: str | Path, document: dict[str, Any]) -> None:
     from lensfit.outputs.writers import write_text
 
     write_text(path, json.dumps(document, indent=1, allow_nan=False))
+
+
+def refuse_left_out(result: Any, left_out: dict[str, str]) -> None:
+    """Each setting the measurement left out (label: why, ``SampleTable.left_out_settings``) into
+    ``result`` with every quantity the others report refused, naming why and the fix."""
+    if not left_out:
+        return
+    names = list(dict.fromkeys([q for qs in result.settings.values() for q in qs]
+                               + ["focal_length_mm", "f_number", "focus_distance_mm"]))
+    for label, why in left_out.items():
+        reason = f"setting {label!r} was left out of the measurement: {why}"
+        result.settings[label] = {q: Estimate(None, reason=reason) for q in names}
+        result.reasons.append(reason)
+    result.code = Outcome.NOT_IDENTIFIABLE

@@ -197,7 +197,8 @@ class SampleTable:
                                "distortion": list(v.distortion)} for k, v in self.intrinsics.items()},
             "warnings": self.warnings,
             "provenance": provenance("lensfit", dated=False),
-        } | ({"lens": {k: list(v) if isinstance(v, tuple) else v for k, v in self.lens.items()}} if self.lens else {})
+        } | ({"lens": {k: list(v) if isinstance(v, tuple) else v for k, v in self.lens.items()}} if self.lens else {}) \
+          | ({"left_out_settings": dict(self.left_out_settings)} if self.left_out_settings else {})
 
     @classmethod
     def read(cls, path: str | Path) -> "SampleTable":
@@ -228,6 +229,11 @@ class SampleTable:
             raise SpecError(path, "lens", "holds what stack.toml's [lens] says: pupil_magnification, focusing, "
                             "ideal, widest_f_number")
         table.lens = {k: tuple(v) if isinstance(v, list) else v for k, v in lens.items()}
+        left_out = doc.get("left_out_settings") or {}
+        if not (isinstance(left_out, dict) and all(isinstance(v, str) for v in left_out.values())):
+            raise SpecError(path, "left_out_settings", "maps setting labels to why each was left out, as lensfit "
+                            "measure writes it")
+        table.left_out_settings = {str(k): v for k, v in left_out.items()}
         intrinsics = doc.get("intrinsics") or {}
         if not isinstance(intrinsics, dict):
             raise SpecError(path, "intrinsics", "must map setting labels to calibrations")

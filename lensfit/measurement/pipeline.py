@@ -237,25 +237,8 @@ def measure_and_fit(stack: Any, estimator: str = "edge", *, wavelength_nm: float
         if progress:
             progress("processing", 1, 1)
     apply(out[1], found, processed)
-    refuse_left_out(out[1], out[0].left_out_settings)
     measurement.release()  # the rounds' kept profiles: not held by the caller
     return out
-
-
-def refuse_left_out(result: Any, left_out: dict[str, str]) -> None:
-    """Each setting the measurement left out (label: why, ``SampleTable.left_out_settings``) into
-    ``result`` with every quantity the others report refused, naming why and the fix."""
-    from lensfit.fitting.result import Estimate, Outcome
-
-    if not left_out:
-        return
-    names = list(dict.fromkeys([q for qs in result.settings.values() for q in qs]
-                               + ["focal_length_mm", "f_number", "focus_distance_mm"]))
-    for label, why in left_out.items():
-        reason = f"setting {label!r} was left out of the measurement: {why}"
-        result.settings[label] = {q: Estimate(None, reason=reason) for q in names}
-        result.reasons.append(reason)
-    result.code = Outcome.NOT_IDENTIFIABLE
 
 
 def _fit_ahead(settings: int, edges: int) -> Any:

@@ -144,11 +144,12 @@ def test_the_stacks_lens_entry_declares_an_ideal_lens():
 def test_a_bracket_of_a_real_lens_carries_the_focal_length_term_into_the_fitted_p():
     """A bracket reads f and P through the pinhole distances S of its settings; a best focus off
     the paraxial image scales every S alike, which moves f and P by the same share (1/S = 1/f - x/P):
-    so a fitted P carries the focal length's term, and a unit-focusing shared f too."""
-    f, P, N = 50.0, 1.4, 2.8
+    so a fitted P carries the focal length's term, and a unit-focusing shared f too, in every
+    setting: the widest's, which reads it through its own S too, where the near one is stopped down."""
+    f, P = 50.0, 1.4
     rng = np.random.default_rng(3)
     data, fpx = [], {}
-    for label, D in (("near", 400.0), ("far", 3000.0)):
+    for label, D, N in (("near", 400.0, 5.6), ("far", 3000.0, 2.8)):
         s = 1.0 / (1.0 / f - 1.0 / (P * D))
         fpx[label] = s / PITCH
         for d in np.geomspace(0.6 * D, 2.5 * D, 40):
@@ -157,15 +158,21 @@ def test_a_bracket_of_a_real_lens_carries_the_focal_length_term_into_the_fitted_
                          "sigma_px": 0.05})
     options = dict(pixel_pitch_mm=PITCH, focal_length_px=fpx, focal_length_sigma_px={k: 0.02 for k in fpx},
                    focusing="unit")
-    ideal, real = fit(data, ideal_lens=True, **options), fit(data, **options)
+    ideal, real = fit(data, ideal_lens=True, **options), fit(data, widest_f_number=2.8, **options)
     assert ideal.pupil_magnification_source == real.pupil_magnification_source == "fitted"
     assert ideal.pupil_magnification.value == pytest.approx(P, rel=0.05)
-    sd_f = focal_spread()
-    for want, got in ((ideal.pupil_magnification, real.pupil_magnification), (ideal.focal_length_mm,
-                                                                               real.focal_length_mm)):
+    assert real.f_number_definition["stops_down"] == {"near": 2, "far": 0}
+    sd_f = focal_spread(0)
+    for want, got in ((ideal.pupil_magnification, real.pupil_magnification),
+                      (ideal.focal_length_mm, real.focal_length_mm),
+                      *((ideal.settings[k]["focal_length_mm"], real.settings[k]["focal_length_mm"]) for k in fpx)):
         assert got.value == want.value
         assert got.sigma / got.value == pytest.approx(math.hypot(want.sigma / want.value, sd_f), rel=1e-9)
         assert got.shares[SOURCE] > 0
+    # The near setting's f-number: its own aperture's spread two stops down, and the shared f's.
+    n, want = real.settings["near"]["f_number"], ideal.settings["near"]["f_number"]
+    assert n.sigma / n.value == pytest.approx(math.hypot(want.sigma / want.value, design_spread(2)[1], sd_f),
+                                              rel=1e-9)
 
 
 def test_a_lens_stopped_down_from_its_stated_widest_f_number_carries_the_designs_spread_there():

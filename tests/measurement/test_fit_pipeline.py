@@ -254,6 +254,12 @@ def test_a_setting_its_views_cannot_calibrate_is_left_out_and_the_others_fitted(
     doc = json.loads((tmp_path / "r.json").read_text())
     jsonschema.validate(doc, schema("results"))
     assert doc["settings"]["near"]["samples"] == 0 and doc["settings"]["near"]["f_number"]["value"] is None
+    # The Python API's fit of the table, and of the samples JSON written from it, say so too.
+    table.write(tmp_path / "samples.json")
+    for again in (fit(table), fit(SampleTable.read(tmp_path / "samples.json"))):
+        assert again.code == "not_identifiable" and all(e.value is None for e in again.settings["near"].values())
+        assert sum("'near'" in why for why in again.reasons) == 1
+        within(again.settings["far"]["focus_distance_mm"], t["focus_distance_mm"], 0.01)
 
 
 @settings(max_examples=4, deadline=None, derandomize=True, print_blob=True,
