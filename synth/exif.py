@@ -4,12 +4,14 @@ One list of tags (:func:`exif_entries`) written two ways: into a DNG's first IFD
 (:func:`tiff_extratags`), into a JPEG's APP1 block by Pillow (:func:`pillow_exif`). Values are a
 camera's nominal ones (``synth.rendering.RenderResult.exif``): focal length, f-number, the focus
 distance as ``SubjectDistance`` (metres), the pixel pitch as ``FocalPlaneXResolution`` (pixels
-per centimetre; EXIF 2.32, tag 0xA20E), exposure time and ISO where the exposure effect sets them.
+per centimetre; EXIF 2.32, tag 0xA20E), exposure time and ISO where the exposure effect sets them,
+and a compound lens's widest f-number as ``MaxApertureValue`` (APEX, ``2 log2 N``).
 ``lensfit init`` reads them back (``lensfit.io.exif``).
 """
 
 from __future__ import annotations
 
+import math
 from fractions import Fraction
 from typing import Any
 
@@ -28,6 +30,7 @@ _TAGS = {
     "focal_plane_x_resolution": (0xA20E, "FocalPlaneXResolution", "rational"),
     "focal_plane_y_resolution": (0xA20F, "FocalPlaneYResolution", "rational"),
     "focal_plane_resolution_unit": (0xA210, "FocalPlaneResolutionUnit", "short"),
+    "max_aperture_apex": (0x9205, "MaxApertureValue", "rational"),
 }
 #: Tags that live in IFD0 of a JPEG (the others go to its Exif sub-IFD).
 _IFD0 = {"make", "model"}
@@ -53,6 +56,8 @@ def exif_entries(exif: dict[str, Any], model: str = MODEL) -> list[tuple[str, An
         out.append(("shutter_s", float(exif["shutter_s"])))
     if exif.get("iso") is not None:
         out.append(("iso", int(round(exif["iso"]))))
+    if exif.get("widest_f_number"):  # a compound lens's full aperture, as an APEX value
+        out.append(("max_aperture_apex", 2.0 * math.log2(float(exif["widest_f_number"]))))
     return out
 
 

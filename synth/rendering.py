@@ -29,7 +29,7 @@ from synth.scene import Scene, load_scene
 from synth.seeds import raytrace_seed
 from synth.effects.stages import ShotState, fine_choice, quantise_16bit, run_stages, working_f_number
 from synth.planning import METHODS, ShotPlan, choose_method, convolve_is_exact, plan
-from synth.truth import finite_or_none, target_truth, chief_ray_depth, stack_manifest
+from synth.truth import finite_or_none, target_truth, chief_ray_depth, stack_manifest, widest_f_number
 
 #: Planning and truth live in synth.planning and synth.truth; their public names are here too.
 __all__ = ["render", "plan", "GeometricCache", "choose_method", "convolve_is_exact", "check_overrides", "RenderResult",
@@ -315,6 +315,7 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
     images_truth, settings = [], {}
     methods_used = set()
     plans = plan(scene)
+    widest = widest_f_number(scene)
     for k, sp in enumerate(plans):
         shot, cam = sp.shot, sp.shot.camera
         name = shot.name + image_extension(r.format)
@@ -341,7 +342,8 @@ def render(scene: Scene | str | Path, *, method: str | None = None, samples_per_
                              **({"focus_distance_mm": round(cam.focus_distance_mm, -1)}
                                 if math.isfinite(cam.focus_distance_mm) else {}),
                              **({"shutter_s": extra["exposure"]["shutter_s"], "iso": extra["exposure"]["iso"]}
-                                if "exposure" in extra else {})}
+                                if "exposure" in extra else {}),
+                             **({"widest_f_number": widest} if widest is not None else {})}
         depth = chief_ray_depth(shot, scene.effects.distortion)
         coc = np.asarray(cam.coc_diameter_px(depth))
         map_file = f"truth/{shot.name}_maps.npz"

@@ -126,6 +126,17 @@ def target_truth(obj, shot: Shot, distortion=None) -> dict[str, Any]:
     return entry
 
 
+def widest_f_number(scene: Scene) -> float | None:
+    """A compound lens's full aperture, as its barrel and a camera's EXIF (MaxApertureValue)
+    state it: its design's f-number, or the widest the scene opens it to; None for a thin lens or
+    a prescription that states no design f-number."""
+    from synth.geometry import CompoundLensCamera
+
+    compound = [shot.camera for shot in scene.shots if isinstance(shot.camera, CompoundLensCamera)]
+    designed = [c.prescription.design_f_number for c in compound if c.prescription.design_f_number]
+    return round(min(designed + [c.f_number for c in compound]), 4) if designed else None
+
+
 def stack_manifest(scene: Scene, files: list[str], settings: list[str],
                    shown: list[list[str]] | None = None) -> dict[str, Any]:
     """stack.toml: the camera's pixel pitch, the targets' printed geometry, images and labels,
@@ -159,13 +170,9 @@ def stack_manifest(scene: Scene, files: list[str], settings: list[str],
     # scene moves a group inside it.
     internal = any(getattr(shot.camera, "focus_group", None) is not None for shot in scene.shots)
     out["lens"] = {"focusing": "internal" if internal else "unit"}
-    compound = [shot.camera for shot in scene.shots if isinstance(shot.camera, CompoundLensCamera)]
-    designed = [c.prescription.design_f_number for c in compound if c.prescription.design_f_number]
-    if designed:
-        # The lens's full aperture, as its barrel and a camera's EXIF (MaxApertureValue) state it:
-        # its design's, or the widest the scene opens it to.
-        out["lens"]["widest_f_number"] = round(min(designed + [c.f_number for c in compound]), 4)
-    if not compound:
+    if (widest := widest_f_number(scene)) is not None:
+        out["lens"]["widest_f_number"] = widest
+    if not any(isinstance(shot.camera, CompoundLensCamera) for shot in scene.shots):
         # A thin lens's pupils coincide with it (P = 1), as a user of any renderer's thin-lens camera
         # knows; a compound lens's P is left for the data (or the spread of photographic lenses).
         out["lens"]["pupil_magnification"] = 1.0

@@ -178,7 +178,7 @@ def test_a_fit_is_judged_against_each_settings_own_focal_length():
     assert any(abs(t["focal_length_mm"] / scene.focal_length_mm - 1) > 0.01 for t in truth["settings"].values())
 
 
-def test_a_compound_lenss_stack_states_its_widest_f_number_as_a_cameras_exif_would():
+def test_a_compound_lenss_stack_states_its_widest_f_number_as_a_cameras_exif_would(tmp_path):
     """stack.toml's [lens] widest_f_number is the lens file's design f-number (its full aperture),
     or the scene's f-number where the scene opens the lens wider; a thin lens states none."""
     import tomllib
@@ -193,3 +193,11 @@ def test_a_compound_lenss_stack_states_its_widest_f_number_as_a_cameras_exif_wou
         del spec["lens"]["focusing"], spec["lens"]["focus_group"]
         manifest = stack_manifest(scene_from_dict(spec), ["a.png", "b.png"], ["near", "far"])
         assert manifest["lens"]["widest_f_number"] == pytest.approx(widest, rel=1e-4)
+    # The camera's files say it too (EXIF MaxApertureValue), as lensfit init reads it back.
+    from lensfit.io.exif import read_camera_record
+    from synth.rendering import render
+    from synth.stack import write_stack
+
+    spec["render"]["format"] = "jpeg"
+    out = write_stack(render(scene_from_dict(spec)), tmp_path / "jpeg")
+    assert read_camera_record(out / "shot_000.jpg").widest_f_number == pytest.approx(0.9 * design, abs=0.006)
