@@ -405,15 +405,22 @@ def coverage(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
+#: The image scale the suite's records are rendered at (``--scale``); a record at another scale
+#: is a variant of its own.
+RECORD_SCALE = 0.5
+
+
 def record_name(bracket: str = "wide", focusing: str = "unit", designs: str = "optiland",
-                f_number: float | None = None, field: str = "demo") -> str:
+                f_number: float | None = None, field: str = "demo", scale: float = RECORD_SCALE) -> str:
     """The record's name (its file DIR/NAME.json): one current record per variant of the suite
-    (optiland's designs wide open: ``lenses``; the shipped or rayoptics's designs, a given
-    f-number, a narrow bracket, internal focusing each add to it, e.g. ``lenses_f5.6_narrow``,
-    ``lenses_rayoptics``)."""
+    (optiland's designs wide open at ``RECORD_SCALE``: ``lenses``; the shipped or rayoptics's
+    designs, a given f-number, a narrow bracket, internal focusing, the designs' own field and
+    another scale each add to it, e.g. ``lenses_f5.6_narrow``, ``lenses_rayoptics``,
+    ``lenses_scale1``)."""
     return ("lenses" + {"shipped": "_shipped", "rayoptics": "_rayoptics"}.get(designs, "")
             + ("" if f_number is None else f"_f{f_number:g}") + ("_narrow" if bracket == "narrow" else "")
-            + ("_internal" if focusing == "internal" else "") + ("_design_field" if field == "design" else ""))
+            + ("_internal" if focusing == "internal" else "") + ("_design_field" if field == "design" else "")
+            + ("" if scale == RECORD_SCALE else f"_scale{scale:g}"))
 
 
 #: How the record's tables name the quantities.

@@ -294,9 +294,11 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--reuse", metavar="DIR", help="render nothing: measure and fit again the stacks --keep wrote to DIR")
     bl.add_argument("--record", metavar="DIR", help="also write the record DIR/lenses.json the validation page "
                                                    "shows (docs/validation/records), one per variant: optiland's "
-                                                   "designs wide open lenses.json; the shipped designs, a given "
-                                                   "--f-number, a narrow bracket and internal focusing name it "
-                                                   "further (lenses_shipped_f11.json, lenses_f5.6_narrow.json, ...)")
+                                                   "designs wide open at --scale 0.5 lenses.json; the shipped "
+                                                   "designs, a given --f-number, a narrow bracket, internal "
+                                                   "focusing, --field design and another --scale name it further "
+                                                   "(lenses_shipped_f11.json, lenses_f5.6_narrow.json, "
+                                                   "lenses_scale1.json, ...)")
     bl.add_argument("--json", action="store_true", help="print JSON")
     bl.set_defaults(func=bench_lenses_command, prog="lensfit bench-lenses")
 

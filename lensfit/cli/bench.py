@@ -184,7 +184,7 @@ def bench_lenses_command(args: argparse.Namespace) -> int:
         from lensfit.bench.records import record_header, write_json
 
         name = record_name(args.bracket, args.focusing, args.designs, None if args.wide_open else args.f_number,
-                           args.field)
+                           args.field, args.scale)
         result.update(record_header(name, " ".join(["lensfit", *sys.argv[1:]])))
         console.print(f"wrote {write_json(args.record, name, result)}")
     if args.json:

@@ -160,11 +160,12 @@ def test_bench_lenses_variants_never_write_one_record():
     from lensfit.bench.lenses import record_name
 
     variants = list(itertools.product(("wide", "narrow"), ("unit", "internal"), ("optiland", "shipped", "rayoptics"),
-                                      (None, 5.6, 11.0, 2.8), ("demo", "design")))
+                                      (None, 5.6, 11.0, 2.8), ("demo", "design"), (0.5, 1.0, 0.25)))
     names = [record_name(*v) for v in variants]
     assert len(set(names)) == len(variants)
     assert record_name() == "lenses" and record_name("narrow", "internal") == "lenses_narrow_internal"
     assert record_name("wide", "unit", "optiland", 5.6) == "lenses_f5.6"
+    assert record_name(scale=1.0) == "lenses_scale1"
 
 
 @pytest.mark.parametrize("bracket, gap", [("wide", 1 / 8), ("narrow", 1 / 40)])
