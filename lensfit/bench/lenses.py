@@ -436,7 +436,8 @@ def markdown(doc: dict[str, Any]) -> str:
     variant = "".join([", wide open" if doc.get("f_number") is None else f", f/{doc['f_number']:g}",
                        ", narrow bracket" if doc.get("bracket") == "narrow" else "",
                        ", internal focusing" if doc.get("focusing") == "internal" else "",
-                       ", each at its own field of view" if doc.get("field") == "design" else ""])
+                       ", each at its own field of view" if doc.get("field") == "design" else "",
+                       f", scale {doc['scale']:g}" if doc.get("scale", RECORD_SCALE) != RECORD_SCALE else ""])
     out = [f"### Real lenses (`lensfit bench-lenses`, {doc.get('designs', 'shipped')} designs{variant})", "",
            f"`{doc.get('command', 'lensfit bench-lenses')}`, {doc.get('date', '')}, {doc.get('cores', '?')} cores. "
            f"The demo stack scaled to each design and ray traced through it ({what}, {doc['samples_per_pixel']} "
