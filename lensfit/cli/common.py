@@ -17,7 +17,8 @@ EXIT_BENCH_FAILED = 4  # a benchmark ran, but some case missed its tolerance (le
 _MEASURE_OPTIONS = {"estimator": "--estimator", "setting": "setting"}
 FIT_OPTIONS = {**_MEASURE_OPTIONS, "pixel_pitch_mm": "--pixel-pitch", "focal_length_px": "--focal-length-px",
                 "loss": "--loss", "blur_floor_px": "--blur-floor", "pupil_magnification": "--pupil-magnification",
-                "field_curvature": "--field-curvature", "spot_shape": "--spot-shape"}
+                "field_curvature": "--field-curvature", "spot_shape": "--spot-shape",
+                "widest_f_number": "--widest-f-number", "focusing": "--focusing", "ideal_lens": "--ideal-lens"}
 
 class CliError(Exception):
     """A one-line message for the user and an exit code."""

@@ -163,8 +163,8 @@ class SampleTable:
     #: ``widest_f_number``), which the fit takes where no argument gives it; written to the samples JSON
     lens: dict[str, Any] = field(default_factory=dict)
     #: settings left out of the measurement, each with why and what would fix it (a setting whose
-    #: views cannot calibrate it, in a stack whose other settings can); in memory for the fit's
-    #: results, which refuse them by name
+    #: views cannot calibrate it, in a stack whose other settings can); written to the samples
+    #: JSON, and refused by name in the fit's results
     left_out_settings: dict[str, str] = field(default_factory=dict)
 
     COLUMNS = SAMPLES_CSV_COLUMNS
