@@ -82,7 +82,7 @@ def _spread(logs: list[float], centred: bool) -> tuple[float, float]:
     predictive = float(stats.t.ppf(0.975, n - 1) / z) * math.sqrt(1.0 + 1.0 / n)
     mean = 0.0 if centred else statistics.fmean(logs)
     deviation = math.sqrt(statistics.fmean([x * x for x in logs])) if centred else statistics.stdev(logs)
-    # The ratios are skewed (most designs within 2 %, a fast Petzval +7.1 %): a Gaussian fitted to
+    # The ratios are skewed (most designs within 2 %, a fast Petzval +6.4 %): a Gaussian fitted to
     # them ends its 95 % interval inside the sample's own range, which holds a new design only 90 %
     # of the time ((n - 1) / (n + 1)). The spread is at least wide enough for the interval to hold
     # every surveyed design.
