@@ -171,17 +171,6 @@ def rayoptics_objectives():
             yield name, got[0], got[1], f"rayoptics/{rel}", field
 
 
-def optiland_fields() -> dict[str, float]:
-    """The half field of view (degrees, the largest field angle optiland's sample objectives are
-    designed for), by the names :func:`sample_objectives` gives."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        import optiland.samples.objectives as objectives
-
-        return {name: float(cls().fields.max_field) for name, cls in inspect.getmembers(objectives, inspect.isclass)
-                if cls.__module__ == objectives.__name__}
-
-
 def effective_ratio(rx, f_number: float, x_over_f: float = X_OVER_F, grid: int = 201) -> float:
     """N_effective / (EFL/EPD) of ``rx`` stopped to ``f_number``: :func:`design_ratios`'s first."""
     return design_ratios(rx, f_number, x_over_f, grid)[0]
@@ -235,8 +224,10 @@ def shipped():
         yield name, rx, float(rx.design_f_number or paraxial(rx).f_number)
 
 
-def sample_objectives():
-    """optiland's all-spherical sample objectives: (name, prescription, f-number)."""
+def optiland_objectives():
+    """optiland's all-spherical sample objectives, as :func:`rayoptics_objectives` gives
+    rayoptics's: (name, prescription, f-number, where it came from, its half field of view in
+    degrees: the largest field angle it is designed for)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         import optiland.samples.objectives as objectives
@@ -244,9 +235,16 @@ def sample_objectives():
         for name, cls in inspect.getmembers(objectives, inspect.isclass):
             if cls.__module__ != objectives.__name__:
                 continue
-            got = from_optiland(cls())
+            lens = cls()
+            got = from_optiland(lens)
             if got is not None:
-                yield name, got[0], got[1]
+                yield name, got[0], got[1], f"optiland.samples.objectives.{name}", float(lens.fields.max_field)
+
+
+def sample_objectives():
+    """optiland's all-spherical sample objectives: (name, prescription, f-number)."""
+    for name, rx, fno, *_ in optiland_objectives():
+        yield name, rx, fno
 
 
 def survey(stops=STOPS, designs=None) -> list[Row]:

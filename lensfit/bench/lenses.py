@@ -199,18 +199,12 @@ def run(names: list[str] | None = None, spp: int = 64, f_number: float | None = 
     unshipped: dict[str, tuple[Any, float, str]] = {}  # name: (prescription, f-number, source) not shipped
     lens_files: dict[str, tuple[Path, float]] = {}  # name: (its lens file, f-number) where not shipped
     fields: dict[str, float] = {}  # name: the design's half field of view (degrees) where known
-    if designs == "optiland":
-        from lensfit.bench.designs import optiland_fields, sample_objectives
+    if designs in ("optiland", "rayoptics"):
+        from lensfit.bench.designs import optiland_objectives, rayoptics_objectives
 
-        unshipped = {f"optiland-{n}": (rx, fno, f"optiland.samples.objectives.{n}")
-                     for n, rx, fno in sample_objectives()}
-        fields = {f"optiland-{n}": v for n, v in optiland_fields().items()}
-    elif designs == "rayoptics":
-        from lensfit.bench.designs import rayoptics_objectives
-
-        found = list(rayoptics_objectives())
-        unshipped = {f"rayoptics-{n}": (rx, fno, src) for n, rx, fno, src, _ in found}
-        fields = {f"rayoptics-{n}": v for n, *_, v in found if v is not None}
+        found = list(optiland_objectives() if designs == "optiland" else rayoptics_objectives())
+        unshipped = {f"{designs}-{n}": (rx, fno, src) for n, rx, fno, src, _ in found}
+        fields = {f"{designs}-{n}": v for n, *_, v in found if v is not None}
     if field not in ("demo", "design"):
         raise InputError("field", field, "demo or design")
     if field == "design" and designs == "shipped":
