@@ -142,6 +142,14 @@ def row_passed(errors: dict[str, Any], processing: dict[str, Any] | None, contro
     return True
 
 
+def _program(name: str, tool: tuple[str, str], root: Path) -> str | None:
+    """The program that develops case ``name`` (``""``: written here, nothing to install), or
+    None where it is not installed or, for darktable's variant, darktable's JPEGs were not made."""
+    if name.startswith("darktable,") and not (root / "darktable" / "photos").is_dir():
+        return None
+    return shutil.which(tool[0]) if tool[0] else ""
+
+
 def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str, ...] = tuple(DEVELOPERS),
         keep: Path | None = None) -> dict[str, Any]:
     """Render, develop, fit and compare (see the module notes); ``keep``: a new folder to keep the
@@ -163,8 +171,8 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
             row: dict[str, Any] = {"stack": name}
             folder = root / "dng"
             if tool is not None:
-                program = shutil.which(tool[0]) if tool[0] else ""
-                if program is None or ("," in name and not (root / "darktable" / "photos").is_dir()):
+                program = _program(name, tool, root)
+                if program is None:
                     row["missing"] = f"{tool[0]} not found: install it (Debian: apt install {tool[1]})"
                     rows.append(row)
                     continue

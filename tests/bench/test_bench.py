@@ -740,6 +740,18 @@ def test_bench_developed_declares_the_controls_lens_in_the_drafted_stack(tmp_pat
     assert got["image"] == [{"file": "a.jpg", "encoding": "srgb"}] and got["camera"] == {"pixel_pitch_mm": 0.006}
 
 
+def test_bench_developed_runs_the_in_camera_pipeline_whatever_developers_are_installed(tmp_path):
+    """The pipeline written here needs no program (its name holds a comma, like darktable's
+    variant, which alone waits on darktable's JPEGs)."""
+    from lensfit.bench.developed import _program
+
+    assert _program("in-camera pipeline, no EXIF", ("", ""), tmp_path) == ""
+    assert _program("darktable, Software tag removed", ("sh", "darktable"), tmp_path) is None
+    (tmp_path / "darktable" / "photos").mkdir(parents=True)
+    assert _program("darktable, Software tag removed", ("sh", "darktable"), tmp_path).endswith("sh")
+    assert _program("rawtherapee", ("no-such-program-here", "rawtherapee"), tmp_path) is None
+
+
 def test_bench_lenses_coverage_counts_both_settings_and_takes_wilsons_interval():
     """Counted per quantity over both settings, a refusal apart from the intervals, with Wilson's
     score interval (1 of 2: 0.095-0.905, worked by hand from the score formula)."""
