@@ -370,6 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "the DNGs are the control. Exit 4 where a case fails.")
     bd.add_argument("--developers", nargs="+", choices=["rawtherapee", "darktable"],
                     default=["rawtherapee", "darktable"], help="which developers (default: both)")
+    bd.add_argument("--f-numbers", nargs="+", type=float, metavar="N", default=[11.0, 5.6],
+                    help="render the scene at these f-numbers, the exposure time scaled to the same light "
+                         "(default: 11 5.6)")
     bd.add_argument("--keep", metavar="DIR", help="keep the rendered and developed stacks in DIR (a new folder)")
     bd.add_argument("--record", metavar="DIR",
                     help="also write the table to DIR/developed.json for the documentation's validation page "

@@ -383,10 +383,13 @@ def bench_developed_command(args: argparse.Namespace) -> int:
     _check_record_folder(args.record)
     if args.keep and Path(args.keep).exists():
         raise CliError(f"--keep {args.keep} exists; give a new folder (nothing of yours is replaced)")
+    bad = [n for n in args.f_numbers if not 1.0 <= n <= 32.0]
+    if bad:
+        raise CliError(f"--f-numbers {bad[0]:g}: give f-numbers from 1 to 32")
     console = Console(stderr=True)
     with console.status("benchmarking") as status:
         doc = run(progress=lambda m: status.update(f"benchmarking: {m}"), developers=tuple(args.developers),
-                  keep=Path(args.keep) if args.keep else None)
+                  keep=Path(args.keep) if args.keep else None, f_numbers=tuple(args.f_numbers))
     if args.record:
         from lensfit.bench.records import write_json
 
