@@ -752,6 +752,45 @@ def test_bench_developed_runs_the_in_camera_pipeline_whatever_developers_are_ins
     assert _program("rawtherapee", ("no-such-program-here", "rawtherapee"), tmp_path) is None
 
 
+def test_bench_developed_scene_at_another_f_number_keeps_the_light_on_the_sensor():
+    """Exposure H = L t / N^2 (the camera equation): two stops more aperture, a quarter of the
+    time; the lens and the shots are otherwise the scene's own."""
+    from lensfit.bench.developed import scene_at
+    from lensfit.io.specs import specs_dir
+    from synth.scene import load_scene
+
+    own, faster = load_scene(specs_dir() / "scenes" / "camera_raw.toml"), scene_at(5.5)
+    assert len(faster.shots) == len(own.shots)
+    for a, b in zip(own.shots, faster.shots):
+        assert a.camera.f_number == 11.0 and b.camera.f_number == 5.5
+        assert b.camera.focal_length_mm == a.camera.focal_length_mm
+        assert b.camera.focus_distance_mm == a.camera.focus_distance_mm
+        t_own = a.shutter_s or own.effects.exposure.shutter_s
+        t_fast = b.shutter_s or faster.effects.exposure.shutter_s
+        assert t_own / a.camera.f_number**2 == pytest.approx(t_fast / b.camera.f_number**2, rel=1e-12)
+        assert t_fast == pytest.approx(t_own / 4, rel=1e-12)
+
+
+def test_bench_developed_coverage_leaves_out_the_controls_and_counts_refusals_apart():
+    """Over the developed stacks alone: 2 of 3 intervals held (Wilson 0.208-0.939, worked from
+    the score formula), a refusal not counted as reported."""
+    from lensfit.bench.developed import coverage
+
+    def row(stack, n):
+        ok = {"refused": False, "relative_error": 0.001, "inside": True}
+        return {"stack": stack, "errors": {"focal_length_mm": ok, "focus_distance_mm": ok, "f_number": n}}
+    held = {"refused": False, "relative_error": 0.01, "inside": True}
+    missed = {"refused": False, "relative_error": -0.03, "inside": False}
+    rows = [row("DNG (control)", missed), row("darktable", held), row("rawtherapee", {"refused": True}),
+            row("in-camera pipeline, no EXIF", missed), row("darktable, Software tag removed", held),
+            {"stack": "rawtherapee", "missing": "not found"}]
+    got = coverage(rows)
+    assert (got["f_number"]["held"], got["f_number"]["reported"], got["f_number"]["refused"]) == (2, 3, 1)
+    assert got["f_number"]["wilson95"] == pytest.approx([0.2077, 0.9385], abs=5e-4)
+    assert got["f_number"]["mean_abs_error"] == pytest.approx(0.05 / 3)
+    assert (got["focal_length_mm"]["held"], got["focal_length_mm"]["reported"]) == (4, 4)
+
+
 def test_bench_lenses_coverage_counts_both_settings_and_takes_wilsons_interval():
     """Counted per quantity over both settings, a refusal apart from the intervals, with Wilson's
     score interval (1 of 2: 0.095-0.905, worked by hand from the score formula)."""
