@@ -275,3 +275,24 @@ def test_n_read_through_the_model_carries_the_error_of_its_form(camera_raw_stack
     assert 1.2 < result.processing.model["sharpening_sigma_px"] < 1.8
     assert n.sigma / n.value >= MODEL_FORM_SIGMA and n.shares.get("processing", 0) > 0
     assert n.ci95[0] <= truth <= n.ci95[1], (n, truth)
+
+
+def test_noise_reduction_before_the_mask_is_refused_not_read(camera_raw_stack, tmp_path):
+    """A camera's JPEG engine that smooths before it sharpens (non-local means, then the mask): an
+    edge-preserving filter is no tone curve or unsharp mask, and the model misses the profiles
+    beyond their noise. N is refused, saying why and what to give instead; f and the focus
+    distance, which do not rest on the blur's scale, hold their truth."""
+    from lensfit.bench.developed import DENOISE_H, in_camera
+
+    folder = tmp_path / "jpeg"
+    in_camera(sorted(camera_raw_stack.glob("*.dng")), folder, denoise_h=DENOISE_H)
+    (folder / "stack.toml").write_text((camera_raw_stack / "stack.toml").read_text().replace('.dng"', '.jpg"')
+                                       .replace('encoding = "linear"', 'encoding = "srgb"'))
+    truth = json.loads((camera_raw_stack / "truth.json").read_text())
+    _, result, _ = measure_and_fit(folder)
+    n = result.settings["a"]["f_number"]
+    assert n.value is None and not result.processing.modelled
+    assert "noise reduction" in n.reason and "RAW" in n.reason, n.reason
+    f, focus = result.focal_length_mm, result.settings["a"]["focus_distance_mm"]
+    assert f.ci95[0] <= truth["focal_length_mm"] <= f.ci95[1]
+    assert focus.ci95[0] <= truth["settings"]["a"]["focus_distance_mm"] <= focus.ci95[1]
