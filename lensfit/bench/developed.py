@@ -157,8 +157,8 @@ def _program(name: str, tool: tuple[str, str], root: Path) -> str | None:
     return shutil.which(tool[0]) if tool[0] else ""
 
 
-#: The f-numbers the camera-raw scene is rendered at (its own, f/11, and one stopped less: twice the
-#: blur, other edges near the blur limit), the exposure time scaled to keep the light on the sensor.
+#: The f-numbers the camera-raw scene is rendered at (its own, f/11, and two stops wider: twice the
+#: blur, more edges near the window's reach), the exposure time scaled to keep the light on the sensor.
 F_NUMBERS = (11.0, 5.6)
 #: Noise reduction of the in-camera case that applies it: non-local means (OpenCV's, strength h on
 #: the 8-bit scale), as a camera's JPEG engine smooths before it sharpens.
