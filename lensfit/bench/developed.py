@@ -149,7 +149,7 @@ def row_passed(errors: dict[str, Any], processing: dict[str, Any] | None, contro
     return True
 
 
-def _program(name: str, tool: tuple[str, str], root: Path) -> str | None:
+def program_for(name: str, tool: tuple[str, str], root: Path) -> str | None:
     """The program that develops case ``name`` (``""``: written here, nothing to install), or
     None where it is not installed or, for darktable's variant, darktable's JPEGs were not made."""
     if name.startswith("darktable,") and not (root / "darktable" / "photos").is_dir():
@@ -246,7 +246,7 @@ def run(progress: Callable[[str], None] = lambda m: None, developers: tuple[str,
                 row: dict[str, Any] = {"stack": name, "f_number": f_number}
                 folder = root / "dng"
                 if tool is not None:
-                    program = _program(name, tool, root)
+                    program = program_for(name, tool, root)
                     if program is None:
                         rows.append({**row, "missing": f"{tool[0]} not found: install it (Debian: apt install {tool[1]})"})
                         continue

@@ -743,13 +743,13 @@ def test_bench_developed_declares_the_controls_lens_in_the_drafted_stack(tmp_pat
 def test_bench_developed_runs_the_in_camera_pipeline_whatever_developers_are_installed(tmp_path):
     """The pipeline written here needs no program (its name holds a comma, like darktable's
     variant, which alone waits on darktable's JPEGs)."""
-    from lensfit.bench.developed import _program
+    from lensfit.bench.developed import program_for
 
-    assert _program("in-camera pipeline, no EXIF", ("", ""), tmp_path) == ""
-    assert _program("darktable, Software tag removed", ("sh", "darktable"), tmp_path) is None
+    assert program_for("in-camera pipeline, no EXIF", ("", ""), tmp_path) == ""
+    assert program_for("darktable, Software tag removed", ("sh", "darktable"), tmp_path) is None
     (tmp_path / "darktable" / "photos").mkdir(parents=True)
-    assert _program("darktable, Software tag removed", ("sh", "darktable"), tmp_path).endswith("sh")
-    assert _program("rawtherapee", ("no-such-program-here", "rawtherapee"), tmp_path) is None
+    assert program_for("darktable, Software tag removed", ("sh", "darktable"), tmp_path).endswith("sh")
+    assert program_for("rawtherapee", ("no-such-program-here", "rawtherapee"), tmp_path) is None
 
 
 def test_bench_developed_scene_at_another_f_number_keeps_the_light_on_the_sensor():
