@@ -223,23 +223,48 @@ def _psd(cov: tuple[float, float, float]) -> np.ndarray | None:
 DISTORTION_SCALE_RANGE = (0.2, 5.0)
 
 
+def tone_shift(first: dict[int, tuple[list, list, list]]) -> float:
+    """How far a tone curve moved the first pass's edges toward their bright side, in blur radii:
+    their pooled offset from the lines through the target's corners where it names a tone
+    mismatch (``lensfit.measurement.processing``), else 0. (A curve the declared encoding does not
+    undo moves every edge toward one side, by a share of its blur; a corner where an unequal
+    number or blur of edges meets, as on a board's rim or a tilted board, moves with them, and the
+    calibrated focal length with the corners: +0.5 % through darktable's default at f/5.6.)"""
+    from lensfit.measurement.processing import offset_significant, pooled_offset
+
+    offset, sigma, edges = pooled_offset((bright_offset(est, task), est.coc_diameter_px)
+                                         for tasks, _meta, estimates in first.values()
+                                         for task, est in zip(tasks, estimates))
+    return offset if offset_significant(offset, sigma, edges) else 0.0
+
+
 def refined_detections(detections: list[Detection], first: tuple[list, list, list], intr, by_id: dict[str, Target],
-             fresh_poses: bool = False) -> list[Detection]:
+             fresh_poses: bool = False, shift_radii: float = 0.0) -> list[Detection]:
     """An image's detections with their corners refined from the edge lines of the first pass
     (``first``: its tasks, their (target, segment, depths, pose) and the readings), each line
     moved through its edge's true ends where ``intr``'s distortion bows the edge
     (:func:`lensfit.measurement.edge_geometry.unbowed`), through the pose the edge was measured with or, with
-    ``fresh_poses``, the detection's pose under ``intr``."""
+    ``fresh_poses``, the detection's pose under ``intr``; and back by ``shift_radii`` of its blur
+    radius from its bright side (:func:`tone_shift`)."""
     tasks, meta, estimates = first
     out = []
     for det in detections:
         pose_now = estimate_pose(det, intr) if fresh_poses else None
-        lines = {seg.id: (unbowed(est.line_px, seg, pose if pose_now is None else pose_now, intr, bow_margin(task, est)),
+        lines = {seg.id: (unbowed(_shifted(est, shift_radii), seg, pose if pose_now is None else pose_now, intr,
+                                  bow_margin(task, est)),
                           est.coc_diameter_px, est.line_cov_px2)
                  for task, (tid, seg, _, pose), est in zip(tasks, meta, estimates)
                  if tid == det.target_id and est.line_px is not None}
         out.append(refine_corners(det, by_id[det.target_id], lines))
     return out
+
+
+def _shifted(est: Any, shift_radii: float) -> Any:
+    """``est.line_px`` moved by ``shift_radii`` of the blur radius away from the edge's bright side."""
+    if not shift_radii or est.bright_side is None or est.coc_diameter_px is None:
+        return est.line_px
+    step = -shift_radii * 0.5 * est.coc_diameter_px * np.asarray(est.bright_side, np.float64)
+    return tuple(np.asarray(p, np.float64) + step for p in est.line_px)
 
 
 def undistorted_blur(est: Any, scale: float, flags: list[Flag]) -> Any:

@@ -144,8 +144,7 @@ class Processing:
     @property
     def tone_mismatch(self) -> bool:
         """A tone response the declared encoding does not undo (see the module notes)."""
-        return (self.tone_edges >= TONE_MIN_EDGES and math.isfinite(self.tone_offset)
-                and abs(self.tone_offset) > TONE_MIN_OFFSET and abs(self.tone_offset) > TONE_MIN_Z * self.tone_sigma)
+        return offset_significant(self.tone_offset, self.tone_sigma, self.tone_edges)
 
     @property
     def biases_f_number(self) -> bool:
@@ -270,15 +269,25 @@ def tone_offset(table: Any) -> tuple[float, float, int]:
     """The edges' mean offset toward their bright side from the lines through the target's
     corners, in blur radii (each edge's offset over half its blur diameter), its standard error
     and the number of edges (module notes; NaN, NaN, 0 with fewer than two)."""
+    return pooled_offset(zip(table.bright_offset_px, (s.coc_diameter_px for s in table.samples)))
+
+
+def pooled_offset(readings: Any) -> tuple[float, float, int]:
+    """:func:`tone_offset` of ``(offset px, blur diameter px)`` pairs (either None where not read)."""
     import numpy as np
 
-    values = [off / (0.5 * s.coc_diameter_px) for s, off in zip(table.samples, table.bright_offset_px)
-              if off is not None and s.coc_diameter_px is not None and s.coc_diameter_px >= TONE_MIN_DIAMETER_PX
-              and math.isfinite(off)]
+    values = [off / (0.5 * d) for off, d in readings
+              if off is not None and d is not None and d >= TONE_MIN_DIAMETER_PX and math.isfinite(off)]
     if len(values) < 2:
         return math.nan, math.nan, len(values)
     v = np.asarray(values)
     return float(v.mean()), float(v.std(ddof=1) / math.sqrt(len(v))), len(v)
+
+
+def offset_significant(offset: float, sigma: float, edges: int) -> bool:
+    """Whether a pooled offset (:func:`pooled_offset`) names a tone mismatch (``TONE_MIN_*``)."""
+    return (edges >= TONE_MIN_EDGES and math.isfinite(offset) and abs(offset) > TONE_MIN_OFFSET
+            and abs(offset) > TONE_MIN_Z * sigma)
 
 
 def apply(result: Any, found: Processing, policy: str = "refuse") -> None:

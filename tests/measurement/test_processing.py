@@ -296,3 +296,49 @@ def test_noise_reduction_before_the_mask_is_refused_not_read(camera_raw_stack, t
     f, focus = result.focal_length_mm, result.settings["a"]["focus_distance_mm"]
     assert f.ci95[0] <= truth["focal_length_mm"] <= f.ci95[1]
     assert focus.ci95[0] <= truth["settings"]["a"]["focus_distance_mm"] <= focus.ci95[1]
+
+
+def test_a_tone_curves_shift_of_the_edges_is_taken_off_the_lines_that_place_the_corners():
+    """A tone curve the declared encoding does not undo moves every edge toward its bright side by
+    a share of its blur (here 0.15 of each radius, radii 1-6 px across a board tilted in depth).
+    Corners placed where the edge lines meet move with them wherever the edges meeting there
+    differ in side or blur (the rim, and across the blur's gradient), and the focal length with
+    the corners. The pooled shift is read back from the lines against the saddle corners and taken
+    off them: every corner lands on the truth; a shift the tone test does not name (0.02 of a
+    radius) is left alone."""
+    from types import SimpleNamespace
+
+    from lensfit.calibration.camera import Intrinsics
+    from lensfit.calibration.targets import Detection, Target
+    from lensfit.estimators.base import EdgeTask
+    from lensfit.measurement.edge_geometry import refined_detections, tone_shift
+
+    target = Target({"id": "board", "kind": "checkerboard", "squares": [10, 7], "square_mm": 20.0})
+    obj = target.inner_corners_mm()
+    true = 200.0 + 12.0 * obj[:, :2] + 0.004 * obj[:, :2] ** 2  # (a perspective-like stretch)
+    intr = Intrinsics(1000.0, (600.0, 400.0), (0.0, 0.0, 0.0, 0.0, 0.0), 0.1, 1, "calibrated")
+    rng = np.random.default_rng(4)
+
+    def first_pass(share):
+        tasks, meta, ests = [], [], []
+        for k, seg in enumerate(target.edges()):
+            a, b = true[seg.corner_ids[0]], true[seg.corner_ids[1]]
+            t = (b - a) / np.linalg.norm(b - a)
+            bright = np.array([-t[1], t[0]]) * (1 if (seg.corner_ids[0] + k) % 3 else -1)
+            coc = 2.0 + 10.0 * (a[0] - true[:, 0].min()) / np.ptp(true[:, 0])  # blur grows across the board
+            step = share * 0.5 * coc * bright
+            tasks.append(EdgeTask(a, b, 10.0, 10.0))
+            meta.append(("board", seg, None, None))
+            ests.append(SimpleNamespace(line_px=(a + step, b + step), bright_side=tuple(bright), coc_diameter_px=coc,
+                                        line_cov_px2=(1e-4, -5e-5, 1e-4)))
+        return tasks, meta, ests
+
+    rough = Detection("board", obj, true + rng.normal(0, 0.1, true.shape), np.arange(len(obj)))
+    first = first_pass(0.15)
+    shift = tone_shift({0: first})
+    assert shift == pytest.approx(0.15, abs=1e-9)
+    plain = refined_detections([rough], first, intr, {"board": target})[0].image_points_px
+    moved = refined_detections([rough], first, intr, {"board": target}, shift_radii=shift)[0].image_points_px
+    assert np.abs(plain - true).max() > 0.2  # the rim's corners, by a share of their blur
+    assert np.abs(moved - true).max() < 1e-6
+    assert tone_shift({0: first_pass(0.02)}) == 0.0
