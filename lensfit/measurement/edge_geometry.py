@@ -238,6 +238,15 @@ def tone_shift(first: dict[int, tuple[list, list, list]]) -> float:
     return offset if offset_significant(offset, sigma, edges) else 0.0
 
 
+def tone_shifts(first: dict[int, tuple[list, list, list]], encodings: list[str]) -> dict[int, float]:
+    """:func:`tone_shift` per image of ``first``, pooled over the images of one declared encoding
+    (``encodings``, by image): a RAW file beside its camera's JPEG has no tone curve."""
+    groups: dict[str, dict[int, tuple]] = {}
+    for i, passed in first.items():
+        groups.setdefault(encodings[i], {})[i] = passed
+    return {i: shift for group in groups.values() for i, shift in dict.fromkeys(group, tone_shift(group)).items()}
+
+
 def refined_detections(detections: list[Detection], first: tuple[list, list, list], intr, by_id: dict[str, Target],
              fresh_poses: bool = False, shift_radii: float = 0.0) -> list[Detection]:
     """An image's detections with their corners refined from the edge lines of the first pass

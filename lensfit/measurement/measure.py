@@ -27,7 +27,7 @@ from lensfit.estimators.base import Flag
 from lensfit.runtime.parallel import check_jobs, in_threads
 from lensfit.io.samples import Sample, SampleTable
 from lensfit.io.stack import Stack, load_stack
-from lensfit.measurement.edge_geometry import (bright_offset, edge_tasks, refined_detections, tone_shift,
+from lensfit.measurement.edge_geometry import (bright_offset, edge_tasks, refined_detections, tone_shifts,
                                                undistorted_blur)
 from lensfit.calibration.targets import Detection, Target, detection_copies
 
@@ -408,12 +408,12 @@ class _Run:
         """The corners moved through the measured edge lines, and the settings calibrated again."""
         stack, table = self.stack, self.table
         before = dict(table.intrinsics)
-        shift = tone_shift(first)
+        shifts = tone_shifts(first, [im.encoding for im in stack.images])
         for i in range(self.n):
             if stack.images[i].setting in table.intrinsics:  # (not a setting left out)
                 self.detections[i] = refined_detections(self.detections[i], first[i],
                                                         table.intrinsics[stack.images[i].setting], self.by_id,
-                                                        shift_radii=shift)
+                                                        shift_radii=shifts[i])
         with self.clock.stage("calibrate"):
             table.intrinsics = self.calibrate_views()
         # A distortion the corners as detected did not show (OpenCV's carry ~0.1 px) but the
@@ -425,7 +425,7 @@ class _Run:
                 if stack.images[i].setting in found:
                     self.detections[i] = refined_detections(self.detections[i], first[i],
                                                   table.intrinsics[stack.images[i].setting], self.by_id,
-                                                  fresh_poses=True, shift_radii=shift)
+                                                  fresh_poses=True, shift_radii=shifts[i])
             with self.clock.stage("calibrate"):
                 table.intrinsics = self.calibrate_views()
 

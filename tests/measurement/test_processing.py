@@ -305,13 +305,13 @@ def test_a_tone_curves_shift_of_the_edges_is_taken_off_the_lines_that_place_the_
     differ in side or blur (the rim, and across the blur's gradient), and the focal length with
     the corners. The pooled shift is read back from the lines against the saddle corners and taken
     off them: every corner lands on the truth; a shift the tone test does not name (0.02 of a
-    radius) is left alone."""
+    radius) is left alone, and images of another declared encoding are pooled apart."""
     from types import SimpleNamespace
 
     from lensfit.calibration.camera import Intrinsics
     from lensfit.calibration.targets import Detection, Target
     from lensfit.estimators.base import EdgeTask
-    from lensfit.measurement.edge_geometry import refined_detections, tone_shift
+    from lensfit.measurement.edge_geometry import refined_detections, tone_shift, tone_shifts
 
     target = Target({"id": "board", "kind": "checkerboard", "squares": [10, 7], "square_mm": 20.0})
     obj = target.inner_corners_mm()
@@ -342,3 +342,6 @@ def test_a_tone_curves_shift_of_the_edges_is_taken_off_the_lines_that_place_the_
     assert np.abs(plain - true).max() > 0.2  # the rim's corners, by a share of their blur
     assert np.abs(moved - true).max() < 1e-6
     assert tone_shift({0: first_pass(0.02)}) == 0.0
+    # a RAW file beside the JPEGs keeps its lines: the shift is pooled per declared encoding
+    got = tone_shifts({0: first, 1: first_pass(0.0), 2: first}, ["srgb", "linear", "srgb"])
+    assert got == pytest.approx({0: 0.15, 1: 0.0, 2: 0.15}, abs=1e-9)
