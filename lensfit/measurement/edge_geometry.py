@@ -229,7 +229,7 @@ def tone_shift(first: dict[int, tuple[list, list, list]]) -> float:
     mismatch (``lensfit.measurement.processing``), else 0. (A curve the declared encoding does not
     undo moves every edge toward one side, by a share of its blur; a corner where an unequal
     number or blur of edges meets, as on a board's rim or a tilted board, moves with them, and the
-    calibrated focal length with the corners: +0.5 % through darktable's default at f/5.6.)"""
+    calibrated focal length with the corners: +0.75 % through darktable's default at f/5.6.)"""
     from lensfit.measurement.processing import offset_significant, pooled_offset
 
     offset, sigma, edges = pooled_offset((bright_offset(est, task), est.coc_diameter_px)
@@ -244,7 +244,10 @@ def tone_shifts(first: dict[int, tuple[list, list, list]], encodings: list[str])
     groups: dict[str, dict[int, tuple]] = {}
     for i, passed in first.items():
         groups.setdefault(encodings[i], {})[i] = passed
-    return {i: shift for group in groups.values() for i, shift in dict.fromkeys(group, tone_shift(group)).items()}
+    out: dict[int, float] = {}
+    for group in groups.values():
+        out.update(dict.fromkeys(group, tone_shift(group)))
+    return out
 
 
 def refined_detections(detections: list[Detection], first: tuple[list, list, list], intr, by_id: dict[str, Target],
