@@ -240,13 +240,16 @@ def tone_shift(first: dict[int, tuple[list, list, list]]) -> float:
 
 def tone_shifts(first: dict[int, tuple[list, list, list]], encodings: list[str]) -> dict[int, float]:
     """:func:`tone_shift` per image of ``first``, pooled over the images of one declared encoding
-    (``encodings``, by image): a RAW file beside its camera's JPEG has no tone curve."""
+    (``encodings``, by image): a RAW file beside its camera's JPEG has no tone curve. Images
+    declared linear keep their lines: there an offset is more often the lens's (edges across a
+    steep depth, a macro lens's, read 0.03-0.2 of a radius off the corners' lines) than a curve's,
+    and a linear file with a curve left in has its f-number refused anyway."""
     groups: dict[str, dict[int, tuple]] = {}
     for i, passed in first.items():
         groups.setdefault(encodings[i], {})[i] = passed
     out: dict[int, float] = {}
-    for group in groups.values():
-        out.update(dict.fromkeys(group, tone_shift(group)))
+    for encoding, group in groups.items():
+        out.update(dict.fromkeys(group, 0.0 if encoding == "linear" else tone_shift(group)))
     return out
 
 

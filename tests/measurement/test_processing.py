@@ -345,3 +345,4 @@ def test_a_tone_curves_shift_of_the_edges_is_taken_off_the_lines_that_place_the_
     # a RAW file beside the JPEGs keeps its lines: the shift is pooled per declared encoding
     got = tone_shifts({0: first, 1: first_pass(0.0), 2: first}, ["srgb", "linear", "srgb"])
     assert got == pytest.approx({0: 0.15, 1: 0.0, 2: 0.15}, abs=1e-9)
+    assert tone_shifts({0: first}, ["linear"]) == {0: 0.0}  # (declared linear: the lines are the lens's)
