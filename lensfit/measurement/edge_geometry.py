@@ -223,7 +223,13 @@ def _psd(cov: tuple[float, float, float]) -> np.ndarray | None:
 DISTORTION_SCALE_RANGE = (0.2, 5.0)
 
 
-def tone_shift(first: dict[int, tuple[list, list, list]]) -> float:
+#: Targets whose corners are saddle points, which a monotone tone curve leaves in place: only
+#: their lines through the corners say where a lens drew the edges (a slanted square's convex
+#: corners read off them, and its edges 0.3 of a radius from those lines in linear renders).
+SADDLE_KINDS = ("charuco", "checkerboard")
+
+
+def tone_shift(first: dict[int, tuple[list, list, list]], by_id: dict[str, Target] | None = None) -> float:
     """How far a tone curve moved the first pass's edges toward their bright side, in blur radii:
     their pooled offset from the lines through the target's corners where it names a tone
     mismatch (``lensfit.measurement.processing``), else 0. (A curve the declared encoding does not
@@ -233,23 +239,26 @@ def tone_shift(first: dict[int, tuple[list, list, list]]) -> float:
     from lensfit.measurement.processing import offset_significant, pooled_offset
 
     offset, sigma, edges = pooled_offset((bright_offset(est, task), est.coc_diameter_px)
-                                         for tasks, _meta, estimates in first.values()
-                                         for task, est in zip(tasks, estimates))
+                                         for tasks, meta, estimates in first.values()
+                                         for task, (tid, *_), est in zip(tasks, meta, estimates)
+                                         if by_id is None or by_id[tid].kind in SADDLE_KINDS)
     return offset if offset_significant(offset, sigma, edges) else 0.0
 
 
-def tone_shifts(first: dict[int, tuple[list, list, list]], encodings: list[str]) -> dict[int, float]:
+def tone_shifts(first: dict[int, tuple[list, list, list]], encodings: list[str],
+                by_id: dict[str, Target]) -> dict[int, float]:
     """:func:`tone_shift` per image of ``first``, pooled over the images of one declared encoding
     (``encodings``, by image): a RAW file beside its camera's JPEG has no tone curve. Images
     declared linear keep their lines: there an offset is more often the lens's (edges across a
     steep depth, a macro lens's, read 0.03-0.2 of a radius off the corners' lines) than a curve's,
-    and a linear file with a curve left in has its f-number refused anyway."""
+    and a linear file with a curve left in has its f-number refused anyway. Only the edges of
+    ``SADDLE_KINDS`` targets (``by_id``: the targets by id) are pooled."""
     groups: dict[str, dict[int, tuple]] = {}
     for i, passed in first.items():
         groups.setdefault(encodings[i], {})[i] = passed
     out: dict[int, float] = {}
     for encoding, group in groups.items():
-        out.update(dict.fromkeys(group, 0.0 if encoding == "linear" else tone_shift(group)))
+        out.update(dict.fromkeys(group, 0.0 if encoding == "linear" else tone_shift(group, by_id)))
     return out
 
 

@@ -408,7 +408,7 @@ class _Run:
         """The corners moved through the measured edge lines, and the settings calibrated again."""
         stack, table = self.stack, self.table
         before = dict(table.intrinsics)
-        shifts = tone_shifts(first, [im.encoding for im in stack.images])
+        shifts = tone_shifts(first, [im.encoding for im in stack.images], self.by_id)
         for i in range(self.n):
             if stack.images[i].setting in table.intrinsics:  # (not a setting left out)
                 self.detections[i] = refined_detections(self.detections[i], first[i],

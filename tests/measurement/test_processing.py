@@ -343,6 +343,8 @@ def test_a_tone_curves_shift_of_the_edges_is_taken_off_the_lines_that_place_the_
     assert np.abs(moved - true).max() < 1e-6
     assert tone_shift({0: first_pass(0.02)}) == 0.0
     # a RAW file beside the JPEGs keeps its lines: the shift is pooled per declared encoding
-    got = tone_shifts({0: first, 1: first_pass(0.0), 2: first}, ["srgb", "linear", "srgb"])
+    got = tone_shifts({0: first, 1: first_pass(0.0), 2: first}, ["srgb", "linear", "srgb"], {"board": target})
     assert got == pytest.approx({0: 0.15, 1: 0.0, 2: 0.15}, abs=1e-9)
-    assert tone_shifts({0: first}, ["linear"]) == {0: 0.0}  # (declared linear: the lines are the lens's)
+    assert tone_shifts({0: first}, ["linear"], {"board": target}) == {0: 0.0}  # (declared linear: the lens's lines)
+    squares = Target({"id": "board", "kind": "slanted-edge", "squares": [10, 7], "square_mm": 20.0})
+    assert tone_shifts({0: first}, ["srgb"], {"board": squares}) == {0: 0.0}  # (no saddle corners)
