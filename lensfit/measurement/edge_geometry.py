@@ -229,10 +229,11 @@ DISTORTION_SCALE_RANGE = (0.2, 5.0)
 SADDLE_KINDS = ("charuco", "checkerboard")
 
 
-def tone_shift(first: dict[int, tuple[list, list, list]], by_id: dict[str, Target] | None = None) -> float:
+def tone_shift(first: dict[int, tuple[list, list, list]], by_id: dict[str, Target]) -> float:
     """How far a tone curve moved the first pass's edges toward their bright side, in blur radii:
     their pooled offset from the lines through the target's corners where it names a tone
-    mismatch (``lensfit.measurement.processing``), else 0. (A curve the declared encoding does not
+    mismatch (``lensfit.measurement.processing``), else 0; over the edges of ``SADDLE_KINDS``
+    targets alone (``by_id``: the targets by id). (A curve the declared encoding does not
     undo moves every edge toward one side, by a share of its blur; a corner where an unequal
     number or blur of edges meets, as on a board's rim or a tilted board, moves with them, and the
     calibrated focal length with the corners: +0.75 % through darktable's default at f/5.6.)"""
@@ -241,7 +242,7 @@ def tone_shift(first: dict[int, tuple[list, list, list]], by_id: dict[str, Targe
     offset, sigma, edges = pooled_offset((bright_offset(est, task), est.coc_diameter_px)
                                          for tasks, meta, estimates in first.values()
                                          for task, (tid, *_), est in zip(tasks, meta, estimates)
-                                         if by_id is None or by_id[tid].kind in SADDLE_KINDS)
+                                         if by_id[tid].kind in SADDLE_KINDS)
     return offset if offset_significant(offset, sigma, edges) else 0.0
 
 
@@ -249,10 +250,8 @@ def tone_shifts(first: dict[int, tuple[list, list, list]], encodings: list[str],
                 by_id: dict[str, Target]) -> dict[int, float]:
     """:func:`tone_shift` per image of ``first``, pooled over the images of one declared encoding
     (``encodings``, by image): a RAW file beside its camera's JPEG has no tone curve. Images
-    declared linear keep their lines: there an offset is more often the lens's (edges across a
-    steep depth, a macro lens's, read 0.03-0.2 of a radius off the corners' lines) than a curve's,
-    and a linear file with a curve left in has its f-number refused anyway. Only the edges of
-    ``SADDLE_KINDS`` targets (``by_id``: the targets by id) are pooled."""
+    declared linear keep their lines (a linear file with a curve left in has its f-number refused
+    anyway)."""
     groups: dict[str, dict[int, tuple]] = {}
     for i, passed in first.items():
         groups.setdefault(encodings[i], {})[i] = passed

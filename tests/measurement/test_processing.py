@@ -335,13 +335,13 @@ def test_a_tone_curves_shift_of_the_edges_is_taken_off_the_lines_that_place_the_
 
     rough = Detection("board", obj, true + rng.normal(0, 0.1, true.shape), np.arange(len(obj)))
     first = first_pass(0.15)
-    shift = tone_shift({0: first})
+    shift = tone_shift({0: first}, {"board": target})
     assert shift == pytest.approx(0.15, abs=1e-9)
     plain = refined_detections([rough], first, intr, {"board": target})[0].image_points_px
     moved = refined_detections([rough], first, intr, {"board": target}, shift_radii=shift)[0].image_points_px
     assert np.abs(plain - true).max() > 0.2  # the rim's corners, by a share of their blur
     assert np.abs(moved - true).max() < 1e-6
-    assert tone_shift({0: first_pass(0.02)}) == 0.0
+    assert tone_shift({0: first_pass(0.02)}, {"board": target}) == 0.0
     # a RAW file beside the JPEGs keeps its lines: the shift is pooled per declared encoding
     got = tone_shifts({0: first, 1: first_pass(0.0), 2: first}, ["srgb", "linear", "srgb"], {"board": target})
     assert got == pytest.approx({0: 0.15, 1: 0.0, 2: 0.15}, abs=1e-9)
